@@ -1,0 +1,214 @@
+"""Input checks used once, at the public boundary of every greybox function.
+
+Messages follow the pattern "what, found, expected, hint". Nothing here
+computes results; these helpers only convert and check.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import control as ct
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .exceptions import CovarianceError, DataError, DimensionError, ModelError
+
+__all__ = [
+    "check_matrix",
+    "check_covariance",
+    "check_signal",
+    "check_same_length",
+    "check_discrete",
+    "check_statespace",
+    "resolve_channels",
+    "check_positive",
+]
+
+
+def check_positive(value, name: str, *, integer: bool = False, allow_zero: bool = False):
+    """Return ``value`` if it is a finite positive number (or integer)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a number; found {value!r}") from e
+    if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise DataError(f"{name} must be finite and {bound}; found {value!r}")
+    if integer:
+        if int(v) != v:
+            raise DimensionError(f"{name} must be an integer; found {value!r}")
+        return int(v)
+    return v
+
+
+def check_matrix(M: ArrayLike, shape: tuple[int, int], name: str) -> NDArray[np.float64]:
+    """Convert ``M`` to a finite float 2-D array of the given shape.
+
+    A scalar is accepted for a (1, 1) matrix; a 1-D array of length n is
+    accepted for shape (n, 1) or (1, n) when unambiguous.
+    """
+    try:
+        A = np.array(M, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
+    if A.ndim == 0 and shape == (1, 1):
+        A = A.reshape(1, 1)
+    elif A.ndim == 1:
+        if shape[1] == 1 and A.size == shape[0]:
+            A = A.reshape(shape)
+        elif shape[0] == 1 and A.size == shape[1]:
+            A = A.reshape(shape)
+    if A.shape != tuple(shape):
+        raise DimensionError(f"{name} has shape {A.shape}; expected {tuple(shape)}")
+    if not np.all(np.isfinite(A)):
+        raise DataError(f"{name} contains NaN or inf; all entries must be finite")
+    return A
+
+
+def check_covariance(
+    M: ArrayLike, n: int, name: str, *, definite: bool = True, rtol: float = 1e-10
+) -> NDArray[np.float64]:
+    """Check a covariance matrix: shape (n, n), finite, symmetric, PD or PSD.
+
+    A 1-D array of length n is read as a diagonal; a scalar with n == 1 as 1x1.
+
+    Parameters
+    ----------
+    definite : bool
+        If True the matrix must be positive definite, otherwise positive
+        semidefinite.
+    """
+    A = np.array(M, dtype=float) if not np.isscalar(M) else np.array([[float(M)]])
+    if A.ndim == 1 and A.size == n:
+        A = np.diag(A)
+    A = check_matrix(A, (n, n), name)
+    if n == 0:
+        return A
+    scale = max(np.max(np.abs(A)), np.finfo(float).tiny)
+    if np.max(np.abs(A - A.T)) > rtol * scale * 1e3:
+        raise CovarianceError(
+            f"{name} is not symmetric (max |{name} - {name}.T| = "
+            f"{np.max(np.abs(A - A.T)):.3g}); pass a symmetric matrix, e.g. ({name} + {name}.T)/2"
+        )
+    A = 0.5 * (A + A.T)
+    w = np.linalg.eigvalsh(A)
+    if definite and w.min() <= rtol * scale:
+        raise CovarianceError(
+            f"{name} is not positive definite (smallest eigenvalue {w.min():.3g}); "
+            f"a covariance here must be > 0: add a small positive diagonal"
+        )
+    if not definite and w.min() < -1e-8 * scale:
+        raise CovarianceError(
+            f"{name} is not positive semidefinite (smallest eigenvalue {w.min():.3g}); "
+            f"check its sign and symmetry"
+        )
+    return A
+
+
+def check_signal(
+    y: ArrayLike,
+    nrows: int,
+    name: str,
+    *,
+    min_steps: int = 1,
+    allow_nan: bool = False,
+) -> NDArray[np.float64]:
+    """Convert a signal to a float array of shape (nrows, nsteps).
+
+    Time is the last axis. A 1-D array is accepted when ``nrows == 1``.
+    """
+    try:
+        a = np.array(y, dtype=float)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
+    if a.ndim == 1 and nrows == 1:
+        a = a.reshape(1, -1)
+    if a.ndim != 2 or a.shape[0] != nrows:
+        hint = ""
+        if a.ndim == 2 and a.shape[1] == nrows:
+            hint = " (time must be the last axis: pass the transpose)"
+        raise DimensionError(
+            f"{name} has shape {a.shape}; expected ({nrows}, nsteps){hint}"
+        )
+    if a.shape[1] < min_steps:
+        raise DataError(
+            f"{name} has {a.shape[1]} samples; at least {min_steps} are needed"
+        )
+    if not allow_nan and not np.all(np.isfinite(a)):
+        bad = np.argwhere(~np.isfinite(a))[0]
+        raise DataError(
+            f"{name} contains NaN or inf (first at signal {bad[0]}, sample {bad[1]}); "
+            f"remove or interpolate those samples"
+        )
+    if allow_nan and np.any(np.isinf(a)):
+        raise DataError(f"{name} contains inf; measurements must be finite or NaN (missing)")
+    return a
+
+
+def check_same_length(*named: tuple[str, NDArray]) -> int:
+    """Check that several (name, signal) pairs share their last-axis length."""
+    lengths = {name: a.shape[-1] for name, a in named}
+    if len(set(lengths.values())) > 1:
+        desc = ", ".join(f"{k}: {v}" for k, v in lengths.items())
+        raise DimensionError(f"signals have different numbers of samples ({desc}); they must match")
+    return next(iter(lengths.values()))
+
+
+def check_statespace(sys, name: str = "sys") -> ct.StateSpace:
+    """Check that ``sys`` is a python-control StateSpace with finite matrices."""
+    if not isinstance(sys, ct.StateSpace):
+        raise ModelError(
+            f"{name} must be a control.StateSpace; found {type(sys).__name__}. "
+            f"Convert it with control.ss(...)"
+        )
+    for m in ("A", "B", "C", "D"):
+        if not np.all(np.isfinite(getattr(sys, m))):
+            raise DataError(f"{name}.{m} contains NaN or inf")
+    return sys
+
+
+def check_discrete(sys, name: str = "sys") -> ct.StateSpace:
+    """Check that ``sys`` is a discrete-time StateSpace with a numeric sampling period."""
+    check_statespace(sys, name)
+    if sys.dt is None or sys.dt is False or sys.dt == 0:
+        raise ModelError(
+            f"{name} is a continuous-time model (dt={sys.dt!r}); a discrete-time model is "
+            f"needed. Discretize it first, e.g. greybox.discretize(sys, dt) (ZOH)"
+        )
+    if sys.dt is True:
+        raise ModelError(
+            f"{name} has an unspecified sampling period (dt=True); give it a numeric dt [s]"
+        )
+    return sys
+
+
+def resolve_channels(
+    channels: int | str | Sequence[int | str] | None,
+    labels: Sequence[str],
+    name: str,
+) -> list[int]:
+    """Turn channel labels or indices into a sorted list of unique indices."""
+    if channels is None:
+        return []
+    if isinstance(channels, (int, np.integer, str)):
+        channels = [channels]
+    out: list[int] = []
+    for c in channels:
+        if isinstance(c, str):
+            if c not in labels:
+                raise DimensionError(
+                    f"{name}: no signal named {c!r}; available: {list(labels)}"
+                )
+            out.append(list(labels).index(c))
+        elif isinstance(c, (int, np.integer)):
+            if not 0 <= int(c) < len(labels):
+                raise DimensionError(
+                    f"{name}: index {int(c)} out of range; expected 0..{len(labels) - 1}"
+                )
+            out.append(int(c))
+        else:
+            raise DimensionError(f"{name}: entries must be labels or indices; found {c!r}")
+    if len(set(out)) != len(out):
+        raise DimensionError(f"{name}: channels repeated in {list(channels)}")
+    return out
