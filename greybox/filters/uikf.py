@@ -1,0 +1,628 @@
+"""Unbiased minimum-variance input and state filter (Gillijns & De Moor, eqs. 7-18).
+
+The model (5)-(6)::
+
+    x[k+1] = A x[k] + B u[k] + G d[k] + w[k],   w ~ N(0, Q)
+    y[k]   = C x[k] + D u[k]          + v[k],   v ~ N(0, R)
+
+with an unknown input ``d`` (the model error) of dimension md. The Kalman
+filter that ignores d is the same recursion with G = 0 (:func:`kalman_filter`).
+
+Time alignment: the measurement y[k] yields the estimate of d[k-1]. The
+result stores ``d_est[:, j]`` as the estimate of d[j]; its last column is
+NaN because d[N-1] would need y[N].
+
+Missing data: a NaN sample in ``y`` or ``u`` raises :class:`DataError`. The
+unknown-input filter has no prior on d, so a skipped measurement leaves
+x[k] with unbounded uncertainty along G; interpolate, or split the record.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import control as ct
+import numpy as np
+import scipy.linalg as sla
+from numpy.typing import ArrayLike, NDArray
+from scipy.stats import norm
+
+from .._lti import lti_states
+from .._validation import (
+    check_covariance,
+    check_discrete,
+    check_positive,
+    check_same_length,
+    check_signal,
+)
+from ..exceptions import DataError, DimensionError, GreyboxError, ModelError, RankConditionError
+from ..system import named_ss, split_inputs
+
+__all__ = [
+    "FilterResult",
+    "SteadyStateFilter",
+    "uikf",
+    "kalman_filter",
+    "steady_state_filter",
+    "check_rank_condition",
+]
+
+
+# --------------------------------------------------------------------------- records
+@dataclass(frozen=True)
+class SteadyStateFilter:
+    """Converged gains of the unknown-input filter (or of the Kalman filter, md = 0).
+
+    Attributes
+    ----------
+    K : ndarray, shape (nstates, noutputs)
+        Measurement-update gain (18).
+    M : ndarray, shape (md, noutputs)
+        Input-estimation gain (16).
+    L : ndarray, shape (nstates, noutputs)
+        Combined gain: ``x[k|k] = x[k|k-1] + L (y[k] - C x[k|k-1] - D u[k])``.
+    P_pred : ndarray, shape (nstates, nstates)
+        Converged ``P[k|k-1]``.
+    P_filt : ndarray, shape (nstates, nstates)
+        Converged ``P[k|k]``.
+    d_cov : ndarray, shape (md, md)
+        Converged variance of the input estimate, ``Pd`` (16).
+    innovation_cov : ndarray, shape (noutputs, noutputs)
+        Converged ``R~ = C P[k|k-1] C^T + R`` (15).
+    iterations : int
+        Number of covariance iterations until convergence.
+    sys : control.StateSpace
+        The converged filter as a discrete system: inputs ``[u, y]``, outputs
+        ``[x^[k|k], d^[k-1]]`` (see :func:`steady_state_filter`).
+    """
+
+    K: NDArray[np.float64]
+    M: NDArray[np.float64]
+    L: NDArray[np.float64]
+    P_pred: NDArray[np.float64]
+    P_filt: NDArray[np.float64]
+    d_cov: NDArray[np.float64]
+    innovation_cov: NDArray[np.float64]
+    iterations: int
+    sys: ct.StateSpace = field(repr=False)
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """Result of :func:`uikf` or :func:`kalman_filter`.
+
+    Attributes
+    ----------
+    t : ndarray, shape (nsteps,)
+        Time [s].
+    x_filt : ndarray, shape (nstates, nsteps)
+        Filtered state ``x^[k|k]``.
+    x_pred : ndarray, shape (nstates, nsteps)
+        Predicted state ``x^[k|k-1]`` (``x_pred[:, 0]`` is the prior x0).
+    d_est : ndarray, shape (md, nsteps)
+        ``d_est[:, j]`` estimates d[j]; the last column is NaN (d[N-1] needs y[N]).
+        md = 0 for the Kalman filter.
+    d_var : ndarray, shape (md, nsteps)
+        Variance of each entry of ``d_est`` (diagonal of Pd (16)); NaN where
+        d_est is NaN. Units: those of d squared.
+    d_cov : ndarray, shape (md, md)
+        Full covariance Pd of the last input estimate.
+    level : float
+        Confidence level of ``d_lower``/``d_upper``.
+    innovations : ndarray, shape (noutputs, nsteps)
+        ``y[k] - C x^[k|k-1] - D u[k]``: one-step prediction residuals (they
+        contain the unknown input's effect ``C G d[k-1]``).
+    innovation_cov : ndarray, shape (noutputs, noutputs)
+        Last ``R~ = C P[k|k-1] C^T + R``.
+    P_filt, P_pred : ndarray, shape (nstates, nstates)
+        Last ``P[k|k]`` and ``P[k|k-1]``.
+    P_filt_history : ndarray, shape (nstates, nstates, nsteps) or None
+        Every ``P[k|k]`` if requested with ``store_covariances=True``.
+    K : ndarray, shape (nstates, noutputs)
+        Last measurement-update gain.
+    M : ndarray, shape (md, noutputs)
+        Last input-estimation gain.
+    converged : bool
+        Whether the covariance recursion converged.
+    period_converged : int or None
+        First sample index from which the constant gains were used.
+    sys : control.StateSpace
+        Model from the known inputs (A, B, C, D) with its signal names.
+    G : ndarray, shape (nstates, md)
+        Unknown-input matrix.
+    unknown_labels : tuple of str
+        Names of the unknown inputs.
+    u, y : ndarray
+        The data the filter ran on, shapes (ninputs, nsteps), (noutputs, nsteps).
+    """
+
+    t: NDArray[np.float64]
+    x_filt: NDArray[np.float64]
+    x_pred: NDArray[np.float64]
+    d_est: NDArray[np.float64]
+    d_var: NDArray[np.float64]
+    d_cov: NDArray[np.float64]
+    level: float
+    innovations: NDArray[np.float64]
+    innovation_cov: NDArray[np.float64]
+    P_filt: NDArray[np.float64]
+    P_pred: NDArray[np.float64]
+    P_filt_history: NDArray[np.float64] | None
+    K: NDArray[np.float64]
+    M: NDArray[np.float64]
+    converged: bool
+    period_converged: int | None
+    sys: ct.StateSpace = field(repr=False)
+    G: NDArray[np.float64] = field(repr=False)
+    unknown_labels: tuple[str, ...]
+    u: NDArray[np.float64] = field(repr=False)
+    y: NDArray[np.float64] = field(repr=False)
+
+    @property
+    def y_filt(self) -> NDArray[np.float64]:
+        """Filtered output ``C x^[k|k] + D u[k]``, shape (noutputs, nsteps)."""
+        return np.asarray(self.sys.C) @ self.x_filt + np.asarray(self.sys.D) @ self.u
+
+    @property
+    def y_pred(self) -> NDArray[np.float64]:
+        """One-step prediction ``C x^[k|k-1] + D u[k]``, shape (noutputs, nsteps)."""
+        return self.y - self.innovations
+
+    @property
+    def d_halfwidth(self) -> NDArray[np.float64]:
+        """Half-width of the ``level`` confidence interval of d_est, shape (md, nsteps)."""
+        return norm.ppf(0.5 + self.level / 2) * np.sqrt(self.d_var)
+
+    @property
+    def d_lower(self) -> NDArray[np.float64]:
+        """Lower bound of the ``level`` confidence interval of d_est, shape (md, nsteps)."""
+        return self.d_est - self.d_halfwidth
+
+    @property
+    def d_upper(self) -> NDArray[np.float64]:
+        """Upper bound of the ``level`` confidence interval of d_est, shape (md, nsteps)."""
+        return self.d_est + self.d_halfwidth
+
+    def plot(self, channel: int | str = 0, *, d_true=None, ax=None):
+        """Plot d_est with its confidence band (see :func:`greybox.plotting.plot_unknown_input`)."""
+        from ..plotting import plot_unknown_input
+
+        return plot_unknown_input(self, channel, d_true=d_true, ax=ax)
+
+
+# --------------------------------------------------------------------------- checks
+def check_rank_condition(C: NDArray, G: NDArray, labels: Sequence[str] = ()) -> None:
+    """Check the existence condition (17): rank(C G) = rank(G) = md.
+
+    Raises
+    ------
+    RankConditionError
+        Naming the condition and the offending channels.
+    """
+    md = G.shape[1]
+    if md == 0:
+        return
+    labels = list(labels) or [f"d[{j}]" for j in range(md)]
+    if md > C.shape[0]:
+        raise RankConditionError(
+            f"{md} unknown inputs {labels} but only {C.shape[0]} outputs: rank(C G) = md "
+            f"(17) needs at least md outputs. Use fewer unknown-input channels"
+        )
+    tol = 1e-9
+    sG = np.linalg.svd(G, compute_uv=False)
+    rG = int(np.sum(sG > tol * max(sG.max(), np.finfo(float).tiny)))
+    if rG < md:
+        raise RankConditionError(
+            f"rank(G) = {rG} < md = {md}: the unknown-input channels {labels} are linearly "
+            f"dependent (17). Merge dependent channels into one"
+        )
+    F = C @ G
+    sF = np.linalg.svd(F, compute_uv=False)
+    scale = np.linalg.norm(C, 2) * np.linalg.norm(G, 2)
+    rF = int(np.sum(sF > tol * scale))
+    if rF < md:
+        dead = [labels[j] for j in range(md)
+                if np.linalg.norm(F[:, j]) <= tol * scale]
+        which = f" channel(s) {dead} do not reach any output" if dead else \
+            f" channels {labels} are not separable in the outputs"
+        raise RankConditionError(
+            f"Unknown input not observable: rank(C @ G) = {rF} < md = {md} (17);{which}. "
+            f"Measure a state that the unknown input drives directly, or choose other channels"
+        )
+
+
+def _split(sys, unknown, allow_no_unknown, check_rank=True):
+    """Split ``sys`` into the known-input model and G; check (17)."""
+    check_discrete(sys)
+    if unknown is None or (not isinstance(unknown, (str, int, np.integer)) and len(unknown) == 0):
+        if not allow_no_unknown:
+            raise DimensionError("unknown: name at least one unknown-input channel of sys "
+                                 f"(its inputs are {sys.input_labels})")
+        model, G, H, labels = sys, np.zeros((sys.nstates, 0)), np.zeros((sys.noutputs, 0)), ()
+    else:
+        sp = split_inputs(sys, unknown)
+        model, G, H, labels = sp.sys, sp.G, sp.H, sp.unknown_labels
+    if check_rank and np.any(np.abs(H) > 0):
+        raise ModelError(
+            f"the unknown inputs {list(labels)} feed through to the outputs (D != 0 on those "
+            f"columns); the filter assumes y = C x + D u + v with no direct term from d"
+        )
+    A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
+    if check_rank:
+        check_rank_condition(C, G, labels)
+    return model, A, B, C, D, G, tuple(labels)
+
+
+def _prepare(sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown, check_rank=True):
+    """Validate everything once; return split model pieces and data arrays."""
+    model, A, B, C, D, G, labels = _split(sys, unknown, allow_no_unknown, check_rank)
+    n, m, p = model.nstates, model.ninputs, model.noutputs
+    y = check_signal(y, p, "y", min_steps=2)
+    if u is None:
+        if m:
+            raise DimensionError(f"the model has {m} known inputs {model.input_labels}; "
+                                 f"pass u with shape ({m}, nsteps)")
+        u = np.zeros((0, y.shape[1]))
+    u = check_signal(u, m, "u")
+    check_same_length(("y", y), ("u", u))
+    Q = check_covariance(Q, n, "Q", definite=False)
+    R = check_covariance(R, p, "R", definite=True)
+    x0 = np.zeros(n) if x0 is None else np.asarray(x0, dtype=float).reshape(-1)
+    if x0.shape != (n,):
+        raise DimensionError(f"x0 has {x0.size} entries; expected nstates = {n}")
+    if not np.all(np.isfinite(x0)):
+        raise DataError("x0 contains NaN or inf; give a finite initial state")
+    P0 = np.eye(n) if P0 is None else P0
+    P0 = check_covariance(P0, n, "P0", definite=False)
+    return model, A, B, C, D, G, labels, y, u, Q, R, x0, P0
+
+
+# --------------------------------------------------------------------------- kernels
+def _measurement_gains(Pp, C, G, R):
+    """Gains of one step from P[k|k-1]: (K, M, Pd, Rt, Pf_from_Pp)."""
+    Rt = C @ Pp @ C.T + R
+    Rt = 0.5 * (Rt + Rt.T)
+    cf = sla.cho_factor(Rt)
+    K = sla.cho_solve(cf, C @ Pp).T  # Pp C' Rt^-1
+    md = G.shape[1]
+    if md:
+        F = C @ G
+        RiF = sla.cho_solve(cf, F)
+        Pd = np.linalg.inv(F.T @ RiF)
+        Pd = 0.5 * (Pd + Pd.T)
+        M = Pd @ RiF.T
+        GKF = G - K @ F
+        Pf = Pp - K @ Rt @ K.T + GKF @ Pd @ GKF.T
+    else:
+        Pd = np.zeros((0, 0))
+        M = np.zeros((0, C.shape[0]))
+        Pf = Pp - K @ Rt @ K.T
+    return K, M, Pd, Rt, 0.5 * (Pf + Pf.T)
+
+
+def _combined_gain(K, M, G, C):
+    """L with x[k|k] = x[k|k-1] + L e, e the innovation (compensation then update)."""
+    F = C @ G
+    return G @ M + K - K @ F @ M
+
+
+def _filter_statespace(A, B, C, D, G, L, M, model, labels):
+    """The constant-gain filter as a discrete StateSpace: (u, y) -> (x^[k|k], d^[k-1])."""
+    n, m = B.shape
+    p = C.shape[0]
+    IL = np.eye(n) - L @ C
+    Af = A @ IL
+    Bf = np.hstack([B - A @ L @ D, A @ L])
+    Cf = np.vstack([IL, -M @ C])
+    Df = np.block([[-L @ D, L], [-M @ D, M]])
+    ins = [f"{s}" for s in model.input_labels] + [f"{s}_meas" for s in model.output_labels]
+    outs = [f"{s}_hat" for s in model.state_labels] + [f"{s}_hat" for s in labels]
+    states = [f"{s}_pred" for s in model.state_labels]
+    return named_ss(Af, Bf, Cf, Df, model.dt, states=states, inputs=ins, outputs=outs,
+                    name="unknown_input_filter" if G.shape[1] else "kalman_filter")
+
+
+def _iterate_to_steady_state(A, C, G, Q, R, P0, tol, maxiter):
+    Pp = A @ P0 @ A.T + Q if P0 is not None else Q.copy()
+    for it in range(1, maxiter + 1):
+        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
+        Pn = A @ Pf @ A.T + Q
+        Pn = 0.5 * (Pn + Pn.T)
+        if np.max(np.abs(Pn - Pp)) <= tol * max(np.max(np.abs(Pn)), np.finfo(float).tiny):
+            return Pn, it, True
+        Pp = Pn
+    return Pp, maxiter, False
+
+
+def steady_state_filter(sys: ct.StateSpace, *, Q: ArrayLike, R: ArrayLike,
+                        unknown: int | str | Sequence[int | str] | None = None,
+                        tol: float = 1e-12, maxiter: int = 100_000) -> SteadyStateFilter:
+    """Converged unknown-input filter (or Kalman filter if ``unknown`` is None).
+
+    The covariance recursion (14)-(18) does not depend on data; for a
+    time-invariant model it converges, and the filter becomes a linear
+    time-invariant system from ``(u, y)`` to ``(x^[k|k], d^[k-1])``:
+
+    .. math::
+
+        \\hat x[k|k-1]_{+} = A (I - L C) \\hat x[k|k-1] + (B - A L D) u[k] + A L y[k]
+
+    with outputs ``x^[k|k] = (I - L C) x^[k|k-1] - L D u[k] + L y[k]`` and
+    ``d^[k-1] = M (y[k] - C x^[k|k-1] - D u[k])``.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete model with inputs ``[u, d]``.
+    Q : array_like, shape (nstates, nstates)
+        Process-noise covariance (PSD).
+    R : array_like, shape (noutputs, noutputs)
+        Measurement-noise covariance (PD).
+    unknown : label(s) or index(es), optional
+        Unknown-input channels of ``sys``; None gives the Kalman filter.
+    tol : float
+        Relative change of ``P[k|k-1]`` (max norm) that counts as converged.
+    maxiter : int
+        Iteration limit.
+
+    Returns
+    -------
+    SteadyStateFilter
+        With ``.sys`` a python-control StateSpace: inputs ``u`` then measured
+        ``y`` (named ``<output>_meas``), outputs ``<state>_hat`` then
+        ``<d>_hat``. Note the d output at step k estimates d[k-1].
+
+    Raises
+    ------
+    GreyboxError
+        If the recursion does not converge within ``maxiter``.
+    """
+    model, A, B, C, D, G, labels = _split(sys, unknown, allow_no_unknown=True)
+    n = sys.nstates
+    Q = check_covariance(Q, n, "Q", definite=False)
+    R = check_covariance(R, sys.noutputs, "R", definite=True)
+    return _steady(A, B, C, D, G, Q, R, model, labels, tol, maxiter, P0=None)
+
+
+def _steady(A, B, C, D, G, Q, R, model, labels, tol, maxiter, P0):
+    Pp, it, ok = _iterate_to_steady_state(A, C, G, Q, R, P0, tol, maxiter)
+    if not ok:
+        raise GreyboxError(
+            f"the filter's covariance recursion did not converge in {maxiter} iterations; "
+            f"check that (A, C) is detectable and that Q is not zero on unstable modes"
+        )
+    K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
+    L = _combined_gain(K, M, G, C)
+    ss = _filter_statespace(A, B, C, D, G, L, M, model, labels)
+    return SteadyStateFilter(K=K, M=M, L=L, P_pred=Pp, P_filt=Pf, d_cov=Pd,
+                             innovation_cov=Rt, iterations=it, sys=ss)
+
+
+def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
+         store_covariances) -> FilterResult:
+    n, N = A.shape[0], y.shape[1]
+    p, md = C.shape[0], G.shape[1]
+    x_filt = np.empty((n, N))
+    x_pred = np.empty((n, N))
+    innov = np.empty((p, N))
+    d_est = np.full((md, N), np.nan)
+    d_var = np.full((md, N), np.nan)
+    Phist = np.empty((n, n, N)) if store_covariances else None
+    Bu = B @ u
+    Du = D @ u
+    # k = 0: plain measurement update of the prior (no d[-1] to estimate)
+    Pp = P0
+    K, _, _, Rt, Pf = _measurement_gains(Pp, C, np.zeros((n, 0)), R)
+    x_pred[:, 0] = x0
+    innov[:, 0] = y[:, 0] - C @ x0 - Du[:, 0]
+    x_filt[:, 0] = x0 + K @ innov[:, 0]
+    if Phist is not None:
+        Phist[:, :, 0] = Pf
+    M = np.zeros((md, p))
+    Pd = np.zeros((md, md))
+    converged, kconv = False, None
+    Pp_prev = None
+    k = 1
+    while k < N:
+        Pp = A @ Pf @ A.T + Q
+        Pp = 0.5 * (Pp + Pp.T)
+        if gain == "auto" and Pp_prev is not None and np.max(np.abs(Pp - Pp_prev)) <= \
+                tol * max(np.max(np.abs(Pp)), np.finfo(float).tiny):
+            converged, kconv = True, k
+            break
+        Pp_prev = Pp
+        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
+        xp = A @ x_filt[:, k - 1] + Bu[:, k - 1]
+        e = y[:, k] - C @ xp - Du[:, k]
+        x_pred[:, k] = xp
+        innov[:, k] = e
+        if md:
+            dh = M @ e
+            d_est[:, k - 1] = dh
+            d_var[:, k - 1] = np.diag(Pd)
+            xs = xp + G @ dh
+            x_filt[:, k] = xs + K @ (y[:, k] - C @ xs - Du[:, k])
+        else:
+            x_filt[:, k] = xp + K @ e
+        if Phist is not None:
+            Phist[:, :, k] = Pf
+        k += 1
+    if gain == "time-varying" and Pp_prev is not None and N > 2:
+        # report convergence of the recursion even though gains were not frozen
+        Pn = A @ Pf @ A.T + Q
+        converged = bool(np.max(np.abs(Pn - Pp_prev)) <= tol * max(np.max(np.abs(Pn)), 1e-300))
+    if kconv is not None:
+        # constant-gain fast path from sample kconv on, no per-sample Python loop
+        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
+        L = _combined_gain(K, M, G, C)
+        IL = np.eye(n) - L @ C
+        xp0 = A @ x_filt[:, kconv - 1] + Bu[:, kconv - 1]
+        ys, Dus, Bus = y[:, kconv:], Du[:, kconv:], Bu[:, kconv:]
+        AL = A @ L
+        drive = A @ (-(L @ Dus)) + Bus + AL @ ys
+        xp = lti_states(A @ IL, drive, xp0)
+        e = ys - C @ xp - Dus
+        x_pred[:, kconv:] = xp
+        innov[:, kconv:] = e
+        x_filt[:, kconv:] = xp + L @ e
+        if md:
+            d_est[:, kconv - 1:N - 1] = M @ e
+            d_var[:, kconv - 1:N - 1] = np.diag(Pd)[:, None]
+        if Phist is not None:
+            Phist[:, :, kconv:] = Pf[:, :, None]
+    t = np.arange(N) * float(model.dt)
+    return FilterResult(
+        t=t, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var, d_cov=Pd, level=level,
+        innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=Pp, P_filt_history=Phist,
+        K=K, M=M, converged=converged, period_converged=kconv, sys=model, G=G,
+        unknown_labels=labels, u=u, y=y,
+    )
+
+
+def _check_options(level, gain, tol):
+    level = check_positive(level, "level")
+    if not 0 < level < 1:
+        raise DimensionError(f"level must be in (0, 1); found {level}")
+    if gain not in ("auto", "time-varying"):
+        raise DimensionError(f"gain must be 'auto' or 'time-varying'; found {gain!r}")
+    tol = check_positive(tol, "tol")
+    return level, gain, tol
+
+
+# --------------------------------------------------------------------------- public
+def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
+         unknown: int | str | Sequence[int | str], Q: ArrayLike, R: ArrayLike,
+         x0: ArrayLike | None = None, P0: ArrayLike | None = None, level: float = 0.95,
+         gain: str = "auto", tol: float = 1e-12, store_covariances: bool = False
+         ) -> FilterResult:
+    """Unbiased minimum-variance input and state filter (Gillijns & De Moor 2007).
+
+    Estimates the states x and the unknown input d of::
+
+        x[k+1] = A x[k] + B u[k] + G d[k] + w[k]
+        y[k]   = C x[k] + D u[k] + v[k]
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete-time model (ZOH-discretized) whose inputs are the known inputs
+        ``u`` and the unknown inputs ``d``; the columns of its B for ``d`` are G.
+    y : array_like, shape (noutputs, nsteps)
+        Measured outputs.
+    u : array_like, shape (ninputs_known, nsteps), optional
+        Measured known inputs (omit if the model has none).
+    unknown : label(s) or index(es)
+        Which inputs of ``sys`` are unknown (md >= 1 of them).
+    Q : array_like, shape (nstates, nstates)
+        Process-noise covariance (PSD).
+    R : array_like, shape (noutputs, noutputs)
+        Measurement-noise covariance (PD).
+    x0 : array_like, shape (nstates,), optional
+        Prior mean of x[0] (zero by default).
+    P0 : array_like, shape (nstates, nstates), optional
+        Prior covariance of x[0] (identity by default).
+    level : float
+        Confidence level of the intervals ``d_lower``/``d_upper`` (0.95).
+    gain : {"auto", "time-varying"}
+        "auto" switches to the constant-gain filter, run without a
+        per-sample Python loop, once ``P[k|k-1]`` has converged;
+        "time-varying" runs the full recursion at every sample.
+    tol : float
+        Relative change of ``P[k|k-1]`` (max norm) that counts as converged.
+    store_covariances : bool
+        Keep every ``P[k|k]`` in ``P_filt_history`` (memory n^2 N).
+
+    Returns
+    -------
+    FilterResult
+
+    Raises
+    ------
+    ModelError
+        ``sys`` is continuous-time, or d feeds through to y.
+    RankConditionError
+        rank(C G) = rank(G) = md (17) fails.
+    DimensionError, DataError, CovarianceError
+        Wrong shapes, NaN/inf data, non-symmetric or indefinite Q, R, P0.
+
+    Notes
+    -----
+    Steps for k >= 1 (eqs. 7-18, covariance update from PAPER_NOTES §2):
+
+    .. math::
+
+        \\hat x_{k|k-1} = A \\hat x_{k-1|k-1} + B u_{k-1},\\quad
+        P_{k|k-1} = A P_{k-1|k-1} A^T + Q
+
+        \\tilde R = C P_{k|k-1} C^T + R,\\ F = C G,\\
+        P_d = (F^T \\tilde R^{-1} F)^{-1},\\ M = P_d F^T \\tilde R^{-1}
+
+        \\hat d_{k-1} = M (y_k - C \\hat x_{k|k-1} - D u_k),\\quad
+        \\hat x^*_{k|k} = \\hat x_{k|k-1} + G \\hat d_{k-1}
+
+        K = P_{k|k-1} C^T \\tilde R^{-1},\\quad
+        \\hat x_{k|k} = \\hat x^*_{k|k} + K (y_k - C \\hat x^*_{k|k} - D u_k)
+
+        P_{k|k} = P_{k|k-1} - K \\tilde R K^T + (G - K F) P_d (G - K F)^T
+
+    At k = 0 the prior (x0, P0) gets a plain Kalman measurement update.
+
+    References
+    ----------
+    S. Gillijns and B. De Moor, "Unbiased minimum-variance input and state
+    estimation for linear discrete-time systems", Automatica 43 (2007) 111-116;
+    "Data-based subsystem identification for dynamic model updating",
+    CDC 2006, eqs. (7)-(18).
+
+    Examples
+    --------
+    >>> import numpy as np, greybox as gb
+    >>> sys = gb.tape_drive_nominal(dt=1e-4)
+    >>> sim = gb.simulate(gb.tape_drive_true(dt=1e-4), np.ones((2, 500)), rng=0)
+    >>> res = gb.uikf(sys, sim.y, sim.u, unknown="T", Q=gb.TAPE_DRIVE_Q * 1e-3,
+    ...               R=gb.TAPE_DRIVE_R)
+    >>> res.d_est.shape
+    (1, 500)
+    """
+    level, gain, tol = _check_options(level, gain, tol)
+    parts = _prepare(sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown=False)
+    return _run(*parts, level=level, gain=gain, tol=tol, store_covariances=store_covariances)
+
+
+def kalman_filter(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
+                  Q: ArrayLike, R: ArrayLike, unknown=None, x0: ArrayLike | None = None,
+                  P0: ArrayLike | None = None, gain: str = "auto", tol: float = 1e-12,
+                  store_covariances: bool = False) -> FilterResult:
+    """Kalman filter that ignores the unknown input (the paper's baseline).
+
+    Same interface and record as :func:`uikf`; it is the same recursion with
+    G = 0. Inputs of ``sys`` listed in ``unknown`` are dropped (their effect is
+    left to the process noise); ``d_est`` then has zero rows.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete-time model.
+    y : array_like, shape (noutputs, nsteps)
+    u : array_like, shape (ninputs_known, nsteps), optional
+    Q : array_like, shape (nstates, nstates)
+    R : array_like, shape (noutputs, noutputs)
+    unknown : label(s) or index(es), optional
+        Inputs of ``sys`` to ignore.
+    x0 : array_like, shape (nstates,), optional
+    P0 : array_like, shape (nstates, nstates), optional
+    gain : {"auto", "time-varying"}
+    tol : float
+    store_covariances : bool
+
+    Returns
+    -------
+    FilterResult
+    """
+    _, gain, tol = _check_options(0.95, gain, tol)
+    parts = list(_prepare(sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown=True,
+                          check_rank=False))
+    parts[5] = np.zeros((parts[1].shape[0], 0))  # G = 0
+    parts[6] = ()
+    return _run(*parts, level=0.95, gain=gain, tol=tol, store_covariances=store_covariances)
