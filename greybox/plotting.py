@@ -7,7 +7,7 @@ that the compute modules never depend on it.
 
 from __future__ import annotations
 
-__all__: list[str] = []
+__all__: list[str] = ["plot_unknown_input"]
 
 
 def _plt():
@@ -25,3 +25,46 @@ def _axes(ax, nrows: int = 1, figsize=None):
         return fig, list(axs[:, 0])
     axs = list(ax) if isinstance(ax, (list, tuple)) else [ax]
     return axs[0].figure, axs
+
+
+def plot_unknown_input(result, channel=0, *, d_true=None, window=None, ax=None):
+    """Unknown-input estimate with its confidence band (the paper's Fig. 1).
+
+    Parameters
+    ----------
+    result : FilterResult
+        Record of :func:`greybox.uikf`.
+    channel : int or str
+        Unknown-input channel (index or label).
+    d_true : array_like, shape (nsteps,) or (md, nsteps), optional
+        True unknown input, drawn for comparison.
+    window : (int, int), optional
+        Sample range to draw; all samples by default.
+    ax : matplotlib Axes, optional
+
+    Returns
+    -------
+    dict
+        ``{"figure", "ax", "estimate", "band", "truth"}`` artists.
+    """
+    import numpy as np
+
+    j = result.unknown_labels.index(channel) if isinstance(channel, str) else int(channel)
+    label = result.unknown_labels[j]
+    N = result.d_est.shape[1]
+    a, b = window if window is not None else (0, N - 1)
+    k = np.arange(a, b)
+    fig, (ax,) = _axes(ax)
+    band = ax.fill_between(k, result.d_lower[j, a:b], result.d_upper[j, a:b], color="C0",
+                           alpha=0.25, lw=0,
+                           label=f"{100 * result.level:.0f}% confidence interval")
+    est, = ax.plot(k, result.d_est[j, a:b], color="C0", lw=1, label="unknown-input filter")
+    truth = None
+    if d_true is not None:
+        dt_ = np.atleast_2d(np.asarray(d_true, dtype=float))
+        truth, = ax.plot(k, dt_[j if dt_.shape[0] > 1 else 0, a:b], "k--", lw=1,
+                         label="true value")
+    ax.set_xlabel("sample k")
+    ax.set_ylabel(f"{label}")
+    ax.legend(loc="best", fontsize="small")
+    return {"figure": fig, "ax": ax, "estimate": est, "band": band, "truth": truth}

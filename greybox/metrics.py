@@ -1,0 +1,230 @@
+"""Error metrics and residual tests.
+
+Relative error of eq. (42), sample auto- and cross-correlations with their
+confidence bands, and the Ljung-Box whiteness test. Signals are arrays of
+shape ``(nsignals, nsteps)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.stats import chi2, norm
+
+from ._validation import check_positive, check_same_length, check_signal
+from .exceptions import DataError
+
+__all__ = [
+    "RelativeError",
+    "relative_error",
+    "autocorrelation",
+    "cross_correlation",
+    "correlation_band",
+    "WhitenessTest",
+    "whiteness_test",
+]
+
+
+@dataclass(frozen=True)
+class RelativeError:
+    """Relative error of eq. (42).
+
+    Attributes
+    ----------
+    value : float
+        Mean over outputs [%].
+    per_output : ndarray, shape (noutputs,)
+        Per output [%].
+    squared : bool
+        False: relative RMS, ``100 sqrt(sum e^2 / sum y^2)`` (the default);
+        True: ``100 sum e^2 / sum y^2`` (the other reading of eq. 42).
+    """
+
+    value: float
+    per_output: NDArray[np.float64]
+    squared: bool
+
+    def __float__(self) -> float:
+        return float(self.value)
+
+
+def relative_error(y: ArrayLike, y_hat: ArrayLike, *, squared: bool = False,
+                   skip: int = 0) -> RelativeError:
+    """Relative error of eq. (42), per output and averaged over outputs.
+
+    .. math::
+
+        E = \\frac{100}{p} \\sum_{i=1}^{p}
+            \\sqrt{\\frac{\\sum_k (y_i[k] - \\hat y_i[k])^2}{\\sum_k y_i[k]^2}}\\ \\%
+
+    Parameters
+    ----------
+    y : array_like, shape (noutputs, nsteps)
+        Measured outputs.
+    y_hat : array_like, shape (noutputs, nsteps)
+        Estimated, simulated or predicted outputs.
+    squared : bool
+        Drop the square root (PAPER_NOTES §8.3: eq. 42 is ambiguous; the
+        square-root form is the default and every greybox table says which).
+    skip : int
+        Leading samples to leave out (e.g. a filter's transient).
+
+    Returns
+    -------
+    RelativeError
+    """
+    y = np.atleast_2d(np.asarray(y, dtype=float))
+    y = check_signal(y, y.shape[0], "y")
+    y_hat = check_signal(y_hat, y.shape[0], "y_hat")
+    check_same_length(("y", y), ("y_hat", y_hat))
+    skip = check_positive(skip, "skip", integer=True, allow_zero=True)
+    y, y_hat = y[:, skip:], y_hat[:, skip:]
+    den = np.sum(y**2, axis=1)
+    if np.any(den == 0):
+        raise DataError("an output of y is identically zero; its relative error is undefined")
+    ratio = np.sum((y - y_hat) ** 2, axis=1) / den
+    per = 100 * (ratio if squared else np.sqrt(ratio))
+    return RelativeError(value=float(per.mean()), per_output=per, squared=squared)
+
+
+def autocorrelation(e: ArrayLike, maxlag: int = 20) -> NDArray[np.float64]:
+    """Normalized sample autocorrelation of each channel, lags 0..maxlag.
+
+    Parameters
+    ----------
+    e : array_like, shape (nsignals, nsteps)
+    maxlag : int
+
+    Returns
+    -------
+    ndarray, shape (nsignals, maxlag + 1)
+        ``r[i, 0] == 1``.
+    """
+    e = np.atleast_2d(np.asarray(e, dtype=float))
+    e = check_signal(e, e.shape[0], "e", min_steps=2)
+    maxlag = check_positive(maxlag, "maxlag", integer=True)
+    N = e.shape[1]
+    if maxlag >= N:
+        raise DataError(f"maxlag = {maxlag} must be below the number of samples {N}")
+    e = e - e.mean(axis=1, keepdims=True)
+    c0 = np.sum(e * e, axis=1)
+    c0[c0 == 0] = 1.0
+    r = np.empty((e.shape[0], maxlag + 1))
+    for lag in range(maxlag + 1):
+        r[:, lag] = np.sum(e[:, lag:] * e[:, :N - lag], axis=1) / c0
+    return r
+
+
+def cross_correlation(u: ArrayLike, e: ArrayLike, maxlag: int = 20) -> NDArray[np.float64]:
+    """Normalized sample cross-correlation ``r_ue(tau) = E[e[k+tau] u[k]]``.
+
+    Parameters
+    ----------
+    u : array_like, shape (ninputs, nsteps)
+    e : array_like, shape (noutputs, nsteps)
+    maxlag : int
+
+    Returns
+    -------
+    ndarray, shape (ninputs, noutputs, 2 maxlag + 1)
+        Lags ``-maxlag..maxlag`` along the last axis.
+    """
+    u = np.atleast_2d(np.asarray(u, dtype=float))
+    e = np.atleast_2d(np.asarray(e, dtype=float))
+    u = check_signal(u, u.shape[0], "u", min_steps=2)
+    e = check_signal(e, e.shape[0], "e", min_steps=2)
+    N = check_same_length(("u", u), ("e", e))
+    maxlag = check_positive(maxlag, "maxlag", integer=True)
+    if maxlag >= N:
+        raise DataError(f"maxlag = {maxlag} must be below the number of samples {N}")
+    u = u - u.mean(axis=1, keepdims=True)
+    e = e - e.mean(axis=1, keepdims=True)
+    su = np.sqrt(np.sum(u * u, axis=1))
+    se = np.sqrt(np.sum(e * e, axis=1))
+    su[su == 0] = 1.0
+    se[se == 0] = 1.0
+    out = np.empty((u.shape[0], e.shape[0], 2 * maxlag + 1))
+    for j, tau in enumerate(range(-maxlag, maxlag + 1)):
+        if tau >= 0:
+            c = u[:, :N - tau] @ e[:, tau:].T
+        else:
+            c = u[:, -tau:] @ e[:, :N + tau].T
+        out[:, :, j] = c / np.outer(su, se)
+    return out
+
+
+def correlation_band(nsteps: int, level: float = 0.99) -> float:
+    """Half-width of the ``level`` band of a sample correlation of white noise.
+
+    ``z_{(1+level)/2} / sqrt(nsteps)``.
+    """
+    nsteps = check_positive(nsteps, "nsteps", integer=True)
+    return float(norm.ppf(0.5 + level / 2) / np.sqrt(nsteps))
+
+
+@dataclass(frozen=True)
+class WhitenessTest:
+    """Ljung-Box test of the hypothesis "the residual is white", per channel.
+
+    Attributes
+    ----------
+    statistic : ndarray, shape (nsignals,)
+        ``Q = N (N + 2) sum_{l=1}^{L} r_l^2 / (N - l)``.
+    pvalue : ndarray, shape (nsignals,)
+        Upper-tail probability of chi-square with ``lags`` degrees of freedom.
+    lags : int
+        Number of lags L.
+    alpha : float
+        Significance level used for ``white``.
+    white : ndarray of bool, shape (nsignals,)
+        ``pvalue >= alpha``.
+    """
+
+    statistic: NDArray[np.float64]
+    pvalue: NDArray[np.float64]
+    lags: int
+    alpha: float
+    white: NDArray[np.bool_]
+
+    @property
+    def all_white(self) -> bool:
+        """True if no channel rejects whiteness at ``alpha``."""
+        return bool(np.all(self.white))
+
+
+def whiteness_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> WhitenessTest:
+    """Ljung-Box whiteness test of each channel of a residual.
+
+    Parameters
+    ----------
+    e : array_like, shape (nsignals, nsteps)
+        Residual, e.g. one-step prediction errors.
+    lags : int
+        Number of autocorrelation lags summed (20 by default).
+    alpha : float
+        Significance level for the ``white`` flags. The default 1e-3 is
+        strict on purpose (PAPER_NOTES §9.1): with long records a tiny
+        correlation is "significant" but not worth a model change.
+
+    Returns
+    -------
+    WhitenessTest
+
+    References
+    ----------
+    G. M. Ljung and G. E. P. Box, "On a measure of lack of fit in time series
+    models", Biometrika 65 (1978) 297-303.
+    """
+    e = np.atleast_2d(np.asarray(e, dtype=float))
+    N = e.shape[-1]
+    lags = check_positive(lags, "lags", integer=True)
+    if N < 2 * lags + 1:
+        raise DataError(f"whiteness test with {lags} lags needs at least {2 * lags + 1} samples; "
+                        f"found {N}")
+    r = autocorrelation(e, lags)[:, 1:]
+    ell = np.arange(1, lags + 1)
+    stat = N * (N + 2) * np.sum(r**2 / (N - ell), axis=1)
+    pv = chi2.sf(stat, lags)
+    return WhitenessTest(statistic=stat, pvalue=pv, lags=lags, alpha=alpha, white=pv >= alpha)
