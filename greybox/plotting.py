@@ -7,7 +7,7 @@ that the compute modules never depend on it.
 
 from __future__ import annotations
 
-__all__: list[str] = ["plot_unknown_input"]
+__all__: list[str] = ["plot_unknown_input", "plot_singular_values"]
 
 
 def _plt():
@@ -68,3 +68,36 @@ def plot_unknown_input(result, channel=0, *, d_true=None, window=None, ax=None):
     ax.set_ylabel(f"{label}")
     ax.legend(loc="best", fontsize="small")
     return {"figure": fig, "ax": ax, "estimate": est, "band": band, "truth": truth}
+
+
+def plot_singular_values(result, ax=None):
+    """Plot the singular values of a subspace identification and the chosen order.
+
+    Parameters
+    ----------
+    result : greybox.ident.N4SIDResult
+        Record of :func:`greybox.ident.n4sid` or :func:`greybox.ident.pbsid`.
+    ax : matplotlib Axes, optional
+        Axes to draw on; a new figure is made if None.
+
+    Returns
+    -------
+    dict
+        ``figure``, ``ax``, ``singular_values`` (Line2D of sigma_k against
+        k = 1, 2, ... on a log scale) and ``order`` (vertical Line2D at
+        order + 1/2, between the kept and the discarded values).
+    """
+    import numpy as np
+
+    fig, (ax,) = _axes(ax)
+    s = np.asarray(result.singular_values, dtype=float)
+    k = np.arange(1, s.size + 1)
+    shown = np.where(s > 0, s, np.nan)
+    (line,) = ax.semilogy(k, shown, "o-", label="singular values")
+    vline = ax.axvline(result.order + 0.5, color="C3", linestyle="--",
+                       label=f"chosen order n = {result.order}")
+    ax.set_xlabel("index k")
+    ax.set_ylabel("singular value (scaled data)")
+    ax.set_title(f"{result.method}: {result.weighting} weighting, horizon {result.horizon}")
+    ax.legend(loc="best", fontsize="small")
+    return {"figure": fig, "ax": ax, "singular_values": line, "order": vline}
