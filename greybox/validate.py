@@ -1,0 +1,184 @@
+"""Validation of a model on data: simulation error, prediction error, residual tests.
+
+Works for any discrete python-control ``StateSpace``, not only greybox's own.
+SE and PE are eq. (42) with the simulated output and with the one-step
+prediction of a Kalman predictor built from the model's own noise
+covariances (PAPER_NOTES §5, §8.8).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import control as ct
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._lti import lti_states
+from ._validation import check_discrete, check_same_length, check_signal
+from .exceptions import DataError, DimensionError
+from .filters import kalman_filter
+from .metrics import (
+    RelativeError,
+    WhitenessTest,
+    autocorrelation,
+    correlation_band,
+    cross_correlation,
+    relative_error,
+    whiteness_test,
+)
+
+__all__ = ["ModelValidation", "validate_model", "simulate_output", "estimate_initial_state"]
+
+
+@dataclass(frozen=True)
+class ModelValidation:
+    """Validation of one model on one data record.
+
+    Attributes
+    ----------
+    name : str
+        Model name.
+    order : int
+        Number of states.
+    se : RelativeError
+        Simulation error (eq. 42, relative RMS) [%].
+    pe : RelativeError
+        One-step prediction error [%].
+    whiteness : WhitenessTest
+        Ljung-Box test of the one-step prediction residuals.
+    autocorr : ndarray, shape (noutputs, lags + 1)
+        Autocorrelation of the prediction residuals.
+    crosscorr : ndarray, shape (ninputs, noutputs, 2 lags + 1)
+        Input-residual cross-correlation, lags -lags..lags.
+    band : float
+        Half-width of the 99 % band of both correlations.
+    y_sim : ndarray, shape (noutputs, nsteps)
+        Simulated output.
+    y_pred : ndarray, shape (noutputs, nsteps)
+        One-step predicted output.
+    residuals : ndarray, shape (noutputs, nsteps)
+        One-step prediction residuals.
+    output_labels : tuple of str
+    """
+
+    name: str
+    order: int
+    se: RelativeError
+    pe: RelativeError
+    whiteness: WhitenessTest
+    autocorr: NDArray[np.float64] = field(repr=False)
+    crosscorr: NDArray[np.float64] = field(repr=False)
+    band: float = field(repr=False)
+    y_sim: NDArray[np.float64] = field(repr=False)
+    y_pred: NDArray[np.float64] = field(repr=False)
+    residuals: NDArray[np.float64] = field(repr=False)
+    output_labels: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict:
+        """JSON-ready summary."""
+        return {"order": self.order, "se": self.se.value, "pe": self.pe.value,
+                "se_per_output": self.se.per_output.tolist(),
+                "pe_per_output": self.pe.per_output.tolist(),
+                "whiteness_pvalue": self.whiteness.pvalue.tolist()}
+
+
+def simulate_output(sys: ct.StateSpace, u: NDArray, x0: NDArray | None = None) -> NDArray:
+    """Noise-free output of a discrete model, shape (noutputs, nsteps)."""
+    A, B, C, D = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
+    x0 = np.zeros(A.shape[0]) if x0 is None else x0
+    x = lti_states(A, B @ u, x0)
+    return C @ x + D @ u
+
+
+def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
+                           nsamples: int | None = None) -> NDArray[np.float64]:
+    """Least-squares initial state from the first samples (PAPER_NOTES §9.7).
+
+    Solves ``y[k] - y0[k] = C A^k x0`` for k < nsamples, with ``y0`` the
+    response from x0 = 0. ``nsamples`` defaults to ``max(10 n, 50)``.
+    Directions of x0 that the window does not observe are set to zero
+    (minimum-norm solution).
+    """
+    A, C = np.asarray(sys.A, dtype=float), np.asarray(sys.C, dtype=float)
+    n = A.shape[0]
+    if n == 0:
+        return np.zeros(0)
+    Nw = min(y.shape[1], nsamples or max(10 * n, 50))
+    y0 = simulate_output(sys, u[:, :Nw])
+    O = np.empty((Nw * C.shape[0], n))
+    Ak = np.eye(n)
+    for k in range(Nw):
+        O[k * C.shape[0]:(k + 1) * C.shape[0]] = C @ Ak
+        Ak = A @ Ak
+    r = (y[:, :Nw] - y0).T.reshape(-1)
+    scale = np.sqrt(np.mean(y[:, :Nw] ** 2, axis=1)) + 1e-300
+    W = np.tile(1.0 / scale, Nw)
+    x0, *_ = np.linalg.lstsq(O * W[:, None], r * W, rcond=1e-10)
+    return x0
+
+
+def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike,
+                   R: ArrayLike, x0: ArrayLike | str | None = None, name: str | None = None,
+                   lags: int = 20, alpha: float = 1e-3, skip: int = 0) -> ModelValidation:
+    """Simulation error, prediction error and residual tests of a model on data.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete model from the measured inputs to the measured outputs.
+    y : array_like, shape (noutputs, nsteps)
+        Measured outputs of the validation record.
+    u : array_like, shape (ninputs, nsteps)
+        Measured inputs.
+    Q : array_like, shape (nstates, nstates)
+        The model's process-noise covariance, used by its Kalman predictor.
+    R : array_like, shape (noutputs, noutputs)
+        The model's measurement-noise covariance.
+    x0 : array_like, "estimate" or None
+        Initial state for the simulation and the predictor: zero (None), a
+        given vector, or a least-squares estimate from the first samples.
+    name : str, optional
+    lags : int
+        Lags of the correlations and of the whiteness test.
+    alpha : float
+        Significance level of the whiteness test.
+    skip : int
+        Leading samples left out of SE and PE (initial transients).
+
+    Returns
+    -------
+    ModelValidation
+    """
+    check_discrete(sys)
+    y = check_signal(y, sys.noutputs, "y", min_steps=2 * lags + 2)
+    u = check_signal(u, sys.ninputs, "u")
+    check_same_length(("y", y), ("u", u))
+    if isinstance(x0, str):
+        if x0 != "estimate":
+            raise DimensionError(f"x0 must be an array, None or 'estimate'; found {x0!r}")
+        x0v = estimate_initial_state(sys, y, u)
+    elif x0 is None:
+        x0v = np.zeros(sys.nstates)
+    else:
+        x0v = np.asarray(x0, dtype=float).reshape(-1)
+        if x0v.size != sys.nstates:
+            raise DimensionError(f"x0 has {x0v.size} entries; expected {sys.nstates}")
+    y_sim = simulate_output(sys, u, x0v)
+    if not np.all(np.isfinite(y_sim)):
+        raise DataError(f"the simulation of {name or 'the model'} diverged (unstable model)")
+    kf = kalman_filter(sys, y, u, Q=Q, R=R, x0=x0v, P0=np.zeros((sys.nstates, sys.nstates)))
+    e = kf.innovations
+    return ModelValidation(
+        name=name or (sys.name or "model"),
+        order=sys.nstates,
+        se=relative_error(y, y_sim, skip=skip),
+        pe=relative_error(y, kf.y_pred, skip=skip),
+        whiteness=whiteness_test(e[:, skip:], lags, alpha=alpha),
+        autocorr=autocorrelation(e[:, skip:], lags),
+        crosscorr=cross_correlation(u[:, skip:], e[:, skip:], lags) if u.shape[0] else
+        np.zeros((0, y.shape[0], 2 * lags + 1)),
+        band=correlation_band(y.shape[1] - skip, 0.99),
+        y_sim=y_sim, y_pred=kf.y_pred, residuals=e,
+        output_labels=tuple(sys.output_labels),
+    )
