@@ -7,7 +7,7 @@ that the compute modules never depend on it.
 
 from __future__ import annotations
 
-__all__: list[str] = ["plot_unknown_input", "plot_singular_values"]
+__all__: list[str] = ["plot_unknown_input", "plot_residual_autocorrelation", "plot_outputs", "plot_singular_values"]
 
 
 def _plt():
@@ -101,3 +101,81 @@ def plot_singular_values(result, ax=None):
     ax.set_title(f"{result.method}: {result.weighting} weighting, horizon {result.horizon}")
     ax.legend(loc="best", fontsize="small")
     return {"figure": fig, "ax": ax, "singular_values": line, "order": vline}
+
+
+def plot_residual_autocorrelation(validations, *, ax=None):
+    """Autocorrelation of one-step prediction residuals with the 99 % band (Fig. 2).
+
+    Parameters
+    ----------
+    validations : ModelValidation or sequence of them
+        One panel per model (e.g. initial and updated).
+    ax : sequence of Axes, optional
+        One per model.
+
+    Returns
+    -------
+    dict
+        ``{"figure", "axes", "lines", "bands"}``.
+    """
+    import numpy as np
+
+    vals = list(validations) if isinstance(validations, (list, tuple)) else [validations]
+    fig, axes = _axes(ax, nrows=len(vals), figsize=(7, 2.6 * len(vals)))
+    lines, bands = [], []
+    for a, v in zip(axes, vals):
+        lags = np.arange(v.autocorr.shape[1])
+        for i in range(v.autocorr.shape[0]):
+            lab = v.output_labels[i] if i < len(v.output_labels) else f"y[{i}]"
+            lines.append(a.plot(lags, v.autocorr[i], marker="o", ms=3, lw=1, label=lab)[0])
+        bands.append(a.axhspan(-v.band, v.band, color="grey", alpha=0.3, lw=0,
+                               label="99% band"))
+        a.set_title(f"{v.name}: autocorrelation of one-step prediction residuals")
+        a.set_xlabel("lag")
+        a.set_ylim(-1.05, 1.05)
+        a.legend(loc="upper right", fontsize="x-small", ncol=4)
+    fig.tight_layout()
+    return {"figure": fig, "axes": axes, "lines": lines, "bands": bands}
+
+
+def plot_outputs(y, validations, *, outputs=None, dt=None, window=None, ax=None):
+    """Measured outputs against the simulated outputs of several models.
+
+    Parameters
+    ----------
+    y : ndarray, shape (noutputs, nsteps)
+        Measured outputs.
+    validations : sequence of ModelValidation
+        Their ``y_sim`` are drawn.
+    outputs : sequence of int, optional
+        Which outputs (all by default).
+    dt : float, optional
+        Sampling period [s] for the time axis (samples if None).
+    window : (int, int), optional
+        Sample range.
+    ax : sequence of Axes, optional
+
+    Returns
+    -------
+    dict
+        ``{"figure", "axes", "lines"}``.
+    """
+    import numpy as np
+
+    vals = list(validations)
+    outputs = list(range(y.shape[0])) if outputs is None else list(outputs)
+    a0, b0 = window if window is not None else (0, y.shape[1])
+    t = np.arange(a0, b0) * (dt if dt else 1.0)
+    fig, axes = _axes(ax, nrows=len(outputs), figsize=(7, 2.0 * len(outputs)))
+    lines = []
+    for a, i in zip(axes, outputs):
+        labels = vals[0].output_labels if vals else ()
+        lines.append(a.plot(t, y[i, a0:b0], "k", lw=1, label="measured")[0])
+        for v in vals:
+            lines.append(a.plot(t, v.y_sim[i, a0:b0], lw=1,
+                                label=f"{v.name} (SE {v.se.per_output[i]:.1f}%)")[0])
+        a.set_ylabel(labels[i] if i < len(labels) else f"y[{i}]")
+        a.legend(loc="upper right", fontsize="x-small")
+    axes[-1].set_xlabel("time [s]" if dt else "sample")
+    fig.tight_layout()
+    return {"figure": fig, "axes": axes, "lines": lines}

@@ -126,7 +126,8 @@ def _bic(resid: NDArray, npar: int) -> float:
 
 
 def identify_subsystem(result: FilterResult, *, order: int | None = None,
-                       max_order: int = 3, feedthrough: bool = True, horizon: int | None = None,
+                       max_order: int = 3, min_order: int = 0, feedthrough: bool = True,
+                       horizon: int | None = None,
                        skip: int | None = None) -> Subsystem:
     """Identify the unknown subsystem from an unknown-input filter's result.
 
@@ -140,6 +141,8 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
         a static law and needs ``feedthrough=True``.
     max_order : int
         Largest order tried when ``order`` is None.
+    min_order : int
+        Smallest order tried when ``order`` is None (1 forces dynamics).
     feedthrough : bool
         Allow the direct terms Ddu, Ddx (our generalization). False forces the
         paper's structure (30)-(31): d is then a delayed function of x and u.
@@ -182,8 +185,8 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
     w = np.vstack([u, x])
     m, n, md = u.shape[0], x.shape[0], d.shape[0]
     nw = m + n
-    orders = [order] if order is not None else list(range(0 if feedthrough else 1,
-                                                          max_order + 1))
+    lo = max(min_order, 0 if feedthrough else 1)
+    orders = [order] if order is not None else list(range(lo, max_order + 1))
     cands = {}
     for nd in orders:
         try:
