@@ -112,9 +112,11 @@ def prepare_data(y, u) -> tuple[list[NDArray], list[NDArray], int, int]:
             )
         nin = ua.shape[0]
         if ua.shape[1] != ya.shape[1]:
+            hint = ("; time must be the last axis: pass the transpose of u"
+                    if ua.shape[0] == ya.shape[1] else " (time is the last axis)")
             raise DimensionError(
                 f"signals have different numbers of samples (y{tag}: {ya.shape[1]}, "
-                f"u{tag}: {ua.shape[1]}); they must match (time is the last axis)"
+                f"u{tag}: {ua.shape[1]}); they must match{hint}"
             )
         ys.append(ya)
         us.append(ua)

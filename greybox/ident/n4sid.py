@@ -334,6 +334,24 @@ def _initial_states(A, B, C, D, K, ys, us, nmax: int = 1000) -> NDArray:
     return out
 
 
+def _make_ss(A, B, C, D, dt, states, kw) -> ct.StateSpace:
+    """``ct.ss`` that also builds models without inputs.
+
+    python-control 0.10.2 rejects ``D`` of shape (noutputs, 0); a zero-input
+    model is built with one dummy input that is then removed.
+    """
+    if B.shape[1] > 0:
+        return ct.ss(A, B, C, D, dt, states=states, **kw)
+    kw = {k: v for k, v in kw.items() if k != "inputs"}
+    sys = ct.ss(A, np.zeros((A.shape[0], 1)), C, np.zeros((C.shape[0], 1)), dt, states=states,
+                **kw)
+    sys.B = np.zeros((A.shape[0], 0))
+    sys.D = np.zeros((C.shape[0], 0))
+    sys.ninputs = 0
+    sys.input_index = {}
+    return sys
+
+
 def _finish(
     *, A, B, C, D, Q, R, S, K=None, Re=None, su, sy, ys, us, dt, input_labels, output_labels,
     state_prefix, **fields,
@@ -361,7 +379,7 @@ def _finish(
         kw["inputs"] = input_labels
     if output_labels is not None:
         kw["outputs"] = output_labels
-    sys = ct.ss(A, B, C, D, dt, states=[f"{state_prefix}[{k}]" for k in range(n)], **kw)
+    sys = _make_ss(A, B, C, D, dt, [f"{state_prefix}[{k}]" for k in range(n)], kw)
     return N4SIDResult(
         sys=sys, K=K, innovation_cov=Re, Q=Q, R=R, S=S, order=n, x0=x0s[:, 0].copy(),
         x0_experiments=x0s, **fields,
@@ -563,7 +581,8 @@ def n4sid(
         fit = core.fit(n)
         fits[n] = fit
         if auto:
-            crit_vals[n] = _criterion_value(criterion, fit["Rv"], n, l, m, len(fed), h.ncols)
+            crit_vals[n] = _criterion_value(criterion, core.state_residual_cov(n), n, l, m,
+                                            len(fed), h.ncols)
     if auto:
         order = int(np.nanargmin(crit_vals))
     fit = fits[order]
@@ -606,29 +625,45 @@ class _N4SIDCore:
             self.Zip1 = np.zeros((0, h.L.shape[1]))
         self.Yii = h.rows("y", i, i + 1)
         self.Uf = Uf
-        # weights
+        # weights W1, W2 (Van Overschee & De Moor 1996, Table 4.1 / Sec. 4.3.2)
+        Oi_perp = Oi - _project(Oi, Uf, rtol) if m else Oi
+        Yf_perp = Yf - _project(Yf, Uf, rtol) if m else Yf
+        G = Yf_perp @ Yf_perp.T
+        w, V = np.linalg.eigh(0.5 * (G + G.T))
+        w = np.maximum(w, rtol * max(w.max(), np.finfo(float).tiny))
+        W1 = (V / np.sqrt(w)) @ V.T
+        Ucva, scva, _ = np.linalg.svd(W1 @ Oi_perp, full_matrices=False)
+        # canonical-variate states (functions of the past only), used for the order criterion
+        self.Xcva = Ucva.T @ W1 @ Oi
+        self.W1inv = None
         if weighting == "N4SID":
-            M = Oi
-            self.W1inv = None
+            U, s, _ = np.linalg.svd(Oi, full_matrices=False)
+        elif weighting == "MOESP":
+            U, s, _ = np.linalg.svd(Oi_perp, full_matrices=False)
         else:
-            Oi_perp = Oi - _project(Oi, Uf, rtol) if m else Oi
-            M = Oi_perp
-            self.W1inv = None
-            if weighting == "CVA":
-                Yf_perp = Yf - _project(Yf, Uf, rtol) if m else Yf
-                G = Yf_perp @ Yf_perp.T
-                w, V = np.linalg.eigh(0.5 * (G + G.T))
-                w = np.maximum(w, rtol * max(w.max(), np.finfo(float).tiny))
-                W1 = (V / np.sqrt(w)) @ V.T
-                self.W1inv = (V * np.sqrt(w)) @ V.T
-                M = W1 @ M
-        U, s, _ = np.linalg.svd(M, full_matrices=False)
+            U, s = Ucva, scva
+            self.W1inv = (V * np.sqrt(w)) @ V.T
         self.U, self.sv = U, s
+        self.Uii_fed = h.rows("u", i, i + 1)[list(self.fed)]
         # a thin factor of U_f for the B, D least squares
         if m:
             q, r = np.linalg.qr(Uf.T)
             self.Ufq, self.Ufr = q, r.T  # Uf = Ufr @ q.T
         self._cache = {}
+
+    def state_residual_cov(self, n: int) -> NDArray:
+        """Residual covariance of ``Y_{i|i}`` regressed on an order-n state and ``U_{i|i}``.
+
+        The order-n state sequence is taken as the first n canonical variates
+        of the past (CVA weighting, whatever the weighting of the model
+        estimate: the N4SID and MOESP bases are not ordered by predictive
+        power and over-estimated MIMO orders in our tests), a function of the
+        past data only; the residual is then the innovation covariance of the
+        order-n predictor. It drives ``criterion``.
+        """
+        X = np.vstack([self.Xcva[:n], self.Uii_fed])
+        E = self.Yii - _project(self.Yii, X, self.rtol) if X.shape[0] else self.Yii
+        return E @ E.T
 
     def gamma(self, n):
         G = self.U[:, :n] * np.sqrt(self.sv[:n])
