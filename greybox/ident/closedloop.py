@@ -66,7 +66,7 @@ def pbsid(
         Number of states, 0 allowed (static map ``y = D u + e`` with
         feedthrough). None: chosen by ``criterion`` in ``0..max_order``.
     horizon : int, optional
-        Past horizon ``p`` (VARX lags); default 10 (reduced for short data).
+        Past horizon ``p`` (VARX lags); default 20 (reduced for short data).
         The predictor's ``(A - K C)^p`` is neglected: choose ``p`` so that it
         is small.
     future : int, optional
@@ -160,7 +160,7 @@ def pbsid(
      su) = _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max_order,
                          rtol)
     lengths = [a.shape[1] for a in ys]
-    p = _choose_horizon(horizon, order, lengths, m, l, max_order, lambda k: k + 1)
+    p = _choose_horizon(horizon, order, lengths, m, l, max_order, lambda k: k + 1, default=20)
     if future is None:
         f = p
     else:
@@ -236,7 +236,8 @@ def _pbsid_fit(n, U, s, GK, Zp, Zp1, uk, yk, fed, m, l, rtol) -> dict[str, NDArr
     """Order-n model from the PBSID SVD (scaled coordinates)."""
     ukf = uk[list(fed)]
     if n > 0:
-        Tx = (U[:, :n] / np.sqrt(s[:n])).T @ GK     # state map, (n, p nz)
+        sn = np.maximum(s[:n], rtol * max(s[0], np.finfo(float).tiny))
+        Tx = (U[:, :n] / np.sqrt(sn)).T @ GK     # state map, (n, p nz)
         Xk, Xk1 = Tx @ Zp, Tx @ Zp1
     else:
         Xk = Xk1 = np.zeros((0, Zp.shape[1]))

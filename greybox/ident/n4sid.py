@@ -214,7 +214,7 @@ def _criterion_value(crit: str, Re: NDArray, n: int, l: int, m: int, nd: int, nc
     return ncols * logdet + pen * _npar(n, l, m, nd)
 
 
-def _choose_horizon(horizon, order, lengths, m, l, max_order, fixed_min_block):
+def _choose_horizon(horizon, order, lengths, m, l, max_order, fixed_min_block, default=10):
     """Validate or choose the number of block rows.
 
     ``fixed_min_block`` is the number of extra block rows the method needs
@@ -248,7 +248,7 @@ def _choose_horizon(horizon, order, lengths, m, l, max_order, fixed_min_block):
                 f"= {(i - 1) * l}); found horizon={i}. Increase the horizon"
             )
         return i
-    target = max(10, need_i, 0 if max_order is None else int(np.ceil(max_order / l)) + 1)
+    target = max(default, need_i, 0 if max_order is None else int(np.ceil(max_order / l)) + 1)
     i = target
     while i >= need_i and not ok(i):
         i -= 1
