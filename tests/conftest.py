@@ -1,0 +1,59 @@
+"""Shared fixtures: a seeded generator and a factory of random test systems."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from greybox import named_ss
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A fresh seeded generator for each test (no global seeding)."""
+    return np.random.default_rng(20240917)
+
+
+def make_random_system(rng: np.random.Generator, *, n: int = 3, m: int = 1, p: int = 2,
+                       md: int = 1, rho: float = 0.9, dt: float = 0.1,
+                       feedthrough: bool = True) -> SimpleNamespace:
+    """Random stable discrete model with inputs ``[u0.., d0..]`` satisfying (17).
+
+    A has spectral radius ``rho``; G is redrawn until ``C G`` is well
+    conditioned (smallest singular value > 0.2 times the largest), so
+    rank(C G) = rank(G) = md holds with a margin. The known inputs may feed
+    through (D != 0); the unknown inputs never do. Q is a random positive
+    semidefinite matrix, R a random positive definite one.
+
+    Returns a namespace with ``sys`` (control.StateSpace, dt set, named
+    signals), the matrices ``A, B, C, D, G, Q, R`` and the labels.
+    """
+    A = rng.standard_normal((n, n))
+    A *= rho / np.max(np.abs(np.linalg.eigvals(A)))
+    B = rng.standard_normal((n, m))
+    C = rng.standard_normal((p, n))
+    D = rng.standard_normal((p, m)) if feedthrough else np.zeros((p, m))
+    while True:
+        G = rng.standard_normal((n, md))
+        s = np.linalg.svd(C @ G, compute_uv=False)
+        if s.min() > 0.2 * s.max():
+            break
+    W = rng.standard_normal((n, n))
+    Q = 0.02 * W @ W.T / n
+    V = rng.standard_normal((p, p))
+    R = 0.01 * (V @ V.T / p + np.eye(p))
+    known = [f"u{i}" for i in range(m)]
+    unknown = [f"d{j}" for j in range(md)]
+    sys = named_ss(A, np.hstack([B, G]), C, np.hstack([D, np.zeros((p, md))]), dt,
+                   states=[f"x{i}" for i in range(n)], inputs=known + unknown,
+                   outputs=[f"y{i}" for i in range(p)], name="random_system")
+    return SimpleNamespace(sys=sys, A=A, B=B, C=C, D=D, G=G, Q=Q, R=R,
+                           known=known, unknown=unknown, n=n, m=m, p=p, md=md, dt=dt)
+
+
+@pytest.fixture(scope="session")
+def random_system():
+    """The factory :func:`make_random_system` (call it with an ``rng``)."""
+    return make_random_system
