@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..exceptions import DimensionError, IdentificationError
-from ._hankel import hankel_r
+from ._hankel import hankel_r, small_blas
 from .n4sid import (
     DEFAULT_RTOL,
     N4SIDResult,
@@ -170,6 +170,13 @@ def pbsid(
         if f > p:
             raise DimensionError(f"future={f} exceeds the past horizon {p}; expected future <= horizon")
     h = hankel_r(ys, us, sy, su, p + 1, chunk_size=chunk_size)
+    with small_blas():
+        return _pbsid_from_factor(h, p, f, ys, us, l, m, dt, input_labels, output_labels, fed,
+                                  order, max_order, rtol, sy, su, criterion, state_prefix)
+
+
+def _pbsid_from_factor(h, p, f, ys, us, l, m, dt, input_labels, output_labels, fed, order,
+                       max_order, rtol, sy, su, criterion, state_prefix):
     _check_pe(h, p + 1, input_labels, "The Markov parameters")
     nz = m + l
     Zp = h.z(0, p)            # past window of x[k]

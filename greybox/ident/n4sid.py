@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validation import check_positive, resolve_channels
 from ..exceptions import DataError, DimensionError, GreyboxWarning, IdentificationError
-from ._hankel import HankelR, channel_rms, hankel_r, ncolumns, prepare_data
+from ._hankel import HankelR, channel_rms, hankel_r, ncolumns, prepare_data, small_blas
 
 __all__ = ["N4SIDResult", "n4sid"]
 
@@ -288,7 +288,7 @@ def _check_pe(h: HankelR, nblocks: int, input_labels, what: str):
         f"solution is returned). Use a richer input (white noise, PRBS, multisine with more "
         f"frequencies), drop constant or redundant inputs, or shorten the horizon",
         GreyboxWarning,
-        stacklevel=3,
+        stacklevel=4,
     )
 
 
@@ -560,6 +560,14 @@ def n4sid(
     lengths = [a.shape[1] for a in ys]
     i = _choose_horizon(horizon, order, lengths, m, l, max_order, lambda k: 2 * k)
     h = hankel_r(ys, us, sy, su, 2 * i, chunk_size=chunk_size)
+    with small_blas():
+        return _n4sid_from_factor(h, i, ys, us, l, m, dt, input_labels, output_labels, fed,
+                                  order, max_order, rtol, sy, su, weighting, criterion,
+                                  state_prefix)
+
+
+def _n4sid_from_factor(h, i, ys, us, l, m, dt, input_labels, output_labels, fed, order,
+                       max_order, rtol, sy, su, weighting, criterion, state_prefix):
     _check_pe(h, 2 * i, input_labels, "B and D")
 
     core = _N4SIDCore(h, i, weighting, fed, rtol)
