@@ -31,11 +31,12 @@ _CHUNK_ENTRIES = 1 << 20
 
 
 def small_blas():
-    """Context limiting BLAS to one thread for the small-matrix phase.
+    """Context limiting BLAS to one thread.
 
-    After the accumulation every matrix is at most a few hundred rows; there
-    a multithreaded BLAS only adds synchronisation cost, which we measured at
-    25x (5 s instead of 0.08 s) on a loaded 2-core machine. Uses
+    Every BLAS call here is either small (a few hundred rows) or a thin
+    ``syrk`` update; a multithreaded BLAS then mostly adds synchronisation
+    cost: on a loaded 2-core machine we measured 25x slow-downs (5 s instead
+    of 0.08 s at N = 1e4, 32 s instead of ~1.5 s at N = 1e6). Uses
     ``threadpoolctl`` when it is installed, else does nothing.
     """
     try:
@@ -216,12 +217,13 @@ def hankel_r(
         uses ``"gram"`` and falls back to ``"qr"`` (a second pass) when the
         Cholesky factor fails or its diagonal spans more than ``1 / _GRAM_RTOL``.
     """
-    if method == "auto":
-        out = _hankel_r(ys, us, sy, su, nblock, chunk_size, "gram")
-        if out is not None:
-            return out
-        method = "qr"
-    out = _hankel_r(ys, us, sy, su, nblock, chunk_size, method)
+    with small_blas():
+        if method == "auto":
+            out = _hankel_r(ys, us, sy, su, nblock, chunk_size, "gram")
+            if out is not None:
+                return out
+            method = "qr"
+        out = _hankel_r(ys, us, sy, su, nblock, chunk_size, method)
     assert out is not None
     return out
 
@@ -264,8 +266,7 @@ def _hankel_r(ys, us, sy, su, nblock, chunk_size, method):
             ncols += c1 - c0
     if method == "gram":
         try:
-            with small_blas():
-                L = np.linalg.cholesky(G / max(ncols, 1))
+            L = np.linalg.cholesky(G / max(ncols, 1))
         except np.linalg.LinAlgError:
             return None
         d = np.abs(np.diag(L))
