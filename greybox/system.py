@@ -27,6 +27,12 @@ def named_ss(A, B, C, D, dt, *, states, inputs, outputs, name=None) -> ct.StateS
     B = np.asarray(B, dtype=float).reshape(n, len(inputs))
     C = np.asarray(C, dtype=float).reshape(len(outputs), n)
     D = np.asarray(D, dtype=float).reshape(len(outputs), len(inputs))
+    if len(inputs) == 0 and (n == 1 or len(outputs) == 1):
+        raise ModelError(
+            "python-control cannot represent a model with no inputs when it has one state or "
+            "one output (it reshapes the empty (1, 0) matrices); add a known input channel "
+            "with zero gain (e.g. a column of zeros in B named 'none') and pass zeros for it"
+        )
     kw = {} if name is None else {"name": name}
     return ct.ss(A, B, C, D, dt, states=list(states), inputs=list(inputs),
                  outputs=list(outputs), **kw)

@@ -9,9 +9,9 @@ The subsystem (19)-(20), generalized with feedthrough::
 is identified from the filter's data: inputs ``(u[j], x^[j|j])`` and output
 ``d^[j]`` (the estimate of d[j], made from y[j+1]). These data are
 closed-loop (PAPER_NOTES §8.4), so the dynamic candidates are identified with
-the predictor-based subspace method :func:`greybox.ident.pbsid`, and the
-static candidate (order 0) by least squares; the order is chosen by a BIC of
-the simulated d^ over orders 0..max_order.
+output-error separable least squares (regressors are filtered inputs only),
+and the static candidate (order 0) by least squares; see
+:func:`identify_subsystem` for the order choice.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from ._validation import (
 from .exceptions import DataError, GreyboxWarning, IdentificationError
 from .filters import FilterResult
 from .ident import n4sid, pbsid
+from .ident.oe import output_error
 from .ident.regression import static_least_squares
 from .system import named_ss, split_inputs
 
@@ -76,7 +77,7 @@ class Subsystem:
     criterion : dict
         BIC of the simulated d^ for every order tried.
     method : str
-        "least squares" (order 0) or "pbsid".
+        "least squares" (order 0), "output-error" or "pbsid".
     feedthrough : bool
     d_sim : ndarray, shape (md, nsteps)
         The subsystem's simulated output on the identification data.
@@ -126,9 +127,9 @@ def _bic(resid: NDArray, npar: int) -> float:
 
 
 def identify_subsystem(result: FilterResult, *, order: int | None = None,
-                       max_order: int = 3, min_order: int = 0, feedthrough: bool = True,
-                       horizon: int | None = None,
-                       skip: int | None = None) -> Subsystem:
+                       max_order: int = 2, min_order: int = 0, feedthrough: bool = True,
+                       horizon: int | None = None, method: str = "output-error",
+                       starts: int = 4, skip: int | None = None) -> Subsystem:
     """Identify the unknown subsystem from an unknown-input filter's result.
 
     Parameters
@@ -140,12 +141,24 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
         simulated d^ (``N log det(cov(d^ - d_sim)) + npar log N``). Order 0 is
         a static law and needs ``feedthrough=True``.
     max_order : int
-        Largest order tried when ``order`` is None.
+        Largest order tried when ``order`` is None. The order is the lowest
+        whose residual variance is within 5 % of max(the best candidate's,
+        the filter's Pd), see Notes.
     min_order : int
         Smallest order tried when ``order`` is None (1 forces dynamics).
     feedthrough : bool
         Allow the direct terms Ddu, Ddx (our generalization). False forces the
         paper's structure (30)-(31): d is then a delayed function of x and u.
+    method : {"output-error", "pbsid"}
+        Identification of the dynamic candidates: output-error separable
+        least squares (:func:`greybox.ident.oe.output_error`, default; its
+        regressors are filtered inputs only, consistent on the filter's
+        closed-loop data) or the predictor-based subspace method. PBSID's
+        past-output regressors are exactly collinear with the inputs here
+        (d^[k-1] is a linear function of x^[k], x^[k-1], u[k-1]), so it
+        returns poorly determined models on C = I data.
+    starts : int
+        Starting pole sets of the output-error search.
     horizon : int, optional
         Past horizon of :func:`greybox.ident.pbsid`; default ``order + 1``.
         Short horizons suit the filter's data: the regressors (u, x^) are
@@ -168,6 +181,8 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
     if not isinstance(result, FilterResult) or result.d_est.shape[0] == 0:
         raise DataError("identify_subsystem needs the FilterResult of greybox.uikf "
                         "(with at least one unknown input)")
+    if method not in ("output-error", "pbsid"):
+        raise DataError(f"method must be 'output-error' or 'pbsid'; found {method!r}")
     if order is not None:
         order = check_positive(order, "order", integer=True, allow_zero=True)
     max_order = check_positive(max_order, "max_order", integer=True, allow_zero=True)
@@ -195,30 +210,41 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
                 Ad, Bw, Cd = np.zeros((0, 0)), np.zeros((0, nw)), np.zeros((md, 0))
                 Dw, K = fit.coef, np.zeros((0, md))
                 Re = fit.residual_cov
-                method = "least squares"
+                how = "least squares"
+            elif method == "output-error":
+                oe = output_error(d, w, nd, feedthrough=feedthrough, starts=starts)
+                Ad, Bw, Cd, Dw = oe.A, oe.B, oe.C, oe.D
+                K, Re = np.zeros((Ad.shape[0], md)), oe.residual_cov
+                how = "output-error"
             else:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", GreyboxWarning)
                     ident = pbsid(d, w, order=nd, horizon=horizon or nd + 1,
-                                  feedthrough=feedthrough,
-                                  dt=float(result.sys.dt))
-                s = ident.sys
-                Ad, Bw, Cd, Dw = (np.asarray(a, dtype=float) for a in (s.A, s.B, s.C, s.D))
+                                  feedthrough=feedthrough, dt=float(result.sys.dt))
+                s_ = ident.sys
+                Ad, Bw, Cd, Dw = (np.asarray(a, dtype=float) for a in (s_.A, s_.B, s_.C, s_.D))
                 K, Re = ident.K, ident.innovation_cov
-                method = "pbsid"
+                how = "pbsid"
         except IdentificationError:
             continue
         if nd and np.max(np.abs(np.linalg.eigvals(Ad))) >= 1.0:
             continue  # unstable subsystem: not a physical candidate (§8.6)
         dsim = _sim_subsystem(Ad, Bw, Cd, Dw, w)
         npar = nd * nd + nd * nw + md * nd + (md * nw if feedthrough else 0)
-        cands[nd] = (_bic(d - dsim, npar), Ad, Bw, Cd, Dw, K, Re, method, dsim)
+        cands[nd] = (_bic(d - dsim, npar), Ad, Bw, Cd, Dw, K, Re, how, dsim)
     if not cands:
         raise IdentificationError("no stable subsystem could be identified for orders "
                                   f"{orders}; check the filter result and the data length")
-    best = min(cands, key=lambda k: cands[k][0])
-    _, Ad, Bw, Cd, Dw, K, Re, method, dsim = cands[best]
     Pd = np.atleast_2d(result.d_cov)
+    # Parsimony with the noise floor in mind: the residual of d^ cannot honestly
+    # drop below the filter's own estimation variance Pd; a fit that does is
+    # explaining the filter's algebra (PAPER_NOTES §8.4). Take the lowest order
+    # whose residual is within 5 % of max(best residual, Pd); BIC breaks ties.
+    var = {k: float(np.trace(np.atleast_2d(np.cov(d - v[8], bias=True)))) for k, v in cands.items()}
+    floor = 1.05 * max(min(var.values()), float(np.trace(Pd)))
+    ok = [k for k in sorted(cands) if var[k] <= floor]
+    best = ok[0] if ok else min(cands, key=lambda k: cands[k][0])
+    _, Ad, Bw, Cd, Dw, K, Re, method, dsim = cands[best]
     labels_u = tuple(result.sys.input_labels)
     labels_x = tuple(result.sys.state_labels)
     return Subsystem(

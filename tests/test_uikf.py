@@ -486,16 +486,22 @@ def test_square_G_gives_weighted_least_squares(n, p, rng):
                                atol=1e-14)
 
 
-@pytest.mark.xfail(strict=True, raises=ct.ControlDimension,
-                   reason="BUG: named_ss/ct.ss turn an empty (1, 0) matrix into (0, 0), so "
-                          "split_inputs fails for n = 1 or p = 1 when every input is unknown")
-@pytest.mark.parametrize("n,p", [(1, 2), (2, 1)], ids=["n1-p2", "n2-p1"])
+@pytest.mark.parametrize("n,p", [(1, 2), (2, 1), (2, 2)], ids=["n1-p2", "n2-p1", "n2-p2"])
 def test_model_without_known_inputs(n, p, rng):
-    """A model whose only inputs are unknown (no u) can be filtered, also for n or p = 1."""
+    """A model whose only inputs are unknown (no u) can be filtered for n, p >= 2.
+
+    For n = 1 or p = 1 python-control reshapes the empty (1, 0) matrices of a
+    0-input model to (0, 0) and cannot build it: greybox then raises a
+    ModelError naming the limitation and the workaround (a zero input).
+    """
     C = np.ones((p, n))
     sys = gb.named_ss(0.5 * np.eye(n), np.ones((n, 1)), C, np.zeros((p, 1)), 0.1,
                       states=[f"x{i}" for i in range(n)], inputs=["d"],
                       outputs=[f"y{i}" for i in range(p)])
+    if n == 1 or p == 1:
+        with pytest.raises(gb.ModelError, match="add a known input channel with zero gain"):
+            gb.uikf(sys, rng.standard_normal((p, 20)), unknown="d", Q=np.eye(n), R=np.eye(p))
+        return
     res = gb.uikf(sys, rng.standard_normal((p, 20)), unknown="d", Q=np.eye(n), R=np.eye(p))
     assert res.d_est.shape == (1, 20)
     assert res.sys.ninputs == 0

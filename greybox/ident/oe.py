@@ -1,0 +1,191 @@
+"""Output-error identification by separable least squares (variable projection).
+
+The model has one common denominator for all inputs of an output::
+
+    d_i[k] = D_i w[k] + sum_j B_ij(q) / A_i(q) w_j[k] + e_i[k]
+
+For a fixed denominator A(q) = 1 + a_1 q^-1 + ... + a_n q^-n the model is
+linear in the numerators and D, solved by least squares on the inputs
+filtered by 1/A(q); the denominator is then optimized (Nelder-Mead over its
+poles, from several stable starting sets). The regressors are filtered
+inputs only, so the estimates stay consistent when the output noise is
+coloured or correlated with *future* inputs, as it is for the unknown-input
+filter's data (PAPER_NOTES §8.4, §9.3: ARX / equation-error fits on d^ are
+biased; output-error fits are not, but need several starting poles).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize
+from scipy.signal import lfilter
+
+from .._validation import check_positive, check_same_length, check_signal
+from ..exceptions import DataError
+from ..system import named_ss
+
+__all__ = ["OEResult", "output_error"]
+
+
+@dataclass(frozen=True)
+class OEResult:
+    """Output-error model in state-space form.
+
+    Attributes
+    ----------
+    A : ndarray, shape (nout * order, nout * order)
+    B : ndarray, shape (nout * order, nin)
+    C : ndarray, shape (nout, nout * order)
+    D : ndarray, shape (nout, nin)
+    residual_cov : ndarray, shape (nout, nout)
+        Covariance of the output error.
+    order : int
+        Denominator order per output.
+    poles : ndarray
+        Poles of every output's denominator.
+    y_sim : ndarray, shape (nout, nsteps)
+        Simulated output on the data.
+    """
+
+    A: NDArray[np.float64]
+    B: NDArray[np.float64]
+    C: NDArray[np.float64]
+    D: NDArray[np.float64]
+    residual_cov: NDArray[np.float64]
+    order: int
+    poles: NDArray[np.complex128]
+    y_sim: NDArray[np.float64]
+
+    def to_statespace(self, dt: float, *, inputs=None, outputs=None, state_prefix="z"):
+        """As a python-control StateSpace."""
+        nin, nout = self.B.shape[1], self.C.shape[0]
+        return named_ss(self.A, self.B, self.C, self.D, dt,
+                        states=[f"{state_prefix}[{i}]" for i in range(self.A.shape[0])],
+                        inputs=inputs or [f"w[{j}]" for j in range(nin)],
+                        outputs=outputs or [f"d[{i}]" for i in range(nout)])
+
+
+def _poly_from_params(theta: NDArray, n: int) -> NDArray:
+    """Denominator from parameters: for n >= 2 a complex pair (tanh r, angle) then reals."""
+    if n >= 2:
+        r, ang = np.tanh(theta[0]), theta[1]
+        poles = [r * np.exp(1j * ang), r * np.exp(-1j * ang)] + list(np.tanh(theta[2:]))
+    else:
+        poles = list(np.tanh(theta))
+    return np.real(np.poly(poles))
+
+
+def _poly_real(theta: NDArray) -> NDArray:
+    """Denominator with real poles tanh(theta)."""
+    return np.real(np.poly(np.tanh(theta)))
+
+
+def _fit_fixed_den(a: NDArray, ws: NDArray, d: NDArray, feedthrough: bool):
+    """Least squares of the numerators (and D) for denominator a; returns (coef, resid)."""
+    n = len(a) - 1
+    filt = lfilter([1.0], a, ws, axis=1)
+    regs = [np.roll(filt, i, axis=1) for i in range(1, n + 1)]
+    for i, r in enumerate(regs, start=1):
+        r[:, :i] = 0.0
+    X = np.vstack(([ws] if feedthrough else []) + regs).T
+    coef, *_ = np.linalg.lstsq(X, d.T, rcond=1e-10)
+    resid = d - (X @ coef).T
+    return coef, resid
+
+
+def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = True,
+                 starts: int = 6, maxiter: int = 400) -> OEResult:
+    """Fit an output-error model of the given denominator order.
+
+    Parameters
+    ----------
+    d : array_like, shape (nout, nsteps)
+        Output (e.g. the unknown-input estimates d^).
+    w : array_like, shape (nin, nsteps)
+        Inputs (e.g. [u; x^]).
+    order : int
+        Denominator order n >= 1 (per output).
+    feedthrough : bool
+        Estimate the direct term D.
+    starts : int
+        Number of starting pole sets (spread over time constants from 3 to
+        ~N/10 samples).
+    maxiter : int
+        Nelder-Mead iteration limit per start.
+
+    Returns
+    -------
+    OEResult
+    """
+    d = np.atleast_2d(np.asarray(d, dtype=float))
+    w = np.atleast_2d(np.asarray(w, dtype=float))
+    d = check_signal(d, d.shape[0], "d")
+    w = check_signal(w, w.shape[0], "w")
+    N = check_same_length(("d", d), ("w", w))
+    order = check_positive(order, "order", integer=True)
+    nin, nout = w.shape[0], d.shape[0]
+    if N < 10 * (order + 1) * (nin + 1):
+        raise DataError(f"{N} samples are too few for an output-error model of order {order} "
+                        f"with {nin} inputs; give at least {10 * (order + 1) * (nin + 1)}")
+    sw = np.sqrt(np.mean(w**2, axis=1))
+    sw[sw == 0] = 1.0
+    ws = w / sw[:, None]
+    sd = np.sqrt(np.mean(d**2, axis=1))
+    sd[sd == 0] = 1.0
+    ds = d / sd[:, None]
+    taus = np.geomspace(3.0, max(N / 10.0, 30.0), starts)
+    blocksA, blocksB, blocksC, Ds, sims, allpoles = [], [], [], [], [], []
+    for i in range(nout):
+        di = ds[i:i + 1]
+
+        def cost(theta, make=_poly_from_params):
+            a = make(theta) if make is _poly_real else make(theta, order)
+            if np.max(np.abs(np.roots(a))) >= 0.9999:
+                return 1e6
+            _, r = _fit_fixed_den(a, ws, di, feedthrough)
+            return float(np.mean(r**2))
+
+        best, best_make = None, None
+        opts = {"maxiter": maxiter, "xatol": 1e-6, "fatol": 1e-12}
+        for tau in taus:
+            lam = np.exp(-1.0 / tau)
+            inits = [(_poly_real, np.full(order, np.arctanh(lam)))]
+            if order >= 2:
+                inits.append((_poly_from_params,
+                              np.r_[np.arctanh(lam), 1.0 / tau, np.full(order - 2, np.arctanh(lam))]))
+            for make, th0 in inits:
+                res = minimize(cost, th0, args=(make,), method="Nelder-Mead", options=opts)
+                if best is None or res.fun < best.fun:
+                    best, best_make = res, make
+        a = best_make(best.x) if best_make is _poly_real else best_make(best.x, order)
+        coef, r = _fit_fixed_den(a, ws, di, feedthrough)
+        # unscale: d_i = sd_i * (Dn ws + sum_k bk filt(ws) delayed)
+        off = nin if feedthrough else 0
+        Dn = coef[:off, 0] * sd[i] / sw if feedthrough else np.zeros(nin)
+        bks = [coef[off + k * nin: off + (k + 1) * nin, 0] * sd[i] / sw for k in range(order)]
+        # observer canonical form of sum_k b_k q^-k / A(q^-1)
+        Ai = np.zeros((order, order))
+        Ai[:, 0] = -a[1:]
+        Ai[:-1, 1:] = np.eye(order - 1)
+        Bi = np.vstack(bks)
+        Ci = np.zeros((1, order))
+        Ci[0, 0] = 1.0
+        blocksA.append(Ai)
+        blocksB.append(Bi)
+        blocksC.append(Ci)
+        Ds.append(Dn)
+        sims.append((di - r)[0] * sd[i])
+        allpoles.append(np.roots(a))
+    from scipy.linalg import block_diag
+
+    A = block_diag(*blocksA)
+    B = np.vstack(blocksB)
+    C = block_diag(*blocksC)
+    D = np.vstack(Ds)
+    y_sim = np.vstack(sims)
+    e = d - y_sim
+    return OEResult(A=A, B=B, C=C, D=D, residual_cov=np.atleast_2d(np.cov(e, bias=True)),
+                    order=order, poles=np.concatenate(allpoles), y_sim=y_sim)
