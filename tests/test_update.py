@@ -78,9 +78,9 @@ def test_static_update_reduces_validation_error(spring_case):
 
 
 def test_dynamic_subsystem_is_found():
-    # true: d = z, z' = -a z - b x (a lagged restoring force driven by the position)
-    a, b = 1.0, 3.0
-    A = np.array([[0.0, 1.0, 0.0], [0.0, -C_DAMP / M, 1.0 / M], [-b, 0.0, -a]])
+    # true: d = z, z' = -a z - b v (a lagged viscous force driven by the velocity)
+    a, b = 2.0, 4.0
+    A = np.array([[0.0, 1.0, 0.0], [0.0, -C_DAMP / M, 1.0 / M], [0.0, -b, -a]])
     Bt = np.array([[0.0], [1.0 / M], [0.0]])
     true3 = gb.discretize(gb.named_ss(A, Bt, np.eye(3)[:2], np.zeros((2, 1)), 0,
                                       states=["x", "v", "z"], inputs=["F"],
@@ -98,11 +98,14 @@ def test_dynamic_subsystem_is_found():
     v0 = validate_model(base, val.y, val.u, Q=Q, R=R)
     v1 = validate_model(upd.sys, val.y, val.u, Q=upd.Q, R=upd.R)
     assert v1.se.value < v0.se.value / 3
-    # the true lag pole exp(-a dt) is among the updated model's poles (1e-2:
-    # the identified pole from 1e4 noisy samples)
+    # The augmented model's poles match the true closed-loop poles (the lag is
+    # coupled into the mass, so compare whole spectra, not the lag pole alone).
+    # Measured distance ~3e-4; 2e-3 is a sixth of these poles' distance from
+    # the unit circle (~0.012), so a wrong damping or lag would fail.
     poles = np.linalg.eigvals(upd.sys.A)
-    assert np.min(np.abs(poles - np.exp(-a * DT))) < 1e-2 or \
-        np.min(np.abs(np.linalg.eigvals(true3.A)[:, None] - poles[None, :]), axis=1).max() < 2e-2
+    true_poles = np.linalg.eigvals(true3.A)
+    dist = np.abs(true_poles[:, None] - poles[None, :]).min(axis=1)
+    assert dist.max() < 2e-3, (true_poles, poles)
 
 
 def test_paper_structure_without_feedthrough_is_delayed(spring_case):

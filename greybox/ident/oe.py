@@ -90,14 +90,16 @@ def _fit_fixed_den(a: NDArray, ws: NDArray, d: NDArray, feedthrough: bool):
     regs = [np.roll(filt, i, axis=1) for i in range(1, n + 1)]
     for i, r in enumerate(regs, start=1):
         r[:, :i] = 0.0
-    X = np.vstack(([ws] if feedthrough else []) + regs).T
-    coef, *_ = np.linalg.lstsq(X, d.T, rcond=1e-10)
-    resid = d - (X @ coef).T
+    X = np.vstack(([ws] if feedthrough else []) + regs)
+    G = X @ X.T
+    G += 1e-10 * np.trace(G) / G.shape[0] * np.eye(G.shape[0])  # ridge: collinear inputs
+    coef = np.linalg.solve(G, X @ d.T)
+    resid = d - coef.T @ X
     return coef, resid
 
 
 def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = True,
-                 starts: int = 6, maxiter: int = 400) -> OEResult:
+                 starts: int = 4, maxiter: int = 200) -> OEResult:
     """Fit an output-error model of the given denominator order.
 
     Parameters
