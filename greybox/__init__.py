@@ -43,6 +43,26 @@ from .plants import (  # noqa: E402
 )
 from .signals import SimulationResult, lowpass_noise, multisine, random_binary, simulate  # noqa: E402
 from .system import SplitModel, discretize, named_ss, split_inputs  # noqa: E402
+from .metrics import (  # noqa: E402
+    RelativeError,
+    WhitenessTest,
+    autocorrelation,
+    cross_correlation,
+    relative_error,
+    whiteness_test,
+)
+from .ident import N4SIDResult, n4sid, pbsid  # noqa: E402
+from .ident.oe import OEResult, output_error  # noqa: E402
+from .ident.regression import forward_selection, static_least_squares  # noqa: E402
+from .update import (  # noqa: E402
+    DeltaModel,
+    Subsystem,
+    UpdatedModel,
+    augment_model,
+    delta_update,
+    identify_subsystem,
+)
+from .validate import ModelValidation, estimate_initial_state, validate_model  # noqa: E402
 
 __all__ += [
     "FilterResult",
@@ -67,4 +87,26 @@ __all__ += [
     "discretize",
     "named_ss",
     "split_inputs",
+    "RelativeError",
+    "WhitenessTest",
+    "autocorrelation",
+    "cross_correlation",
+    "relative_error",
+    "whiteness_test",
+    "N4SIDResult",
+    "n4sid",
+    "pbsid",
+    "OEResult",
+    "output_error",
+    "forward_selection",
+    "static_least_squares",
+    "DeltaModel",
+    "Subsystem",
+    "UpdatedModel",
+    "augment_model",
+    "delta_update",
+    "identify_subsystem",
+    "ModelValidation",
+    "estimate_initial_state",
+    "validate_model",
 ]
