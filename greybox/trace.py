@@ -280,13 +280,16 @@ def _fmt_sum(coefs, names) -> str:
     return txt[2:] if txt.startswith("+ ") else "-" + txt[2:]
 
 
-def _forward_gram(X: NDArray, d: NDArray, names, max_terms: int | None = None):
+def _forward_gram(X: NDArray, d: NDArray, names, max_terms: int | None = None,
+                  min_drop: float = 1e-4):
     """Forward selection with a BIC stopping rule, on the Gram matrix.
 
     Same rule as :func:`greybox.ident.regression.forward_selection` (add the
     term that most reduces the RSS while ``N log(RSS/N) + k log N`` drops),
     but each step solves k x k normal equations of unit-RMS-scaled terms
     instead of an N x k least-squares problem: O(nterms^2 N) once, then cheap.
+    A term must also remove at least ``min_drop`` of the sum of squares of d^
+    (d^ is a noisy, coloured output: the BIC alone keeps negligible terms).
     Returns ``(index, coef, rss, bic_path)``.
     """
     N = X.shape[1]
@@ -325,13 +328,25 @@ def _forward_gram(X: NDArray, d: NDArray, names, max_terms: int | None = None):
         if best is None:
             break
         bb = bic(max(best[1], 0.0), len(sel) + 1)
-        if bb >= path[-1]:
+        if bb >= path[-1] or rss - best[1] < min_drop * dd:
             break
         sel.append(best[0])
         rss, coef_s = max(best[1], 0.0), best[2]
         path.append(bb)
+    # backward pruning: greedy steps can admit a proxy term before the true one
+    pruned = True
+    while pruned and len(sel) > 1:
+        pruned = False
+        for j in list(sel):
+            idx = [i for i in sel if i != j]
+            c = np.linalg.solve(Gm[np.ix_(idx, idx)], b[idx])
+            r = dd - float(c @ b[idx])
+            if r - rss < min_drop * dd:
+                sel, coef_s, rss, pruned = idx, c, max(r, 0.0), True
+                path = np.append(path[:-1], bic(rss, len(sel)))
+                break
     coef = coef_s / s[sel] if sel else np.zeros(0)
-    return sel, coef, rss, np.array(path)
+    return sel, coef, rss, np.asarray(path)
 
 
 def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
@@ -361,6 +376,13 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
         Ddx[c], Ddu[c] = lc[:n], lc[n:nlin]
         unit = f" [{units[c]}]" if c < len(units) and units[c] else ""
         lines.append(f"{labels[c]} = {_fmt_sum(cf, [spec[j][0] for j in idx])}{unit}")
+    if md > 1 and np.any(coef):  # one direction inside the channel? (PAPER_NOTES §9.6)
+        sc = np.linalg.svd(coef * np.sqrt(np.mean(terms**2, axis=1))[None, :],
+                           compute_uv=True)
+        if sc[1][1] < 0.05 * sc[1][0]:
+            g = sc[0][:, 0] / sc[0][np.argmax(np.abs(sc[0][:, 0])), 0]
+            lines.append(f"one direction: [{', '.join(labels)}] ~ "
+                         f"{np.array2string(g, precision=3)} x (one force)")
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
                      residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines))
 

@@ -386,7 +386,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     def _score(tr):
         ch = tr.channel
         notes.extend(f"{ch.name}: {s}" for s in tr.notes)
-        if tr.static_model is not None and tr.static.npar > 0:
+        dead = tr.static is not None and ch.md > 1 and bool(
+            np.any(np.all(tr.static.coef == 0, axis=1)))
+        if dead:  # a component explains nothing: the same as a smaller channel
+            cands.append(CandidateScore(ch.name, "static", 0, np.inf, tr.static.npar,
+                                        "redundant", "a component of d has no term"))
+        elif tr.static_model is not None and tr.static.npar > 0:
             sm = tr.static_model
             x0 = estimate_initial_state(sm.sys, y, u)
             if tr.static.nonlinear:

@@ -1,0 +1,219 @@
+"""close_the_loop on simulated plants with one undeclared effect each.
+
+Every true system is a two-mass chain (states p1, v1, p2, v2; force F on
+mass 1; dt = 0.01 s, about 20 samples per period of the fastest mode) plus
+one effect its nominal model omits. Estimation data carry process and
+measurement noise; validation data only measurement noise (PAPER_NOTES §8.6).
+For each case the test asserts the channel found, the kind of effect and an
+SE reduction of at least 3x on the validation data; for the correct model,
+that nothing is changed.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+import greybox as gb
+from greybox.system import named_ss
+from greybox.workflow import LoopReport, close_the_loop
+
+DT = 0.01
+N_EST, N_VAL = 6000, 3000
+STATES = ["p1", "v1", "p2", "v2"]
+QD = np.diag([0.0, 1e-8, 0.0, 1e-8])     # process noise on the velocities (discrete)
+R_STD = 1e-3                              # 1 mm, 1 mm/s measurement noise
+
+
+def chain_matrices(k1=10.0, k2=0.0, k12=20.0, c1=0.5, c2=0.5, m1=1.0, m2=1.0):
+    """Continuous A, B of the two-mass chain (wall-k1-m1-k12-m2-k2-wall)."""
+    A = np.array([[0, 1, 0, 0],
+                  [-(k1 + k12) / m1, -c1 / m1, k12 / m1, 0],
+                  [0, 0, 0, 1],
+                  [k12 / m2, 0, -(k2 + k12) / m2, -c2 / m2]], dtype=float)
+    B = np.array([[0.0], [1.0 / m1], [0.0], [0.0]])
+    return A, B
+
+
+def chain(measured=STATES, **kw):
+    """Nominal (continuous) model with named signals, measuring ``measured``."""
+    A, B = chain_matrices(**kw)
+    C = np.eye(4)[[STATES.index(s) for s in measured]]
+    return named_ss(A, B, C, np.zeros((len(measured), 1)), 0, states=STATES, inputs=["F"],
+                    outputs=list(measured), name="chain")
+
+
+def _simulate(f, C, u, *, noise_q, rng, sub=5):
+    """RK4 with zero-order-hold input, ``sub`` steps per sample; returns y (p, N)."""
+    n = 4 + _simulate.extra
+    N, h = u.shape[1], DT / sub
+    x = np.zeros((n, N))
+    xk = np.zeros(n)
+    sq = np.sqrt(np.diag(QD))
+    for k in range(N):
+        x[:, k] = xk
+        uk = u[0, k]
+        for _ in range(sub):
+            a = f(xk, uk)
+            b = f(xk + h / 2 * a, uk)
+            c = f(xk + h / 2 * b, uk)
+            d = f(xk + h * c, uk)
+            xk = xk + h / 6 * (a + 2 * b + 2 * c + d)
+        if noise_q:
+            xk[:4] = xk[:4] + sq * rng.standard_normal(4)
+    y = C @ x[:4]
+    return y + R_STD * rng.standard_normal(y.shape)
+
+
+def true_dynamics(case):
+    """(f(x, u), number of extra states) of the true plant of ``case``."""
+    if case == "two_equations":
+        A, B = chain_matrices(k2=15.0, k12=20.0)
+    elif case in ("spring", "partial"):
+        A, B = chain_matrices(k2=15.0)
+    else:
+        A, B = chain_matrices()
+    if case == "maxwell":          # spring 20 N/m in series with damper 20 N s/m on mass 2
+        def f(x, u):
+            dx = np.empty(5)
+            dx[:4] = A @ x[:4] + B[:, 0] * u
+            dx[3] -= x[4]
+            dx[4] = -x[4] + 20.0 * x[3]
+            return dx
+        return f, 1
+    if case == "lag":              # actuator lag, time constant 0.1 s
+        def f(x, u):
+            dx = np.empty(5)
+            dx[:4] = A @ x[:4] + B[:, 0] * x[4]
+            dx[4] = (u - x[4]) / 0.1
+            return dx
+        return f, 1
+    if case == "cubic":            # hardening spring -300 p1^3 on mass 1
+        def f(x, u):
+            dx = A @ x + B[:, 0] * u
+            dx[1] -= 300.0 * x[0] ** 3
+            return dx
+        return f, 0
+    return (lambda x, u: A @ x + B[:, 0] * u), 0
+
+
+NOMINAL = {
+    "spring": dict(),                    # misses k2 = 15 N/m on mass 2
+    "maxwell": dict(),                   # misses the Maxwell element on mass 2
+    "lag": dict(),                       # misses the actuator lag
+    "cubic": dict(),                     # misses the cubic spring on mass 1
+    "two_equations": dict(k2=15.0, k12=0.0),   # misses the coupling spring k12 = 20 N/m
+    "partial": dict(measured=("p1", "p2")),    # misses k2; only positions measured
+    "right": dict(),
+}
+
+
+@lru_cache(maxsize=None)
+def run_case(case: str) -> tuple[LoopReport, object]:
+    """Simulate the case's true plant and run close_the_loop (cached per session)."""
+    rng = np.random.default_rng(len(case) * 7919)
+    nom = chain(**NOMINAL[case])
+    C = np.asarray(nom.C, dtype=float)
+    f, extra = true_dynamics(case)
+    _simulate.extra = extra
+    u = gb.lowpass_noise(N_EST, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
+    uv = gb.lowpass_noise(N_VAL, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
+    y = _simulate(f, C, u, noise_q=True, rng=rng)
+    yv = _simulate(f, C, uv, noise_q=False, rng=rng)
+    R = R_STD**2 * np.eye(C.shape[0])
+    rep = close_the_loop(nom, y, u, yv, uv, Q=QD + 1e-12 * np.eye(4), R=R, dt=DT)
+    return rep, (y, u, yv, uv, nom, R)
+
+
+CASES = [
+    # case, expected equations, expected kind
+    pytest.param("spring", ("v2",), "static", id="spring"),
+    pytest.param("maxwell", ("v2",), "dynamic", id="maxwell"),
+    pytest.param("lag", ("v1",), "dynamic", id="lag"),
+    pytest.param("cubic", ("v1",), "static", id="cubic"),
+    pytest.param("two_equations", ("v1", "v2"), "static", id="two_equations"),
+    pytest.param("partial", ("v2",), "static", id="partial", marks=pytest.mark.xfail(strict=True, reason=(
+        "measured: with only p1, p2 measured the chosen effect is eq(v2) but DYNAMIC "
+        "(order 2, estimation SE 0.50% vs order-1 0.71%); the static law on the noisy "
+        "d^ (C G ~ dt^2/2) does worse. Validation SE 127% -> 0.39% (324x)"))),
+]
+
+
+@pytest.mark.parametrize("case, equations, kind", CASES)
+def test_finds_channel_kind_and_reduces_se(case, equations, kind):
+    rep, _ = run_case(case)
+    assert rep.model_error_detected
+    assert rep.updated, rep.message
+    assert rep.effect.equations == equations, rep.message
+    assert rep.effect.kind == kind, rep.message
+    se0, se1 = rep.table["nominal"].se.value, rep.table["updated"].se.value
+    assert se0 / se1 >= 3.0, f"SE {se0:.3g}% -> {se1:.3g}%"
+    # the updated model keeps the physical states first, with their names
+    assert list(rep.model.sys.state_labels[:4]) == STATES
+
+
+def test_correct_model_is_left_unchanged():
+    rep, _ = run_case("right")
+    assert not rep.model_error_detected
+    assert not rep.updated
+    assert rep.effect.kind == "none"
+    assert rep.model.sys is rep.nominal
+    assert "no significant model error" in rep.message
+
+
+def test_spring_formula_and_parameter_note():
+    rep, _ = run_case("spring")
+    # d_v2 = -k2/m2 * p2 with k2 = 15 N/m, m2 = 1 kg; the discrete law carries a
+    # half-sample shift (PAPER_NOTES §9.5), hence a small v2 term as well
+    law = rep.effect.law
+    j = [s[0] for s in law.spec].index("p2")
+    np.testing.assert_allclose(law.coef[0, j], -15.0, rtol=0.03)  # 3 %: noise + ZOH
+    assert "p2" in rep.effect.formula
+    assert any(note.startswith("A[v2; p2]") for note in rep.effect.parameter_notes)
+
+
+def test_cubic_law_is_nonlinear_and_reported_linearized():
+    rep, _ = run_case("cubic")
+    assert rep.effect.nonlinear and rep.effect.linearized
+    assert "p1^3" in rep.effect.formula
+    law = rep.effect.law
+    j = [s[0] for s in law.spec].index("p1^3")
+    np.testing.assert_allclose(law.coef[0, j], -300.0, rtol=0.1)  # 10 %: noisy d^, ZOH
+    assert "updated (linearized)" in rep.table
+
+
+def test_partial_measurement_still_finds_the_equation():
+    rep, _ = run_case("partial")
+    assert rep.updated and rep.effect.equations == ("v2",)
+    se0, se1 = rep.table["nominal"].se.value, rep.table["updated"].se.value
+    assert se0 / se1 >= 3.0
+
+
+def test_two_equation_law_is_one_internal_force():
+    rep, _ = run_case("two_equations")
+    assert "one direction" in rep.effect.formula
+
+
+def test_report_as_dict_has_summary_fields():
+    rep, _ = run_case("spring")
+    d = rep.as_dict()
+    for key in ("model_error_detected", "channels", "effect", "table", "gate"):
+        assert key in d
+    assert set(d["effect"]) >= {"kind", "order", "formula"}
+    assert set(d["table"]) >= {"nominal", "updated"}
+    for row in d["table"].values():
+        assert {"se", "pe"} <= set(row)
+
+
+def test_bad_inputs_raise_greybox_errors():
+    _, (y, u, yv, uv, nom, R) = run_case("right")
+    with pytest.raises(gb.ModelError, match="dt"):
+        close_the_loop(nom, y, u, yv, uv, Q=QD, R=R)
+    with pytest.raises(gb.DimensionError, match="y has shape"):
+        close_the_loop(nom, y[:2], u, yv, uv, Q=QD, R=R, dt=DT)
+    with pytest.raises(gb.DataError, match="samples"):
+        close_the_loop(nom, y[:, :50], u[:, :50], yv, uv, Q=QD, R=R, dt=DT)
+    with pytest.raises(gb.DimensionError, match="no state named"):
+        close_the_loop(nom, y, u, yv, uv, Q=QD, R=R, dt=DT, channels=["nope"])
