@@ -1,6 +1,7 @@
 """Command line of greybox.
 
 ``greybox demo tape-drive [--json] [--out DIR] [--force]``
+``greybox update MODEL.json ESTIMATION.csv --validate VALIDATION.csv [--out DIR] [--json] [--force]``
 
 The command line only parses arguments, calls public functions and prints or
 saves their records. Bad input ends with one line on stderr and exit code 2.
@@ -11,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 from .exceptions import GreyboxError
 
@@ -92,6 +94,88 @@ def _demo_tape_drive(args) -> int:
     return 0
 
 
+def _fmt_update(rep) -> str:
+    lines = [rep.message, f"criterion: {rep.criterion}"]
+    if rep.effect.kind != "none":
+        lines.append(f"effect ({rep.effect.kind}, order {rep.effect.order}): {rep.effect.formula}")
+        lines += [f"  {s}" for s in rep.effect.parameter_notes]
+    lines.append(f"  {'model':<24}{'order':>6}{'SE [%]':>10}{'PE [%]':>10}{'white':>7}")
+    for name, v in rep.table.items():
+        lines.append(f"  {name:<24}{v.order:>6}{v.se.value:>10.3g}{v.pe.value:>10.3g}"
+                     f"{'yes' if v.whiteness.all_white else 'no':>7}")
+    return "\n".join(lines)
+
+
+def _report_markdown(rep, figures) -> str:
+    out = ["# greybox update report", "", rep.message, "",
+           f"Selection criterion: {rep.criterion}.", "",
+           "## Residual of the nominal model (estimation data)", "",
+           "| output | Ljung-Box p |", "|---|---|"]
+    labels = list(rep.nominal.output_labels)
+    out += [f"| {labels[i]} | {p:.3g} |" for i, p in enumerate(rep.residual.pvalue)]
+    out += ["", "## Effect", "", f"- kind: {rep.effect.kind}, order {rep.effect.order}",
+            f"- channel: {rep.effect.channel or '-'}", f"- formula: `{rep.effect.formula}`"]
+    out += [f"- {s}" for s in rep.effect.parameter_notes]
+    out += [f"- note: {s}" for s in rep.notes]
+    out += ["", "## Validation data: before and after (eq. 42, relative RMS)", "",
+            "| model | order | SE [%] | PE [%] | residual white |", "|---|---|---|---|---|"]
+    for name, v in rep.table.items():
+        out.append(f"| {name} | {v.order} | {v.se.value:.3g} | {v.pe.value:.3g} | "
+                   f"{'yes' if v.whiteness.all_white else 'no'} |")
+    out += ["", "## Figures", ""] + [f"![{k}]({Path(v).name})" for k, v in figures.items()]
+    return "\n".join(out) + "\n"
+
+
+def _update(args) -> int:
+    from .io import atomic_write_json, atomic_write_text, prepare_output_dir, save_figure
+    from .model_io import model_to_dict, read_csv, read_model
+    from .workflow import close_the_loop
+
+    spec = read_model(args.model)
+    ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
+    y, u = read_csv(args.estimation, inputs=ins, outputs=outs, Ts=spec.Ts)
+    yv, uv = read_csv(args.validate, inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
+    rep = close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
+                         channels=spec.channels)
+    out = prepare_output_dir(args.out, force=args.force, kind="report")
+    figures = {}
+    if not args.no_plots:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from .plotting import plot_outputs, plot_residual_autocorrelation, plot_unknown_input
+
+        rows = [rep.table["nominal"]] + ([rep.table["updated"]] if rep.updated else [])
+        arts = plot_residual_autocorrelation(rows)
+        figures["autocorrelation"] = out / "autocorrelation.png"
+        save_figure(arts["figure"], figures["autocorrelation"])
+        plt.close(arts["figure"])
+        arts = plot_outputs(yv, list(rep.table.values()), dt=spec.Ts)
+        figures["outputs"] = out / "outputs.png"
+        save_figure(arts["figure"], figures["outputs"])
+        plt.close(arts["figure"])
+        if rep.trace is not None and rep.trace.filter_result is not None:
+            arts = plot_unknown_input(rep.trace.filter_result, 0)
+            figures["d_estimate"] = out / "d_estimate.png"
+            save_figure(arts["figure"], figures["d_estimate"])
+            plt.close(arts["figure"])
+    summary = rep.as_dict()
+    summary["figures"] = {k: str(v) for k, v in figures.items()}
+    summary["updated_model"] = str(out / "updated_model.json")
+    atomic_write_json(out / "updated_model.json",
+                      model_to_dict(rep.model.sys, rep.model.Q, rep.model.R))
+    atomic_write_json(out / "summary.json", summary)
+    atomic_write_text(out / "report.md", _report_markdown(rep, figures))
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(_fmt_update(rep))
+        print(f"report: {out / 'report.md'}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="greybox", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -104,6 +188,19 @@ def _parser() -> argparse.ArgumentParser:
                       help="write into --out even if it holds files greybox did not write")
     demo.add_argument("--no-plots", action="store_true", help="skip the figures")
     demo.set_defaults(func=_demo_tape_drive)
+    upd = sub.add_parser("update", help="find, trace and add the effect a model lacks, "
+                                        "from measured data")
+    upd.add_argument("model", help="MODEL.json (schema: greybox.model_io)")
+    upd.add_argument("estimation", help="estimation data CSV (header: inputs, outputs, "
+                                        "optional time)")
+    upd.add_argument("--validate", required=True, metavar="VALIDATION.csv",
+                     help="validation data CSV, same columns")
+    upd.add_argument("--out", default="greybox-update-report",
+                     help="report folder (default: %(default)s)")
+    upd.add_argument("--json", action="store_true", help="print the JSON summary")
+    upd.add_argument("--force", action="store_true", help="overwrite an existing report")
+    upd.add_argument("--no-plots", action="store_true", help="skip the figures")
+    upd.set_defaults(func=_update)
     return p
 
 
