@@ -178,8 +178,8 @@ class Table3:
         structure (30)-(31) as printed), "parallel" (delta baseline),
         "true_model" (the floor); each validated on fresh data.
     selected : str
-        The greybox update chosen by the BIC over orders 0..3 ("static" or
-        "dynamic").
+        The greybox update chosen from the data over orders 0..2 ("static" or
+        "dynamic"); "dynamic" is that choice if it is dynamic, else order 1.
     models : dict of str to UpdatedModel
         The updated models (for control design).
     subsystem : Subsystem
@@ -238,9 +238,9 @@ def reproduce_table3(table2: Table2 | None = None) -> Table3:
     Q, R = TAPE_DRIVE_Q, TAPE_DRIVE_R
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", GreyboxWarning)
-        sel = identify_subsystem(t2.uif, max_order=3)
+        sel = identify_subsystem(t2.uif, max_order=2)
         static = identify_subsystem(t2.uif, order=0)
-        dyn = identify_subsystem(t2.uif, min_order=1, max_order=3)
+        dyn = sel if sel.order >= 1 else identify_subsystem(t2.uif, order=1)
         paper = identify_subsystem(t2.uif, order=1, feedthrough=False)
         delta = delta_update(base, t2.uif.y, t2.uif.u, Q=Q, R=R)
     models = {

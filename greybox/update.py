@@ -60,7 +60,9 @@ class Subsystem:
     Attributes
     ----------
     order : int
-        Number of subsystem states n_d (0: static law ``d = Ddu u + Ddx x``).
+        Number of subsystem states n_d (0: static law ``d = Ddu u + Ddx x``); with
+        md > 1 unknown inputs an output-error fit of order k per channel has
+        n_d = md * k.
     Ad : ndarray, shape (order, order)
     Bdu : ndarray, shape (order, ninputs)
     Bdx : ndarray, shape (order, nstates)
@@ -248,7 +250,7 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
     labels_u = tuple(result.sys.input_labels)
     labels_x = tuple(result.sys.state_labels)
     return Subsystem(
-        order=best, Ad=Ad, Bdu=Bw[:, :m], Bdx=Bw[:, m:], Cd=Cd, Ddu=Dw[:, :m], Ddx=Dw[:, m:],
+        order=Ad.shape[0], Ad=Ad, Bdu=Bw[:, :m], Bdx=Bw[:, m:], Cd=Cd, Ddu=Dw[:, :m], Ddx=Dw[:, m:],
         K=K, innovation_cov=np.atleast_2d(Re), noise_cov=_psd_part(np.atleast_2d(Re) - Pd),
         criterion={k: v[0] for k, v in cands.items()}, method=method,
         feedthrough=feedthrough, d_sim=dsim, input_labels=labels_u, state_labels=labels_x,
