@@ -63,6 +63,7 @@ from .update import (  # noqa: E402
     identify_subsystem,
 )
 from .validate import ModelValidation, estimate_initial_state, validate_model  # noqa: E402
+from .workflow import CandidateScore, Effect, LoopReport, close_the_loop  # noqa: E402
 
 __all__ += [
     "FilterResult",
@@ -109,4 +110,8 @@ __all__ += [
     "ModelValidation",
     "estimate_initial_state",
     "validate_model",
+    "CandidateScore",
+    "Effect",
+    "LoopReport",
+    "close_the_loop",
 ]
