@@ -18,6 +18,9 @@ from scipy.signal import lfilter
 __all__ = ["lti_states"]
 
 
+_CHUNK = 1 << 15
+
+
 def lti_states(Phi: NDArray, v: NDArray, x0: NDArray) -> NDArray[np.float64]:
     """States of ``x[k+1] = Phi x[k] + v[:, k]`` for k = 0..N-1.
 
@@ -50,6 +53,18 @@ def lti_states(Phi: NDArray, v: NDArray, x0: NDArray) -> NDArray[np.float64]:
                 x[i, 1:] = lfilter([1.0], [1.0, -lam], v[i, :-1], zi=[lam * x0[i]])[0]
         return x
     T, Z = sla.schur(np.asarray(Phi, dtype=complex), output="complex")
+    # time chunks bound the complex temporaries to O(n * _CHUNK) memory
+    xk = np.asarray(x0, dtype=float)
+    for a in range(0, N, _CHUNK):
+        b = min(N, a + _CHUNK)
+        _schur_chunk(T, Z, v[:, a:b], xk, x[:, a:b])
+        xk = Phi @ x[:, b - 1] + v[:, b - 1]
+    return x
+
+
+def _schur_chunk(T, Z, v, x0, out):
+    """One chunk of :func:`lti_states` in the Schur basis, written into ``out``."""
+    n, N = v.shape
     ZH = Z.conj().T
     w = ZH @ v  # (n, N) complex
     z0 = ZH @ np.asarray(x0, dtype=complex)
@@ -62,5 +77,4 @@ def lti_states(Phi: NDArray, v: NDArray, x0: NDArray) -> NDArray[np.float64]:
         z[i, 0] = z0[i]
         if N > 1:
             z[i, 1:] = lfilter([1.0], [1.0, -lam], drive, zi=[lam * z0[i]])[0]
-    x[:] = (Z @ z).real
-    return x
+    out[:] = (Z @ z).real
