@@ -207,7 +207,7 @@ def test_report_as_dict_has_summary_fields():
         assert {"se", "pe"} <= set(row)
 
 
-def test_bad_inputs_raise_greybox_errors():
+def test_bad_inputs_raise_greybox_exceptions():
     _, (y, u, yv, uv, nom, R) = run_case("right")
     with pytest.raises(gb.ModelError, match="dt"):
         close_the_loop(nom, y, u, yv, uv, Q=QD, R=R)
