@@ -84,7 +84,8 @@ def relative_error(y: ArrayLike, y_hat: ArrayLike, *, squared: bool = False,
     den = np.sum(y**2, axis=1)
     if np.any(den == 0):
         raise DataError("an output of y is identically zero; its relative error is undefined")
-    ratio = np.sum((y - y_hat) ** 2, axis=1) / den
+    with np.errstate(over="ignore", invalid="ignore"):
+        ratio = np.sum((y - y_hat) ** 2, axis=1) / den  # a diverged model gives inf
     per = 100 * (ratio if squared else np.sqrt(ratio))
     return RelativeError(value=float(per.mean()), per_output=per, squared=squared)
 

@@ -131,7 +131,7 @@ def _bic(resid: NDArray, npar: int) -> float:
 def identify_subsystem(result: FilterResult, *, order: int | None = None,
                        max_order: int = 2, min_order: int = 0, feedthrough: bool = True,
                        horizon: int | None = None, method: str = "output-error",
-                       starts: int = 4, skip: int | None = None) -> Subsystem:
+                       starts: int = 2, skip: int | None = None) -> Subsystem:
     """Identify the unknown subsystem from an unknown-input filter's result.
 
     Parameters

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import minimize
+from scipy.optimize import minimize, minimize_scalar
 from scipy.signal import lfilter
 
 from .._validation import check_positive, check_same_length, check_signal
@@ -86,11 +86,14 @@ def _poly_real(theta: NDArray) -> NDArray:
 def _fit_fixed_den(a: NDArray, ws: NDArray, d: NDArray, feedthrough: bool):
     """Least squares of the numerators (and D) for denominator a; returns (coef, resid)."""
     n = len(a) - 1
+    nin, N = ws.shape
     filt = lfilter([1.0], a, ws, axis=1)
-    regs = [np.roll(filt, i, axis=1) for i in range(1, n + 1)]
-    for i, r in enumerate(regs, start=1):
-        r[:, :i] = 0.0
-    X = np.vstack(([ws] if feedthrough else []) + regs)
+    off = nin if feedthrough else 0
+    X = np.zeros((off + n * nin, N))
+    if feedthrough:
+        X[:nin] = ws
+    for i in range(1, n + 1):
+        X[off + (i - 1) * nin: off + i * nin, i:] = filt[:, :N - i]
     G = X @ X.T
     G += 1e-10 * np.trace(G) / G.shape[0] * np.eye(G.shape[0])  # ridge: collinear inputs
     coef = np.linalg.solve(G, X @ d.T)
@@ -98,8 +101,55 @@ def _fit_fixed_den(a: NDArray, ws: NDArray, d: NDArray, feedthrough: bool):
     return coef, resid
 
 
+def _search_denominator(order, ws, di, feedthrough, taus, starts, maxiter):
+    """Denominator A(q^-1) minimizing the output error (grid, then local refinement)."""
+
+    def cost_a(a):
+        if np.max(np.abs(np.roots(a))) >= 0.9999:
+            return np.inf
+        _, r = _fit_fixed_den(a, ws, di, feedthrough)
+        return float(np.mean(r**2))
+
+    lams = np.exp(-1.0 / taus)
+    if order == 1:
+        c = [cost_a(np.array([1.0, -lam])) for lam in lams]
+        j = int(np.argmin(c))
+        lo = lams[j - 1] if j > 0 else 0.0
+        hi = lams[j + 1] if j + 1 < len(lams) else 0.9998
+        res = minimize_scalar(lambda lam: cost_a(np.array([1.0, -lam])), bounds=(lo, hi),
+                              method="bounded", options={"xatol": 1e-8})
+        best_lam = res.x if res.fun <= c[j] else lams[j]
+        return np.array([1.0, -best_lam])
+    coarse = np.arctanh(lams[::3])
+    cands = []
+    for ti in range(len(coarse)):
+        for tj in range(ti, len(coarse)):
+            th = np.r_[coarse[ti], coarse[tj], np.full(order - 2, coarse[tj])]
+            cands.append((_poly_real, th))
+        for k in (0.5, 1.0, 2.0, 4.0):
+            tau = taus[::3][ti]
+            cands.append((_poly_from_params,
+                          np.r_[coarse[ti], k / tau, np.full(order - 2, coarse[ti])]))
+
+    def cost(theta, make):
+        a = make(theta) if make is _poly_real else make(theta, order)
+        v = cost_a(a)
+        return 1e6 if not np.isfinite(v) else v
+
+    scored = sorted(((cost(th, mk), mk, th) for mk, th in cands), key=lambda t: t[0])
+    best = None
+    opts = {"maxiter": maxiter, "xatol": 1e-6, "fatol": 1e-12}
+    for _, mk, th in scored[:max(1, starts)]:
+        res = minimize(cost, th, args=(mk,), method="Nelder-Mead", options=opts)
+        if best is None or res.fun < best[0]:
+            best = (res.fun, mk, res.x)
+    _, mk, th = best
+    return mk(th) if mk is _poly_real else mk(th, order)
+
+
 def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = True,
-                 starts: int = 4, maxiter: int = 200) -> OEResult:
+                 starts: int = 2, maxiter: int = 200, search_samples: int = 20_000
+                 ) -> OEResult:
     """Fit an output-error model of the given denominator order.
 
     Parameters
@@ -113,10 +163,19 @@ def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = 
     feedthrough : bool
         Estimate the direct term D.
     starts : int
-        Number of starting pole sets (spread over time constants from 3 to
-        ~N/10 samples).
+        Order >= 2: number of best grid points refined by Nelder-Mead.
     maxiter : int
         Nelder-Mead iteration limit per start.
+    search_samples : int
+        The pole search runs on the first ``search_samples`` samples (its cost
+        is then independent of N); the numerators and D are fitted on all data.
+
+    Notes
+    -----
+    Order 1: the pole is scanned on a grid of 24 time constants from 1.5 to
+    ``search_samples / 5`` samples, then refined by bounded Brent search.
+    Order >= 2: a grid of real-pole sets and complex pairs is scanned and the
+    ``starts`` best points are refined by Nelder-Mead.
 
     Returns
     -------
@@ -138,31 +197,13 @@ def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = 
     sd = np.sqrt(np.mean(d**2, axis=1))
     sd[sd == 0] = 1.0
     ds = d / sd[:, None]
-    taus = np.geomspace(3.0, max(N / 10.0, 30.0), starts)
+    ns = min(N, int(search_samples))
+    taus = np.geomspace(1.5, max(ns / 5.0, 10.0), 24)
     blocksA, blocksB, blocksC, Ds, sims, allpoles = [], [], [], [], [], []
     for i in range(nout):
         di = ds[i:i + 1]
-
-        def cost(theta, make=_poly_from_params):
-            a = make(theta) if make is _poly_real else make(theta, order)
-            if np.max(np.abs(np.roots(a))) >= 0.9999:
-                return 1e6
-            _, r = _fit_fixed_den(a, ws, di, feedthrough)
-            return float(np.mean(r**2))
-
-        best, best_make = None, None
-        opts = {"maxiter": maxiter, "xatol": 1e-6, "fatol": 1e-12}
-        for tau in taus:
-            lam = np.exp(-1.0 / tau)
-            inits = [(_poly_real, np.full(order, np.arctanh(lam)))]
-            if order >= 2:
-                inits.append((_poly_from_params,
-                              np.r_[np.arctanh(lam), 1.0 / tau, np.full(order - 2, np.arctanh(lam))]))
-            for make, th0 in inits:
-                res = minimize(cost, th0, args=(make,), method="Nelder-Mead", options=opts)
-                if best is None or res.fun < best.fun:
-                    best, best_make = res, make
-        a = best_make(best.x) if best_make is _poly_real else best_make(best.x, order)
+        a = _search_denominator(order, ws[:, :ns], di[:, :ns], feedthrough, taus, starts,
+                                maxiter)
         coef, r = _fit_fixed_den(a, ws, di, feedthrough)
         # unscale: d_i = sd_i * (Dn ws + sum_k bk filt(ws) delayed)
         off = nin if feedthrough else 0
