@@ -21,7 +21,29 @@ __all__ = ["discretize", "split_inputs", "SplitModel", "named_ss"]
 
 
 def named_ss(A, B, C, D, dt, *, states, inputs, outputs, name=None) -> ct.StateSpace:
-    """Build a ``StateSpace`` with the given signal names (thin wrapper of ``ct.ss``)."""
+    """Build a ``StateSpace`` with the given signal names (thin wrapper of ``ct.ss``).
+
+    Parameters
+    ----------
+    A, B, C, D : array_like
+        Shapes (n, n), (n, m), (p, n), (p, m); B, C, D are reshaped to them.
+    dt : float, True or 0
+        Sampling period [s]; 0 for continuous time.
+    states, inputs, outputs : sequence of str
+        Names; their lengths set n, m and p.
+    name : str, optional
+        System name.
+
+    Returns
+    -------
+    control.StateSpace
+
+    Raises
+    ------
+    ModelError
+        For a model without inputs and with one state or one output, which
+        python-control 0.10 cannot represent.
+    """
     A = np.atleast_2d(np.asarray(A, dtype=float))
     n = A.shape[0]
     B = np.asarray(B, dtype=float).reshape(n, len(inputs))

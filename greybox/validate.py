@@ -99,6 +99,21 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
     response from x0 = 0. ``nsamples`` defaults to ``max(10 n, 50)``.
     Directions of x0 that the window does not observe are set to zero
     (minimum-norm solution).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete model.
+    y : ndarray, shape (noutputs, nsteps)
+        Measured outputs.
+    u : ndarray, shape (ninputs, nsteps)
+        Inputs.
+    nsamples : int, optional
+        Length of the window.
+
+    Returns
+    -------
+    ndarray, shape (nstates,)
     """
     A, C = np.asarray(sys.A, dtype=float), np.asarray(sys.C, dtype=float)
     n = A.shape[0]

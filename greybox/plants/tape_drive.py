@@ -110,9 +110,19 @@ def _g_matrix(p: TapeDriveParams) -> np.ndarray:
 
 
 def tape_drive_tension(params: TapeDriveParams | None = None) -> np.ndarray:
-    """Row vector ``c_T`` with tension ``T = c_T @ x`` [N], eq. (39), shape (1, 6).
+    """Row vector ``c_T`` with tension ``T = c_T @ x`` [N], eq. (39).
 
     ``T = K/2 (p2 - p1) + D/2 (r w2 - r w1)``.
+
+    Parameters
+    ----------
+    params : TapeDriveParams, optional
+        Physical parameters; Table I by default.
+
+    Returns
+    -------
+    ndarray, shape (1, 6)
+        [N per unit of each state].
     """
     p = params or TapeDriveParams()
     c = np.zeros((1, 6))
