@@ -29,9 +29,11 @@ import control as ct
 import numpy as np
 from numpy.typing import NDArray
 
-from ._validation import check_discrete
-from .exceptions import DimensionError, GreyboxError, GreyboxWarning, RankConditionError
+from ._validation import check_discrete, check_positive
+from .exceptions import (DataError, DimensionError, GreyboxError, GreyboxWarning, ModelError,
+                         RankConditionError)
 from .filters import FilterResult, check_rank_condition, uikf
+from .ident.regression import SparseLaw, forward_selection
 from .system import discretize, named_ss
 from .update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 
@@ -51,7 +53,7 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- channels
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Channel:
     """A candidate error channel: the model error enters as ``G d``.
 
@@ -82,6 +84,19 @@ class Channel:
         """Number of unknown-input components."""
         return self.G.shape[1]
 
+    def _key(self):
+        G = np.asarray(self.G, dtype=float)
+        return (self.name, G.shape, G.tobytes(), tuple(self.labels), tuple(self.units),
+                tuple(self.equations))
+
+    def __eq__(self, other):  # G is an array: the generated __eq__ would be ambiguous
+        if not isinstance(other, Channel):
+            return NotImplemented
+        return self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
 
 def _eq_channel(sys: ct.StateSpace, idx: Sequence[int]) -> Channel:
     n = sys.nstates
@@ -109,6 +124,8 @@ def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto") -> tuple
         ``noutputs >= 2`` and ``nstates <= 4`` (the number of pairs grows as
         n^2; name channels explicitly for larger models).
     """
+    if not (isinstance(pairs, (bool, np.bool_)) or pairs == "auto"):
+        raise DataError(f"pairs must be True, False or 'auto'; found {pairs!r}")
     n = sys.nstates
     out = [_eq_channel(sys, [i]) for i in range(n)]
     use_pairs = (sys.noutputs >= 2 and n <= 4) if pairs == "auto" else bool(pairs)
@@ -127,6 +144,8 @@ def resolve_channel_spec(sys: ct.StateSpace, spec) -> tuple[Channel, ...]:
     """
     if spec is None:
         return default_channels(sys)
+    if isinstance(spec, str):  # one state name, not a sequence of one-letter names
+        spec = [spec]
     n = sys.nstates
     labels = list(sys.state_labels)
     out = []
@@ -136,7 +155,7 @@ def resolve_channel_spec(sys: ct.StateSpace, spec) -> tuple[Channel, ...]:
             out.append(s)
             continue
         if isinstance(s, str) or (isinstance(s, (tuple, list)) and s and
-                                  all(isinstance(t, str) for t in s) and key is None):
+                                  all(isinstance(t, str) for t in s)):
             names = [s] if isinstance(s, str) else list(s)
             bad = [t for t in names if t not in labels]
             if bad:
@@ -169,7 +188,34 @@ def resolve_channel_spec(sys: ct.StateSpace, spec) -> tuple[Channel, ...]:
 
 
 def channel_model(sys: ct.StateSpace, channel: Channel, dt: float | None = None) -> ct.StateSpace:
-    """Discrete model with inputs ``[u, d]`` for one channel (ZOH once, PAPER_NOTES §1)."""
+    """Discrete model with inputs ``[u, d]`` for one channel (ZOH once, PAPER_NOTES §1).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Nominal model, continuous or discrete.
+    channel : Channel
+    dt : float, optional
+        Sampling period [s]; needed if ``sys`` is continuous, and must agree
+        with ``sys.dt`` if it is discrete.
+
+    Raises
+    ------
+    ModelError
+        If ``sys`` is continuous and ``dt`` is missing, or ``dt`` disagrees
+        with a discrete ``sys``.
+    DimensionError
+        If ``channel.G`` does not have ``sys.nstates`` rows.
+    """
+    disc = ct.isdtime(sys, strict=True)
+    if not disc and dt is None:
+        raise ModelError("sys is continuous-time; give the sampling period dt [s] so that "
+                         "it can be discretized (ZOH)")
+    if disc and dt is not None and abs(float(dt) - float(sys.dt)) > 1e-9 * float(sys.dt):
+        raise ModelError(f"dt = {dt} disagrees with the discrete model's dt = {sys.dt}")
+    if channel.G.shape[0] != sys.nstates:
+        raise DimensionError(f"channel {channel.name!r} has G of shape {channel.G.shape}; "
+                             f"expected ({sys.nstates}, md)")
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
     p, md = C.shape[0], channel.md
     inputs = list(sys.input_labels) + list(channel.labels)
@@ -280,78 +326,19 @@ def _fmt_sum(coefs, names) -> str:
     return txt[2:] if txt.startswith("+ ") else "-" + txt[2:]
 
 
-def _forward_gram(X: NDArray, d: NDArray, names, max_terms: int | None = None,
-                  min_drop: float = 1e-4):
-    """Forward selection with a BIC stopping rule, on the Gram matrix.
+# A law term must remove at least this fraction of sum(d^2): d^ is a noisy,
+# coloured output and the BIC alone keeps negligible terms.
+_MIN_DROP = 1e-4
 
-    Same rule as :func:`greybox.ident.regression.forward_selection` (add the
-    term that most reduces the RSS while ``N log(RSS/N) + k log N`` drops),
-    but each step solves k x k normal equations of unit-RMS-scaled terms
-    instead of an N x k least-squares problem: O(nterms^2 N) once, then cheap.
-    A term must also remove at least ``min_drop`` of the sum of squares of d^
-    (d^ is a noisy, coloured output: the BIC alone keeps negligible terms).
-    Returns ``(index, coef, rss, bic_path)``.
-    """
-    N = X.shape[1]
-    s = np.sqrt(np.mean(X**2, axis=1))
-    usable = s > 0
-    Xs = X / np.where(usable, s, 1.0)[:, None]
-    Gm = Xs @ Xs.T
-    b = Xs @ d
-    dd = float(d @ d)
-    tiny = np.finfo(float).tiny
 
-    def bic(rss, k):
-        return N * np.log(max(rss / N, tiny)) + k * np.log(N)
-
-    sel: list[int] = []
-    coef_s = np.zeros(0)
-    rss = dd
-    path = [bic(dd, 0)]
-    max_terms = X.shape[0] if max_terms is None else max_terms
-    while len(sel) < max_terms:
-        best = None
-        for j in range(X.shape[0]):
-            if j in sel or not usable[j]:
-                continue
-            idx = sel + [j]
-            Gs = Gm[np.ix_(idx, idx)]
-            try:
-                c = np.linalg.solve(Gs, b[idx])
-            except np.linalg.LinAlgError:
-                continue
-            if np.linalg.cond(Gs) > 1e12:
-                continue
-            r = dd - float(c @ b[idx])
-            if best is None or r < best[1]:
-                best = (j, r, c)
-        if best is None:
-            break
-        bb = bic(max(best[1], 0.0), len(sel) + 1)
-        if bb >= path[-1] or rss - best[1] < min_drop * dd:
-            break
-        sel.append(best[0])
-        rss, coef_s = max(best[1], 0.0), best[2]
-        path.append(bb)
-    # backward pruning: greedy steps can admit a proxy term before the true one
-    pruned = True
-    while pruned and len(sel) > 1:
-        pruned = False
-        for j in list(sel):
-            idx = [i for i in sel if i != j]
-            c = np.linalg.solve(Gm[np.ix_(idx, idx)], b[idx])
-            r = dd - float(c @ b[idx])
-            if r - rss < min_drop * dd:
-                sel, coef_s, rss, pruned = idx, c, max(r, 0.0), True
-                path = np.append(path[:-1], bic(rss, len(sel)))
-                break
-    coef = coef_s / s[sel] if sel else np.zeros(0)
-    return sel, coef, rss, np.asarray(path)
+def _select(terms: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
+    """Forward selection (BIC) with backward pruning, as used for every static law."""
+    return forward_selection(terms, d, names, min_drop=_MIN_DROP, prune=True)
 
 
 def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
     terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear)
-    md, N = d.shape
+    md = d.shape[0]
     n, m = x.shape[0], u.shape[0]
     coef = np.zeros((md, len(spec)))
     Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
@@ -359,22 +346,25 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
     gain, npar, any_nl = 0.0, 0, False
     lines = []
     nlin = n + m
+    names = [s[0] for s in spec]
     for c in range(md):
-        idx, cf, rss, path = _forward_gram(terms, d[c], [s[0] for s in spec])
+        sel = _select(terms, d[c], names)
+        idx, cf = list(sel.index), sel.coef
         coef[c, idx] = cf
-        rv[c] = rss / N
-        gain += float(path[0] - path[-1])
+        rv[c] = sel.residual_var
+        gain += sel.bic_gain
         npar += len(idx)
         nl = any(j >= nlin for j in idx)
         any_nl |= nl
         if nl:  # best linear surrogate for the StateSpace
-            li, lcf, _, _ = _forward_gram(terms[:nlin], d[c], [s[0] for s in spec[:nlin]])
+            lin = _select(terms[:nlin], d[c], names[:nlin])
             lc = np.zeros(nlin)
-            lc[li] = lcf
+            lc[list(lin.index)] = lin.coef
         else:
             lc = coef[c, :nlin]
         Ddx[c], Ddu[c] = lc[:n], lc[n:nlin]
-        unit = f" [{units[c]}]" if c < len(units) and units[c] else ""
+        uc = units[c] if c < len(units) else ""
+        unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
         lines.append(f"{labels[c]} = {_fmt_sum(cf, [spec[j][0] for j in idx])}{unit}")
     if md > 1 and np.any(coef):  # one direction inside the channel? (PAPER_NOTES §9.6)
         sc = np.linalg.svd(coef * np.sqrt(np.mean(terms**2, axis=1))[None, :],
@@ -475,6 +465,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     ChannelTrace
         With status "skipped" and a reason when (17) fails.
     """
+    if skip is not None:
+        skip = check_positive(skip, "skip", integer=True, allow_zero=True)
     model = channel_model(sys, channel, dt)
     check_discrete(model)
     n, m = model.nstates, model.ninputs - channel.md
@@ -494,6 +486,10 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     res = uikf(model, y, u, unknown=labels, Q=Q, R=R)
     N = y.shape[1] - 1
     k0 = skip if skip is not None else max(20, res.period_converged or 20)
+    nterms = (4 * n if nonlinear else n) + m
+    if N - k0 <= nterms:
+        raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a law of "
+                        f"{nterms} candidate terms; give more data or a smaller skip")
     d = res.d_est[:, k0:N]
     x = res.x_filt[:, k0:N]
     uu = u[:, k0:N]
@@ -548,6 +544,9 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
         yp[:, k] = C @ xp + Du[:, k]
         xf = xp + K @ (y[:, k] - yp[:, k])
         xp = A @ xf + Bu[:, k] + G @ law.evaluate(xf[:, None], u[:, k:k + 1])[:, 0]
+        if not np.all(np.isfinite(xp)) or np.max(np.abs(xp)) > 1e100:
+            yp[:, k + 1:] = np.nan
+            break
     return yp
 
 
@@ -562,7 +561,6 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
     zero there, the law is a term the model lacks.
     """
     A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
-    n = A.shape[0]
     out = []
     for k in range(channel.md):
         g = channel.G[:, k]
@@ -587,5 +585,4 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
                 out.append(f"{mat}[{rows}; {name}] = {np.array2string(cs, precision=4)} in the "
                            f"model; the data want {np.array2string(new, precision=4)} "
                            f"({pct:+.1f}%)")
-        _ = n
     return tuple(out)
