@@ -29,6 +29,7 @@ import control as ct
 import numpy as np
 from numpy.typing import NDArray
 
+from ._lti import lti_states
 from ._validation import check_discrete, check_positive
 from .exceptions import (DataError, DimensionError, GreyboxError, GreyboxWarning, ModelError,
                          RankConditionError)
@@ -329,11 +330,26 @@ def _fmt_sum(coefs, names) -> str:
 # A law term must remove at least this fraction of sum(d^2): d^ is a noisy,
 # coloured output and the BIC alone keeps negligible terms.
 _MIN_DROP = 1e-4
+# Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
+# estimation noise and the static law is chosen by output error on y instead.
+_LOW_SNR = 0.1
 
 
 def _select(terms: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
     """Forward selection (BIC) with backward pruning, as used for every static law."""
     return forward_selection(terms, d, names, min_drop=_MIN_DROP, prune=True)
+
+
+def _one_direction(coef: NDArray, tscale: NDArray, labels) -> list[str]:
+    """A line if the md > 1 law acts along one direction of d (PAPER_NOTES §9.6)."""
+    if coef.shape[0] < 2 or not np.any(coef):
+        return []
+    sc = np.linalg.svd(coef * tscale[None, :], compute_uv=True)
+    if sc[1][1] >= 0.05 * sc[1][0]:
+        return []
+    g = sc[0][:, 0] / sc[0][np.argmax(np.abs(sc[0][:, 0])), 0]
+    return [f"one direction: [{', '.join(labels)}] ~ {np.array2string(g, precision=3)} "
+            f"x (one force)"]
 
 
 def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
@@ -366,13 +382,8 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
         uc = units[c] if c < len(units) else ""
         unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
         lines.append(f"{labels[c]} = {_fmt_sum(cf, [spec[j][0] for j in idx])}{unit}")
-    if md > 1 and np.any(coef):  # one direction inside the channel? (PAPER_NOTES §9.6)
-        sc = np.linalg.svd(coef * np.sqrt(np.mean(terms**2, axis=1))[None, :],
-                           compute_uv=True)
-        if sc[1][1] < 0.05 * sc[1][0]:
-            g = sc[0][:, 0] / sc[0][np.argmax(np.abs(sc[0][:, 0])), 0]
-            lines.append(f"one direction: [{', '.join(labels)}] ~ "
-                         f"{np.array2string(g, precision=3)} x (one force)")
+    tscale = np.sqrt(np.mean(terms**2, axis=1))
+    lines += _one_direction(coef, tscale, labels)
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
                      residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines))
 
@@ -392,6 +403,144 @@ def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Su
                      input_labels=tuple(res.sys.input_labels),
                      state_labels=tuple(res.sys.state_labels),
                      unknown_labels=tuple(res.unknown_labels))
+
+
+def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
+                      u: NDArray, x0: NDArray, k0: int, labels, units, tscale=None):
+    """Refine a linear static law by output error on y (PAPER_NOTES §9.3).
+
+    The law's coefficients fitted on d^ are consistent but, when C G is small
+    (e.g. only positions measured), d^ is so noisy that the law can make the
+    augmented model unstable. Here the selected coefficients are re-fitted to
+    minimize the simulation error of the augmented model on the outputs,
+    starting from the d^ fit (shrunk towards zero until the model is stable).
+    Returns ``(law, se_before, se_after)``; the law is unchanged when the
+    refinement does not lower the simulation error.
+    """
+    from scipy.optimize import least_squares
+
+    m = model.ninputs - md
+    A, Bf = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)
+    B, G = Bf[:, :m], Bf[:, m:]
+    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
+    n = A.shape[0]
+    sel = [(c, j) for c in range(md) for j in range(len(law.spec)) if law.coef[c, j] != 0]
+    if not sel:
+        return law, np.nan, np.nan
+    scale = np.sqrt(np.mean(y[:, k0:] ** 2, axis=1)) + 1e-300
+
+    def matrices(theta):
+        Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
+        for (c, j), t in zip(sel, theta):
+            _, kind, i = law.spec[j]
+            (Ddx if kind == "x" else Ddu)[c, i] = t
+        return A + G @ Ddx, B + G @ Ddu, Ddx, Ddu
+
+    def resid(theta):
+        Aa, Ba, _, _ = matrices(theta)
+        with np.errstate(all="ignore"):
+            x = lti_states(Aa, Ba @ u, x0)
+            r = ((y - C @ x - D @ u)[:, k0:] / scale[:, None]).ravel()
+        return np.where(np.isfinite(r), r, 1e6)
+
+    def se(theta):
+        r = resid(theta).reshape(y.shape[0], -1)
+        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
+
+    theta0 = np.array([law.coef[c, j] for c, j in sel])
+    se0 = se(theta0)
+    start = theta0.copy()
+    for _ in range(30):  # shrink towards the (stable) nominal model
+        if np.max(np.abs(np.linalg.eigvals(matrices(start)[0]))) <= 1 + 1e-9:
+            break
+        start *= 0.5
+    sol = least_squares(resid, start, method="lm", x_scale="jac", max_nfev=200)
+    se1 = se(sol.x)
+    if not se1 < se0:
+        return law, se0, se0
+    _, _, Ddx, Ddu = matrices(sol.x)
+    coef = law.coef.copy()
+    for (c, j), t in zip(sel, sol.x):
+        coef[c, j] = t
+    lines = []
+    for c in range(md):
+        idx = [j for (cc, j) in sel if cc == c]
+        uc = units[c] if c < len(units) else ""
+        unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
+        lines.append(f"{labels[c]} = {_fmt_sum(coef[c, idx], [law.spec[j][0] for j in idx])}"
+                     f"{unit}")
+    if tscale is not None:
+        lines += _one_direction(coef, tscale, labels)
+    return replace(law, coef=coef, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines)), se0, se1
+
+
+def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
+                      u: NDArray, x0: NDArray, k0: int, labels, units, max_terms: int = 4):
+    """Choose a linear static law by output error on y (forward selection, BIC).
+
+    Used when d^ is mostly estimation noise (its variance barely exceeds the
+    filter's Pd, e.g. when only positions are measured and C G ~ dt^2/2):
+    regressions on d^ then select terms at random. Each candidate support is
+    fitted by Levenberg-Marquardt on the simulation error of the augmented
+    model; terms are added while the BIC of the output error drops.
+    """
+    from scipy.optimize import least_squares
+
+    m = model.ninputs - md
+    A, Bf = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)
+    B, G = Bf[:, :m], Bf[:, m:]
+    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
+    n = A.shape[0]
+    lin = [j for j, (_, kind, _) in enumerate(law.spec) if kind in ("x", "u")]
+    cands = [(c, j) for c in range(md) for j in lin]
+    scale = np.sqrt(np.mean(y[:, k0:] ** 2, axis=1)) + 1e-300
+    Ny = y[:, k0:].size
+
+    def matrices(sel, theta):
+        Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
+        for (c, j), t in zip(sel, theta):
+            _, kind, i = law.spec[j]
+            (Ddx if kind == "x" else Ddu)[c, i] = t
+        return A + G @ Ddx, B + G @ Ddu, Ddx, Ddu
+
+    def resid(theta, sel):
+        Aa, Ba, _, _ = matrices(sel, theta)
+        with np.errstate(all="ignore"):
+            x = lti_states(Aa, Ba @ u, x0)
+            r = ((y - C @ x - D @ u)[:, k0:] / scale[:, None]).ravel()
+        return np.where(np.isfinite(r), r, 1e6)
+
+    def bic(rss, k):
+        return Ny * np.log(max(rss / Ny, 1e-300)) + k * np.log(Ny)
+
+    sel, theta = [], np.zeros(0)
+    best_bic = bic(float(np.sum(resid(theta, sel) ** 2)), 0)
+    while len(sel) < max_terms:
+        trial = None
+        for cj in cands:
+            if cj in sel:
+                continue
+            sol = least_squares(resid, np.r_[theta, 0.0], args=(sel + [cj],), method="lm",
+                                x_scale="jac", max_nfev=100)
+            b = bic(float(np.sum(sol.fun ** 2)), len(sel) + 1)
+            if trial is None or b < trial[0]:
+                trial = (b, cj, sol.x)
+        if trial is None or trial[0] >= best_bic:
+            break
+        best_bic, sel, theta = trial[0], sel + [trial[1]], trial[2]
+    coef = np.zeros_like(law.coef)
+    for (c, j), t in zip(sel, theta):
+        coef[c, j] = t
+    _, _, Ddx, Ddu = matrices(sel, theta)
+    lines = []
+    for c in range(md):
+        idx = [j for (cc, j) in sel if cc == c]
+        uc = units[c] if c < len(units) else ""
+        unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
+        lines.append(f"{labels[c]} = {_fmt_sum(coef[c, idx], [law.spec[j][0] for j in idx])}"
+                     f"{unit}")
+    return replace(law, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=False, npar=len(sel),
+                   formula="; ".join(lines))
 
 
 # --------------------------------------------------------------------------- one channel
@@ -495,6 +644,21 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     uu = u[:, k0:N]
     notes = []
     law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units)
+    # d^ barely above its own estimation noise: choose the law by output error
+    excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
+        max(float(np.trace(np.atleast_2d(res.d_cov))), 1e-300) - 1.0
+    if excess < _LOW_SNR:
+        law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
+                                channel.units)
+        notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
+                     f"Pd): static law chosen by output error on y")
+    elif not law.nonlinear and law.npar:
+        tscale = np.sqrt(np.mean(_eval_terms(law.spec, law.eps, x, uu) ** 2, axis=1))
+        law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
+                                            k0, labels, channel.units, tscale)
+        if se_y < se_d:
+            notes.append(f"static law refined by output error on y: estimation SE "
+                         f"{se_d:.3g}% -> {se_y:.3g}%")
     sub0 = _static_subsystem(law, res, d, x, uu)
     static_model = augment_model(model, sub0, unknown=labels, Q=Q, R=R)
     dyn, dyn_model = None, None
@@ -551,6 +715,14 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
 
 
 
+def _fmt_values(v: NDArray, digits: int) -> str:
+    """A scalar as a number, several values as a bracketed list."""
+    v = np.atleast_1d(v)
+    if v.size == 1:
+        return f"{v[0]:.{digits}g}"
+    return "[" + ", ".join(f"{a:.{digits}g}" for a in v) + "]"
+
+
 def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tuple[str, ...]:
     """Where the law mirrors a term the model already has: which parameter is off, by how much.
 
@@ -576,13 +748,12 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
             new = cs + c * gs
             if np.all(cs == 0):
                 out.append(f"{mat}[{rows}; {name}] is 0 in the model; the data want "
-                           f"{np.array2string(new, precision=3)} (a missing term)")
+                           f"{_fmt_values(new, 3)} (a missing term)")
                 continue
             cosv = abs(cs @ gs) / (np.linalg.norm(cs) * np.linalg.norm(gs))
             if cosv > 0.99:
                 alpha = (cs @ gs) / (gs @ gs)
                 pct = 100.0 * c / alpha
-                out.append(f"{mat}[{rows}; {name}] = {np.array2string(cs, precision=4)} in the "
-                           f"model; the data want {np.array2string(new, precision=4)} "
-                           f"({pct:+.1f}%)")
+                out.append(f"{mat}[{rows}; {name}] = {_fmt_values(cs, 4)} in the "
+                           f"model; the data want {_fmt_values(new, 4)} ({pct:+.1f}%)")
     return tuple(out)

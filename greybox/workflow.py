@@ -265,7 +265,8 @@ def _dynamic_formula(sub: Subsystem, ch: Channel, dt: float, x, u) -> str:
         terms = [(coefs[i], names[i]) for i in np.flatnonzero(keep)]
         body = " ".join(("- " if a < 0 else "+ ") + f"{abs(a):.3g}*{nm}" for a, nm in terms)
         body = body[2:] if body.startswith("+ ") else body
-        unit = f" [{ch.units[c]}]" if c < len(ch.units) and ch.units[c] else ""
+        uc = ch.units[c] if c < len(ch.units) else ""
+        unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
         out.append(f"{ch.labels[c]} = order-{nd} filter of ({body}){unit}, time constant(s) "
                    f"{tau_s}, poles {np.array2string(lam, precision=4)}")
     return "; ".join(out)

@@ -267,7 +267,7 @@ def test_parameter_notes_right_parameter_and_percentage(rng):
     cont = msd()
     (pc,) = resolve_channel_spec(cont, ["p"])
     notes = parameter_notes(cont, pc, _law(spec, eps, [[0.3, 0.0, 0.0] + [0.0] * 6]))
-    assert notes == ("A[p; p] is 0 in the model; the data want [0.3] (a missing term)",)
+    assert notes == ("A[p; p] is 0 in the model; the data want 0.3 (a missing term)",)
     # nonlinear terms say nothing about A, B
     assert parameter_notes(nd, v, _law(spec, eps, [[0.0] * 3 + [1.0] + [0.0] * 5])) == ()
 
