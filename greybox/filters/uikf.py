@@ -24,11 +24,10 @@ from dataclasses import dataclass, field
 
 import control as ct
 import numpy as np
-import scipy.linalg as sla
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import norm
 
-from .._lti import lti_states
+from .._lti import _CHUNK, LTIRecursion, single_thread_blas
 from .._validation import (
     check_covariance,
     check_discrete,
@@ -135,6 +134,8 @@ class FilterResult:
         Names of the unknown inputs.
     u, y : ndarray
         The data the filter ran on, shapes (ninputs, nsteps), (noutputs, nsteps).
+        When the caller passed float64 2-D arrays these are those arrays (no
+        copy is made), so modifying them afterwards changes the record too.
     """
 
     t: NDArray[np.float64]
@@ -254,17 +255,35 @@ def _split(sys, unknown, allow_no_unknown, check_rank=True):
     return model, A, B, C, D, G, tuple(labels)
 
 
+def _signal(a, nrows, name, min_steps=1):
+    """:func:`check_signal` without the copy when ``a`` is already a float64 2-D array.
+
+    Long records are then used in place (the result's ``u``/``y`` are the
+    caller's arrays); finiteness is checked in chunks so no full-length
+    temporary is made. Anything else, and every error, goes through
+    :func:`check_signal` (same conversions and messages).
+    """
+    if (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.ndim == 2
+            and a.shape[0] == nrows and a.shape[1] >= min_steps):
+        step = max(1, (1 << 18) // max(1, nrows))
+        for c0 in range(0, a.shape[1], step):
+            if not np.all(np.isfinite(a[:, c0:c0 + step])):
+                return check_signal(a, nrows, name, min_steps=min_steps)  # raises
+        return a
+    return check_signal(a, nrows, name, min_steps=min_steps)
+
+
 def _prepare(sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown, check_rank=True):
     """Validate everything once; return split model pieces and data arrays."""
     model, A, B, C, D, G, labels = _split(sys, unknown, allow_no_unknown, check_rank)
     n, m, p = model.nstates, model.ninputs, model.noutputs
-    y = check_signal(y, p, "y", min_steps=2)
+    y = _signal(y, p, "y", min_steps=2)
     if u is None:
         if m:
             raise DimensionError(f"the model has {m} known inputs {model.input_labels}; "
                                  f"pass u with shape ({m}, nsteps)")
         u = np.zeros((0, y.shape[1]))
-    u = check_signal(u, m, "u")
+    u = _signal(u, m, "u")
     check_same_length(("y", y), ("u", u))
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
@@ -279,31 +298,45 @@ def _prepare(sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown, check_rank=True
 
 
 # --------------------------------------------------------------------------- kernels
-def _measurement_gains(Pp, C, G, R):
-    """Gains of one step from P[k|k-1]: (K, M, Pd, Rt, Pf_from_Pp)."""
-    Rt = C @ Pp @ C.T + R
+def _measurement_gains(Pp, C, G, R, F=None):
+    """Gains of one step from P[k|k-1]: (K, M, Pd, Rt, Pf_from_Pp).
+
+    ``F = C G`` may be passed precomputed. One LAPACK solve per call
+    (``Rt^-1 [C Pp, F]``; Rt is symmetric positive definite since R is) and
+    plain numpy otherwise: this runs once per sample in the time-varying filter,
+    where scipy's per-call wrappers used to dominate.
+    """
+    n = Pp.shape[0]
+    CP = C @ Pp
+    Rt = CP @ C.T + R
     Rt = 0.5 * (Rt + Rt.T)
-    cf = sla.cho_factor(Rt)
-    K = sla.cho_solve(cf, C @ Pp).T  # Pp C' Rt^-1
     md = G.shape[1]
     if md:
-        F = C @ G
-        RiF = sla.cho_solve(cf, F)
-        Pd = np.linalg.inv(F.T @ RiF)
-        Pd = 0.5 * (Pd + Pd.T)
+        if F is None:
+            F = C @ G
+        S = np.linalg.solve(Rt, np.concatenate((CP, F), axis=1))  # Rt^-1 [C Pp, F]
+        K = S[:, :n].T  # Pp C' Rt^-1
+        RiF = S[:, n:]
+        if md == 1:
+            Pd = 1.0 / (F.T @ RiF)  # (1, 1), what inv gives, without its overhead
+        else:
+            Pd = np.linalg.inv(F.T @ RiF)
+            Pd = 0.5 * (Pd + Pd.T)
         M = Pd @ RiF.T
         GKF = G - K @ F
-        Pf = Pp - K @ Rt @ K.T + GKF @ Pd @ GKF.T
+        Pf = Pp - K @ CP + GKF @ Pd @ GKF.T  # K Rt K' = K C Pp
     else:
+        K = np.linalg.solve(Rt, CP).T
         Pd = np.zeros((0, 0))
         M = np.zeros((0, C.shape[0]))
-        Pf = Pp - K @ Rt @ K.T
+        Pf = Pp - K @ CP
     return K, M, Pd, Rt, 0.5 * (Pf + Pf.T)
 
 
-def _combined_gain(K, M, G, C):
+def _combined_gain(K, M, G, C, F=None):
     """L with x[k|k] = x[k|k-1] + L e, e the innovation (compensation then update)."""
-    F = C @ G
+    if F is None:
+        F = C @ G
     return G @ M + K - K @ F @ M
 
 
@@ -402,49 +435,60 @@ def _steady(A, B, C, D, G, Q, R, model, labels, tol, maxiter, P0):
 def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
          store_covariances) -> FilterResult:
     n, N = A.shape[0], y.shape[1]
-    p, md = C.shape[0], G.shape[1]
+    p, m, md = C.shape[0], B.shape[1], G.shape[1]
     x_filt = np.empty((n, N))
     x_pred = np.empty((n, N))
     innov = np.empty((p, N))
     d_est = np.full((md, N), np.nan)
     d_var = np.full((md, N), np.nan)
     Phist = np.empty((n, n, N)) if store_covariances else None
-    Bu = B @ u
-    Du = D @ u
+    has_D = m > 0 and bool(np.any(D))
+    F = C @ G
+    At = A.T
+    tiny = np.finfo(float).tiny
     # k = 0: plain measurement update of the prior (no d[-1] to estimate)
     Pp = P0
     K, _, _, Rt, Pf = _measurement_gains(Pp, C, np.zeros((n, 0)), R)
     x_pred[:, 0] = x0
-    innov[:, 0] = y[:, 0] - C @ x0 - Du[:, 0]
-    x_filt[:, 0] = x0 + K @ innov[:, 0]
+    e = y[:, 0] - C @ x0
+    if has_D:
+        e = e - D @ u[:, 0]
+    innov[:, 0] = e
+    x_filt[:, 0] = x0 + K @ e
     if Phist is not None:
         Phist[:, :, 0] = Pf
     M = np.zeros((md, p))
     Pd = np.zeros((md, md))
     converged, kconv = False, None
     Pp_prev = None
+    auto = gain == "auto"
+    xf = x_filt[:, 0]
     k = 1
     while k < N:
-        Pp = A @ Pf @ A.T + Q
+        Pp = A @ Pf @ At + Q
         Pp = 0.5 * (Pp + Pp.T)
-        if gain == "auto" and Pp_prev is not None and np.max(np.abs(Pp - Pp_prev)) <= \
-                tol * max(np.max(np.abs(Pp)), np.finfo(float).tiny):
+        if auto and Pp_prev is not None and np.max(np.abs(Pp - Pp_prev)) <= \
+                tol * max(np.max(np.abs(Pp)), tiny):
             converged, kconv = True, k
             break
         Pp_prev = Pp
-        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
-        xp = A @ x_filt[:, k - 1] + Bu[:, k - 1]
-        e = y[:, k] - C @ xp - Du[:, k]
+        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
+        xp = A @ xf
+        if m:
+            xp += B @ u[:, k - 1]
+        yk = y[:, k] - D @ u[:, k] if has_D else y[:, k]
+        e = yk - C @ xp
         x_pred[:, k] = xp
         innov[:, k] = e
         if md:
             dh = M @ e
             d_est[:, k - 1] = dh
-            d_var[:, k - 1] = np.diag(Pd)
+            d_var[:, k - 1] = Pd.diagonal()
             xs = xp + G @ dh
-            x_filt[:, k] = xs + K @ (y[:, k] - C @ xs - Du[:, k])
+            xf = xs + K @ (yk - C @ xs)
         else:
-            x_filt[:, k] = xp + K @ e
+            xf = xp + K @ e
+        x_filt[:, k] = xf
         if Phist is not None:
             Phist[:, :, k] = Pf
         k += 1
@@ -453,21 +497,46 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         Pn = A @ Pf @ A.T + Q
         converged = bool(np.max(np.abs(Pn - Pp_prev)) <= tol * max(np.max(np.abs(Pn)), 1e-300))
     if kconv is not None:
-        # constant-gain fast path from sample kconv on, no per-sample Python loop
-        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
-        L = _combined_gain(K, M, G, C)
-        IL = np.eye(n) - L @ C
-        xp0 = A @ x_filt[:, kconv - 1] + Bu[:, kconv - 1]
-        ys, Dus, Bus = y[:, kconv:], Du[:, kconv:], Bu[:, kconv:]
+        # constant-gain fast path from sample kconv on, no per-sample Python loop:
+        # x^[k+1|k] = A (I - L C) x^[k|k-1] + A L y[k] + (B - A L D) u[k], run in time
+        # chunks written straight into the outputs (temporaries O(n * chunk))
+        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
+        L = _combined_gain(K, M, G, C, F)
         AL = A @ L
-        drive = A @ (-(L @ Dus)) + Bus + AL @ ys
-        xp = lti_states(A @ IL, drive, xp0)
-        e = ys - C @ xp - Dus
-        x_pred[:, kconv:] = xp
-        innov[:, kconv:] = e
-        x_filt[:, kconv:] = xp + L @ e
+        Bf = B - AL @ D if has_D else B
+        rec = LTIRecursion(A @ (np.eye(n) - L @ C))
+        S = rec.in_map  # fold the modal input transform into the drive matrices
+        mapped = S is not None
+        if mapped:
+            AL, Bf = S @ AL, S @ Bf
+        C_is_I = C.shape == (n, n) and np.array_equal(C, np.eye(n))
+        xk = A @ x_filt[:, kconv - 1]
+        if m:
+            xk += B @ u[:, kconv - 1]
+        with single_thread_blas():
+            for a in range(kconv, N, _CHUNK):
+                b = min(N, a + _CHUNK)
+                ys = y[:, a:b]
+                drive = AL @ ys
+                if m:
+                    drive += Bf @ u[:, a:b]
+                xp = x_pred[:, a:b]
+                xk = rec.run(drive, xk, xp, mapped=mapped)
+                del drive
+                e = innov[:, a:b]
+                if C_is_I:
+                    np.subtract(ys, xp, out=e)
+                else:
+                    np.matmul(C, xp, out=e)
+                    np.subtract(ys, e, out=e)
+                if has_D:
+                    e -= D @ u[:, a:b]
+                xfc = x_filt[:, a:b]
+                np.matmul(L, e, out=xfc)
+                xfc += xp
+                if md:
+                    np.matmul(M, e, out=d_est[:, a - 1:b - 1])
         if md:
-            d_est[:, kconv - 1:N - 1] = M @ e
             d_var[:, kconv - 1:N - 1] = np.diag(Pd)[:, None]
         if Phist is not None:
             Phist[:, :, kconv:] = Pf[:, :, None]
