@@ -21,7 +21,6 @@ callers can fuse their own per-chunk work around it.
 
 from __future__ import annotations
 
-import contextlib
 
 import numpy as np
 import scipy.linalg as sla
@@ -30,27 +29,13 @@ from scipy.signal import lfilter
 
 __all__ = ["lti_states", "LTIRecursion", "single_thread_blas"]
 
+from ._blas import single_thread_blas  # noqa: E402  (re-exported for the filters)
+
 
 _CHUNK = 1 << 15
 #: Largest condition number of the eigenvector matrix for the modal path; its
 #: round-off is ~cond(V) * eps relative, the Schur path's ~eps.
 _MAX_COND = 1e3
-
-
-def single_thread_blas():
-    """Context limiting BLAS to one thread (``threadpoolctl``; no-op if absent).
-
-    The chunked products here are thin (n x n times n x chunk): a multithreaded
-    BLAS gains nothing on them (they are memory-bound) and, on a loaded
-    machine, every call can stall for milliseconds waiting for its second
-    thread -- measured 0.27 s instead of 0.014 s for 31 chunks of a 6 x 6
-    product on 2 cores at load 3.
-    """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - optional
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
 
 
 class LTIRecursion:

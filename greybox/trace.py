@@ -333,6 +333,9 @@ _MIN_DROP = 1e-4
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
 # estimation noise and the static law is chosen by output error on y instead.
 _LOW_SNR = 0.1
+# Output-error refinements of static laws run on at most this many samples
+# (their cost is then independent of the record length).
+_OE_WINDOW = 10_000
 
 
 def _select(terms: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
@@ -419,6 +422,7 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     """
     from scipy.optimize import least_squares
 
+    y, u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
     m = model.ninputs - md
     A, Bf = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)
     B, G = Bf[:, :m], Bf[:, m:]
@@ -454,7 +458,7 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
         if np.max(np.abs(np.linalg.eigvals(matrices(start)[0]))) <= 1 + 1e-9:
             break
         start *= 0.5
-    sol = least_squares(resid, start, method="lm", x_scale="jac", max_nfev=200)
+    sol = least_squares(resid, start, method="lm", x_scale="jac", max_nfev=60)
     se1 = se(sol.x)
     if not se1 < se0:
         return law, se0, se0
@@ -486,6 +490,7 @@ def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     """
     from scipy.optimize import least_squares
 
+    y, u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
     m = model.ninputs - md
     A, Bf = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)
     B, G = Bf[:, :m], Bf[:, m:]

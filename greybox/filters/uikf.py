@@ -196,6 +196,15 @@ class FilterResult:
 def check_rank_condition(C: NDArray, G: NDArray, labels: Sequence[str] = ()) -> None:
     """Check the existence condition (17): rank(C G) = rank(G) = md.
 
+    Parameters
+    ----------
+    C : ndarray, shape (noutputs, nstates)
+        Output matrix.
+    G : ndarray, shape (nstates, md)
+        Unknown-input matrix.
+    labels : sequence of str, optional
+        Names of the unknown inputs, used in the message.
+
     Raises
     ------
     RankConditionError

@@ -22,6 +22,7 @@ import scipy.linalg as sla
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from .._blas import single_thread_blas
 from ..exceptions import DataError, DimensionError
 
 __all__: list[str] = []
@@ -31,21 +32,13 @@ _CHUNK_ENTRIES = 1 << 20
 
 
 def small_blas():
-    """Context limiting BLAS to one thread.
+    """Context limiting BLAS to one thread (see :mod:`greybox._blas`).
 
     Every BLAS call here is either small (a few hundred rows) or a thin
-    ``syrk`` update; a multithreaded BLAS then mostly adds synchronisation
-    cost: on a loaded 2-core machine we measured 25x slow-downs (5 s instead
-    of 0.08 s at N = 1e4, 32 s instead of ~1.5 s at N = 1e6). Uses
-    ``threadpoolctl`` when it is installed, else does nothing.
+    ``syrk`` update; on a loaded 2-core machine a multithreaded BLAS was 25x
+    slower (5 s instead of 0.08 s at N = 1e4, 32 s instead of ~1.5 s at 1e6).
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - optional
-        import contextlib
-
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    return single_thread_blas()
 
 
 def _as_signal(a, name: str, nrows: int | None) -> NDArray[np.float64]:
