@@ -382,9 +382,8 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
         else:
             lc = coef[c, :nlin]
         Ddx[c], Ddu[c] = lc[:n], lc[n:nlin]
-        uc = units[c] if c < len(units) else ""
-        unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
-        lines.append(f"{labels[c]} = {_fmt_sum(cf, [spec[j][0] for j in idx])}{unit}")
+        lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
+                               units[c] if c < len(units) else ""))
     tscale = np.sqrt(np.mean(terms**2, axis=1))
     lines += _one_direction(coef, tscale, labels)
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
@@ -408,6 +407,81 @@ def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Su
                      unknown_labels=tuple(res.unknown_labels))
 
 
+def _law_line(label: str, coefs, names, unit: str) -> str:
+    """``"d_v2 = -15*p2 [v2]/s"``: one component of a law, with its unit."""
+    u = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
+    return f"{label} = {_fmt_sum(coefs, names)}{u}"
+
+
+class _OutputErrorLaw:
+    """Simulation error on y of the model augmented with a linear static law.
+
+    The law's selected terms ``sel`` (pairs (component of d, term index))
+    with coefficients ``theta`` are folded into A and B; the residual is the
+    output error over at most ``_OE_WINDOW`` samples after ``k0``, scaled per
+    output by its RMS (PAPER_NOTES §9.3: output-error fits are unbiased on a
+    noisy d^).
+    """
+
+    def __init__(self, law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
+                 u: NDArray, x0: NDArray, k0: int):
+        self.law, self.md, self.k0, self.x0 = law, md, k0, x0
+        self.y, self.u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
+        m = model.ninputs - md
+        Bf = np.asarray(model.B, dtype=float)
+        self.A = np.asarray(model.A, dtype=float)
+        self.B, self.G = Bf[:, :m], Bf[:, m:]
+        self.C = np.asarray(model.C, dtype=float)
+        self.D = np.asarray(model.D, dtype=float)[:, :m]
+        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
+
+    def matrices(self, sel, theta):
+        """(A + G Ddx, B + G Ddu, Ddx, Ddu) for the terms ``sel`` at ``theta``."""
+        Ddx = np.zeros((self.md, self.A.shape[0]))
+        Ddu = np.zeros((self.md, self.B.shape[1]))
+        for (c, j), t in zip(sel, theta):
+            _, kind, i = self.law.spec[j]
+            (Ddx if kind == "x" else Ddu)[c, i] = t
+        return self.A + self.G @ Ddx, self.B + self.G @ Ddu, Ddx, Ddu
+
+    def resid(self, theta, sel):
+        """Scaled output error, flattened; a diverged simulation counts as 1e6."""
+        Aa, Ba, _, _ = self.matrices(sel, theta)
+        with np.errstate(all="ignore"):
+            x = lti_states(Aa, Ba @ self.u, self.x0)
+            r = ((self.y - self.C @ x - self.D @ self.u)[:, self.k0:]
+                 / self.scale[:, None]).ravel()
+        return np.where(np.isfinite(r), r, 1e6)
+
+    def se(self, theta, sel) -> float:
+        """Simulation error of eq. (42) [%] on the window."""
+        r = self.resid(theta, sel).reshape(self.y.shape[0], -1)
+        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
+
+    def fit(self, sel, start, max_nfev=60):
+        """Levenberg-Marquardt from ``start``; returns the optimizer result."""
+        from scipy.optimize import least_squares
+
+        return least_squares(self.resid, start, args=(sel,), method="lm", x_scale="jac",
+                             max_nfev=max_nfev)
+
+    def law_with(self, sel, theta, labels, units, tscale=None, **changes) -> StaticLaw:
+        """The law with the terms ``sel`` at ``theta`` (all others zero)."""
+        law = self.law
+        _, _, Ddx, Ddu = self.matrices(sel, theta)
+        coef = np.zeros_like(law.coef)
+        for (c, j), t in zip(sel, theta):
+            coef[c, j] = t
+        lines = []
+        for c in range(self.md):
+            idx = [j for (cc, j) in sel if cc == c]
+            lines.append(_law_line(labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
+                                   units[c] if c < len(units) else ""))
+        if tscale is not None:
+            lines += _one_direction(coef, tscale, labels)
+        return replace(law, coef=coef, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines), **changes)
+
+
 def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
                       u: NDArray, x0: NDArray, k0: int, labels, units, tscale=None):
     """Refine a linear static law by output error on y (PAPER_NOTES §9.3).
@@ -420,62 +494,22 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     Returns ``(law, se_before, se_after)``; the law is unchanged when the
     refinement does not lower the simulation error.
     """
-    from scipy.optimize import least_squares
-
-    y, u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
-    m = model.ninputs - md
-    A, Bf = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)
-    B, G = Bf[:, :m], Bf[:, m:]
-    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
-    n = A.shape[0]
     sel = [(c, j) for c in range(md) for j in range(len(law.spec)) if law.coef[c, j] != 0]
     if not sel:
         return law, np.nan, np.nan
-    scale = np.sqrt(np.mean(y[:, k0:] ** 2, axis=1)) + 1e-300
-
-    def matrices(theta):
-        Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
-        for (c, j), t in zip(sel, theta):
-            _, kind, i = law.spec[j]
-            (Ddx if kind == "x" else Ddu)[c, i] = t
-        return A + G @ Ddx, B + G @ Ddu, Ddx, Ddu
-
-    def resid(theta):
-        Aa, Ba, _, _ = matrices(theta)
-        with np.errstate(all="ignore"):
-            x = lti_states(Aa, Ba @ u, x0)
-            r = ((y - C @ x - D @ u)[:, k0:] / scale[:, None]).ravel()
-        return np.where(np.isfinite(r), r, 1e6)
-
-    def se(theta):
-        r = resid(theta).reshape(y.shape[0], -1)
-        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
-
+    prob = _OutputErrorLaw(law, model, md, y, u, x0, k0)
     theta0 = np.array([law.coef[c, j] for c, j in sel])
-    se0 = se(theta0)
+    se0 = prob.se(theta0, sel)
     start = theta0.copy()
     for _ in range(30):  # shrink towards the (stable) nominal model
-        if np.max(np.abs(np.linalg.eigvals(matrices(start)[0]))) <= 1 + 1e-9:
+        if np.max(np.abs(np.linalg.eigvals(prob.matrices(sel, start)[0]))) <= 1 + 1e-9:
             break
         start *= 0.5
-    sol = least_squares(resid, start, method="lm", x_scale="jac", max_nfev=60)
-    se1 = se(sol.x)
+    sol = prob.fit(sel, start)
+    se1 = prob.se(sol.x, sel)
     if not se1 < se0:
         return law, se0, se0
-    _, _, Ddx, Ddu = matrices(sol.x)
-    coef = law.coef.copy()
-    for (c, j), t in zip(sel, sol.x):
-        coef[c, j] = t
-    lines = []
-    for c in range(md):
-        idx = [j for (cc, j) in sel if cc == c]
-        uc = units[c] if c < len(units) else ""
-        unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
-        lines.append(f"{labels[c]} = {_fmt_sum(coef[c, idx], [law.spec[j][0] for j in idx])}"
-                     f"{unit}")
-    if tscale is not None:
-        lines += _one_direction(coef, tscale, labels)
-    return replace(law, coef=coef, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines)), se0, se1
+    return prob.law_with(sel, sol.x, labels, units, tscale), se0, se1
 
 
 def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
@@ -488,64 +522,29 @@ def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     fitted by Levenberg-Marquardt on the simulation error of the augmented
     model; terms are added while the BIC of the output error drops.
     """
-    from scipy.optimize import least_squares
-
-    y, u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
-    m = model.ninputs - md
-    A, Bf = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)
-    B, G = Bf[:, :m], Bf[:, m:]
-    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
-    n = A.shape[0]
+    prob = _OutputErrorLaw(law, model, md, y, u, x0, k0)
     lin = [j for j, (_, kind, _) in enumerate(law.spec) if kind in ("x", "u")]
     cands = [(c, j) for c in range(md) for j in lin]
-    scale = np.sqrt(np.mean(y[:, k0:] ** 2, axis=1)) + 1e-300
-    Ny = y[:, k0:].size
-
-    def matrices(sel, theta):
-        Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
-        for (c, j), t in zip(sel, theta):
-            _, kind, i = law.spec[j]
-            (Ddx if kind == "x" else Ddu)[c, i] = t
-        return A + G @ Ddx, B + G @ Ddu, Ddx, Ddu
-
-    def resid(theta, sel):
-        Aa, Ba, _, _ = matrices(sel, theta)
-        with np.errstate(all="ignore"):
-            x = lti_states(Aa, Ba @ u, x0)
-            r = ((y - C @ x - D @ u)[:, k0:] / scale[:, None]).ravel()
-        return np.where(np.isfinite(r), r, 1e6)
+    Ny = prob.y[:, k0:].size
 
     def bic(rss, k):
         return Ny * np.log(max(rss / Ny, 1e-300)) + k * np.log(Ny)
 
     sel, theta = [], np.zeros(0)
-    best_bic = bic(float(np.sum(resid(theta, sel) ** 2)), 0)
+    best_bic = bic(float(np.sum(prob.resid(theta, sel) ** 2)), 0)
     while len(sel) < max_terms:
         trial = None
         for cj in cands:
             if cj in sel:
                 continue
-            sol = least_squares(resid, np.r_[theta, 0.0], args=(sel + [cj],), method="lm",
-                                x_scale="jac", max_nfev=100)
+            sol = prob.fit(sel + [cj], np.r_[theta, 0.0], max_nfev=100)
             b = bic(float(np.sum(sol.fun ** 2)), len(sel) + 1)
             if trial is None or b < trial[0]:
                 trial = (b, cj, sol.x)
         if trial is None or trial[0] >= best_bic:
             break
         best_bic, sel, theta = trial[0], sel + [trial[1]], trial[2]
-    coef = np.zeros_like(law.coef)
-    for (c, j), t in zip(sel, theta):
-        coef[c, j] = t
-    _, _, Ddx, Ddu = matrices(sel, theta)
-    lines = []
-    for c in range(md):
-        idx = [j for (cc, j) in sel if cc == c]
-        uc = units[c] if c < len(units) else ""
-        unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
-        lines.append(f"{labels[c]} = {_fmt_sum(coef[c, idx], [law.spec[j][0] for j in idx])}"
-                     f"{unit}")
-    return replace(law, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=False, npar=len(sel),
-                   formula="; ".join(lines))
+    return prob.law_with(sel, theta, labels, units, nonlinear=False, npar=len(sel))
 
 
 # --------------------------------------------------------------------------- one channel
