@@ -16,6 +16,8 @@ from .exceptions import CovarianceError, DataError, DimensionError, ModelError
 
 __all__ = [
     "check_matrix",
+    "check_vector",
+    "as_signal",
     "check_covariance",
     "check_signal",
     "check_same_length",
@@ -40,6 +42,31 @@ def check_positive(value, name: str, *, integer: bool = False, allow_zero: bool 
             raise DimensionError(f"{name} must be an integer; found {value!r}")
         return int(v)
     return v
+
+
+def as_signal(y, name: str) -> NDArray[np.float64]:
+    """Convert to a float array with time as the last axis (1-D -> one row).
+
+    Only converts; shapes and finiteness are checked by :func:`check_signal`.
+    """
+    try:
+        return np.atleast_2d(np.array(y, dtype=float))
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
+
+
+def check_vector(v, n: int, name: str, *, what: str = "") -> NDArray[np.float64]:
+    """Convert ``v`` to a finite float vector of length n (e.g. an initial state)."""
+    try:
+        a = np.array(v, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a numeric vector of length {n}; could not "
+                             f"convert it ({e})") from e
+    if a.size != n:
+        raise DimensionError(f"{name} has {a.size} entries; expected {what}{n}")
+    if not np.all(np.isfinite(a)):
+        raise DataError(f"{name} contains NaN or inf; give finite values")
+    return a
 
 
 def check_matrix(M: ArrayLike, shape: tuple[int, int], name: str) -> NDArray[np.float64]:
@@ -79,7 +106,11 @@ def check_covariance(
         If True the matrix must be positive definite, otherwise positive
         semidefinite.
     """
-    A = np.array(M, dtype=float) if not np.isscalar(M) else np.array([[float(M)]])
+    try:
+        A = np.array(M, dtype=float) if not np.isscalar(M) else np.array([[float(M)]])
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a numeric ({n}, {n}) matrix or a length-{n} "
+                             f"diagonal; could not convert it ({e})") from e
     if A.ndim == 1 and A.size == n:
         A = np.diag(A)
     A = check_matrix(A, (n, n), name)
@@ -92,16 +123,31 @@ def check_covariance(
             f"{np.max(np.abs(A - A.T)):.3g}); pass a symmetric matrix, e.g. ({name} + {name}.T)/2"
         )
     A = 0.5 * (A + A.T)
-    w = np.linalg.eigvalsh(A)
-    if definite and w.min() <= rtol * scale:
+    dg = np.diag(A)
+    if definite and np.any(dg <= 0):
         raise CovarianceError(
-            f"{name} is not positive definite (smallest eigenvalue {w.min():.3g}); "
-            f"a covariance here must be > 0: add a small positive diagonal"
+            f"{name} is not positive definite: diagonal entry {int(np.argmin(dg))} is "
+            f"{dg.min():.3g}; a covariance here must be > 0 on its diagonal"
         )
-    if not definite and w.min() < -1e-8 * scale:
+    if not definite and np.any(dg < 0):
         raise CovarianceError(
-            f"{name} is not positive semidefinite (smallest eigenvalue {w.min():.3g}); "
-            f"check its sign and symmetry"
+            f"{name} is not positive semidefinite: diagonal entry {int(np.argmin(dg))} is "
+            f"{dg.min():.3g} < 0; check its sign"
+        )
+    # eigenvalues of the diagonally scaled matrix: channels of very different
+    # units (1e-12 next to 1) are fine, only the correlation structure counts
+    d = np.where(dg > 0, 1.0 / np.sqrt(np.where(dg > 0, dg, 1.0)), 0.0)
+    w = np.linalg.eigvalsh(A * d[:, None] * d[None, :])
+    if definite and w.min() <= rtol:
+        raise CovarianceError(
+            f"{name} is not positive definite: its correlation matrix has smallest "
+            f"eigenvalue {w.min():.3g} (channels perfectly correlated); add a small positive "
+            f"diagonal"
+        )
+    if not definite and w.min() < -1e-8:
+        raise CovarianceError(
+            f"{name} is not positive semidefinite (correlation-matrix eigenvalue "
+            f"{w.min():.3g} < 0); check its sign and symmetry"
         )
     return A
 
@@ -201,7 +247,7 @@ def resolve_channels(
                     f"{name}: no signal named {c!r}; available: {list(labels)}"
                 )
             out.append(list(labels).index(c))
-        elif isinstance(c, (int, np.integer)):
+        elif isinstance(c, (int, np.integer)) and not isinstance(c, (bool, np.bool_)):
             if not 0 <= int(c) < len(labels):
                 raise DimensionError(
                     f"{name}: index {int(c)} out of range; expected 0..{len(labels) - 1}"

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2, norm
 
-from ._validation import check_positive, check_same_length, check_signal
+from ._validation import as_signal, check_positive, check_same_length, check_signal
 from .exceptions import DataError
 
 __all__ = [
@@ -75,7 +75,7 @@ def relative_error(y: ArrayLike, y_hat: ArrayLike, *, squared: bool = False,
     -------
     RelativeError
     """
-    y = np.atleast_2d(np.asarray(y, dtype=float))
+    y = as_signal(y, "y")
     y = check_signal(y, y.shape[0], "y")
     y_hat = check_signal(y_hat, y.shape[0], "y_hat")
     check_same_length(("y", y), ("y_hat", y_hat))
@@ -103,7 +103,7 @@ def autocorrelation(e: ArrayLike, maxlag: int = 20) -> NDArray[np.float64]:
     ndarray, shape (nsignals, maxlag + 1)
         ``r[i, 0] == 1``.
     """
-    e = np.atleast_2d(np.asarray(e, dtype=float))
+    e = as_signal(e, "e")
     e = check_signal(e, e.shape[0], "e", min_steps=2)
     maxlag = check_positive(maxlag, "maxlag", integer=True)
     N = e.shape[1]
@@ -132,8 +132,8 @@ def cross_correlation(u: ArrayLike, e: ArrayLike, maxlag: int = 20) -> NDArray[n
     ndarray, shape (ninputs, noutputs, 2 maxlag + 1)
         Lags ``-maxlag..maxlag`` along the last axis.
     """
-    u = np.atleast_2d(np.asarray(u, dtype=float))
-    e = np.atleast_2d(np.asarray(e, dtype=float))
+    u = as_signal(u, "u")
+    e = as_signal(e, "e")
     u = check_signal(u, u.shape[0], "u", min_steps=2)
     e = check_signal(e, e.shape[0], "e", min_steps=2)
     N = check_same_length(("u", u), ("e", e))
@@ -218,7 +218,7 @@ def whiteness_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> Whit
     G. M. Ljung and G. E. P. Box, "On a measure of lack of fit in time series
     models", Biometrika 65 (1978) 297-303.
     """
-    e = np.atleast_2d(np.asarray(e, dtype=float))
+    e = as_signal(e, "e")
     N = e.shape[-1]
     lags = check_positive(lags, "lags", integer=True)
     if N < 2 * lags + 1:

@@ -19,6 +19,7 @@ from ._validation import (
     check_discrete,
     check_positive,
     check_signal,
+    check_vector,
 )
 from .exceptions import DataError
 
@@ -210,7 +211,7 @@ def simulate(sys: ct.StateSpace, u: ArrayLike | None = None, *, x0: ArrayLike | 
         u = np.zeros((0, nsteps))
     u = check_signal(u, m, "u")
     N = u.shape[1]
-    x0 = np.zeros(n) if x0 is None else np.asarray(x0, dtype=float).reshape(n)
+    x0 = np.zeros(n) if x0 is None else check_vector(x0, n, "x0")
     g = _rng(rng)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
     drive = B @ u

@@ -87,6 +87,8 @@ def discretize(sys: ct.StateSpace, dt: float, *, method: str = "zoh") -> ct.Stat
     """
     check_statespace(sys)
     dt = check_positive(dt, "dt")
+    if method not in ("zoh", "foh", "tustin", "bilinear", "euler", "backward_diff"):
+        raise ModelError(f"method must be 'zoh' (default), 'foh' or 'tustin'; found {method!r}")
     if ct.isdtime(sys, strict=True):
         raise ModelError(
             f"sys is already discrete (dt={sys.dt}); discretize expects a continuous-time model"

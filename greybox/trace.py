@@ -451,12 +451,12 @@ class _OutputErrorLaw:
             x = lti_states(Aa, Ba @ self.u, self.x0)
             r = ((self.y - self.C @ x - self.D @ self.u)[:, self.k0:]
                  / self.scale[:, None]).ravel()
-        return np.where(np.isfinite(r), r, 1e6)
+        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
 
     def se(self, theta, sel) -> float:
         """Simulation error of eq. (42) [%] on the window."""
         r = self.resid(theta, sel).reshape(self.y.shape[0], -1)
-        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
+        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))  # |r| <= 1e6
 
     def fit(self, sel, start, max_nfev=60):
         """Levenberg-Marquardt from ``start``; returns the optimizer result."""

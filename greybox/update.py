@@ -30,8 +30,9 @@ from ._validation import (
     check_positive,
     check_same_length,
     check_signal,
+    check_vector,
 )
-from .exceptions import DataError, GreyboxWarning, IdentificationError
+from .exceptions import DataError, DimensionError, GreyboxWarning, IdentificationError
 from .filters import FilterResult
 from .ident import n4sid, pbsid
 from .ident.oe import output_error
@@ -317,6 +318,14 @@ def augment_model(sys: ct.StateSpace, subsystem: Subsystem, *, unknown, Q: Array
     """
     sp = split_inputs(sys, unknown)
     base, G = sp.sys, sp.G
+    checks = (("unknown inputs", subsystem.unknown_labels, sp.unknown_labels),
+              ("known inputs", subsystem.input_labels, tuple(base.input_labels)),
+              ("states", subsystem.state_labels, tuple(base.state_labels)))
+    for what, have, want in checks:
+        if have and tuple(have) != tuple(want):
+            raise DimensionError(
+                f"the subsystem was identified with {what} {list(have)} but this model has "
+                f"{list(want)}; pass the model and the unknown channels given to uikf")
     A, B, C, D = (np.asarray(a, dtype=float) for a in (base.A, base.B, base.C, base.D))
     n, nd = A.shape[0], subsystem.order
     if subsystem.Ddx.shape != (G.shape[1], n) or subsystem.Ddu.shape[1] != B.shape[1]:
@@ -400,7 +409,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, sys.noutputs, "R", definite=True)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
-    x = lti_states(A, B @ u, np.zeros(n) if x0 is None else np.asarray(x0, dtype=float))
+    x = lti_states(A, B @ u, np.zeros(n) if x0 is None else check_vector(x0, n, "x0"))
     dy = y - (C @ x + D @ u)
     orders = [order] if order is not None else list(range(1, max_order + 1))
     best = None

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._lti import lti_states
-from ._validation import check_discrete, check_same_length, check_signal
+from ._validation import check_discrete, check_same_length, check_signal, check_vector
 from .exceptions import DataError, DimensionError
 from .filters import kalman_filter
 from .metrics import (
@@ -115,6 +115,10 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
     -------
     ndarray, shape (nstates,)
     """
+    check_discrete(sys)
+    y = check_signal(y, sys.noutputs, "y", min_steps=1)
+    u = check_signal(u, sys.ninputs, "u")
+    check_same_length(("y", y), ("u", u))
     A, C = np.asarray(sys.A, dtype=float), np.asarray(sys.C, dtype=float)
     n = A.shape[0]
     if n == 0:
@@ -176,9 +180,7 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
     elif x0 is None:
         x0v = np.zeros(sys.nstates)
     else:
-        x0v = np.asarray(x0, dtype=float).reshape(-1)
-        if x0v.size != sys.nstates:
-            raise DimensionError(f"x0 has {x0v.size} entries; expected {sys.nstates}")
+        x0v = check_vector(x0, sys.nstates, "x0")
     y_sim = simulate_output(sys, u, x0v)
     if not np.all(np.isfinite(y_sim)):
         raise DataError(f"the simulation of {name or 'the model'} diverged (unstable model)")

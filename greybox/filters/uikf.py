@@ -34,6 +34,7 @@ from .._validation import (
     check_positive,
     check_same_length,
     check_signal,
+    check_vector,
 )
 from ..exceptions import DataError, DimensionError, GreyboxError, ModelError, RankConditionError
 from ..system import named_ss, split_inputs
@@ -210,6 +211,13 @@ def check_rank_condition(C: NDArray, G: NDArray, labels: Sequence[str] = ()) -> 
     RankConditionError
         Naming the condition and the offending channels.
     """
+    C = np.atleast_2d(np.asarray(C, dtype=float)) if not isinstance(C, np.ndarray) else C
+    G = np.asarray(G, dtype=float)
+    if G.ndim == 1:
+        G = G[:, None]
+    if C.ndim != 2 or G.ndim != 2 or C.shape[1] != G.shape[0]:
+        raise DimensionError(f"C has shape {np.shape(C)} and G {np.shape(G)}; expected "
+                             f"(noutputs, nstates) and (nstates, md)")
     md = G.shape[1]
     if md == 0:
         return
@@ -245,7 +253,7 @@ def check_rank_condition(C: NDArray, G: NDArray, labels: Sequence[str] = ()) -> 
 def _split(sys, unknown, allow_no_unknown, check_rank=True):
     """Split ``sys`` into the known-input model and G; check (17)."""
     check_discrete(sys)
-    if unknown is None or (not isinstance(unknown, (str, int, np.integer)) and len(unknown) == 0):
+    if unknown is None or (isinstance(unknown, (list, tuple, np.ndarray)) and len(unknown) == 0):
         if not allow_no_unknown:
             raise DimensionError("unknown: name at least one unknown-input channel of sys "
                                  f"(its inputs are {sys.input_labels})")
@@ -296,11 +304,7 @@ def _prepare(sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown, check_rank=True
     check_same_length(("y", y), ("u", u))
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
-    x0 = np.zeros(n) if x0 is None else np.asarray(x0, dtype=float).reshape(-1)
-    if x0.shape != (n,):
-        raise DimensionError(f"x0 has {x0.size} entries; expected nstates = {n}")
-    if not np.all(np.isfinite(x0)):
-        raise DataError("x0 contains NaN or inf; give a finite initial state")
+    x0 = np.zeros(n) if x0 is None else check_vector(x0, n, "x0", what="nstates = ")
     P0 = np.eye(n) if P0 is None else P0
     P0 = check_covariance(P0, n, "P0", definite=False)
     return model, A, B, C, D, G, labels, y, u, Q, R, x0, P0

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize, minimize_scalar
 from scipy.signal import lfilter
 
-from .._validation import check_positive, check_same_length, check_signal
+from .._validation import as_signal, check_positive, check_same_length, check_signal
 from ..exceptions import DataError
 from ..system import named_ss
 
@@ -95,7 +95,8 @@ def _fit_fixed_den(a: NDArray, ws: NDArray, d: NDArray, feedthrough: bool):
     for i in range(1, n + 1):
         X[off + (i - 1) * nin: off + i * nin, i:] = filt[:, :N - i]
     G = X @ X.T
-    G += 1e-10 * np.trace(G) / G.shape[0] * np.eye(G.shape[0])  # ridge: collinear inputs
+    # ridge: collinear (or all-zero) regressors
+    G += max(1e-10 * np.trace(G) / G.shape[0], 1e-300) * np.eye(G.shape[0])
     coef = np.linalg.solve(G, X @ d.T)
     resid = d - coef.T @ X
     return coef, resid
@@ -181,8 +182,8 @@ def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = 
     -------
     OEResult
     """
-    d = np.atleast_2d(np.asarray(d, dtype=float))
-    w = np.atleast_2d(np.asarray(w, dtype=float))
+    d = as_signal(d, "d")
+    w = as_signal(w, "w")
     d = check_signal(d, d.shape[0], "d")
     w = check_signal(w, w.shape[0], "w")
     N = check_same_length(("d", d), ("w", w))

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validation import check_positive, check_same_length, check_signal
+from .._validation import as_signal, check_positive, check_same_length, check_signal
 from ..exceptions import DataError, DimensionError
 
 __all__ = ["StaticFit", "static_least_squares", "SparseLaw", "forward_selection"]
@@ -59,8 +59,8 @@ def static_least_squares(w: ArrayLike, d: ArrayLike, *, rtol: float = 1e-10) -> 
     -------
     StaticFit
     """
-    w = np.atleast_2d(np.asarray(w, dtype=float))
-    d = np.atleast_2d(np.asarray(d, dtype=float))
+    w = as_signal(w, "w")
+    d = as_signal(d, "d")
     w = check_signal(w, w.shape[0], "w")
     d = check_signal(d, d.shape[0], "d")
     N = check_same_length(("w", w), ("d", d))
@@ -184,7 +184,7 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
     >>> law.names
     ('b',)
     """
-    X = np.atleast_2d(np.asarray(terms, dtype=float))
+    X = as_signal(terms, "terms")
     X = check_signal(X, X.shape[0], "terms")
     d = check_signal(d, 1, "d")[0]  # one channel: (nsteps,) or (1, nsteps)
     N = check_same_length(("terms", X), ("d", d[None, :]))

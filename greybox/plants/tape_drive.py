@@ -48,6 +48,8 @@ TAPE_DRIVE_Q = np.diag([1e-6, 1e-6, 1e-8, 1e-8, 1e-4, 1e-4])
 """Process-noise covariance of the paper (section V-A), units of the states squared."""
 TAPE_DRIVE_R = np.diag([1e-6, 1e-6, 1e-8, 1e-8, 1e-4, 1e-4])
 """Measurement-noise covariance of the paper (section V-A)."""
+TAPE_DRIVE_Q.setflags(write=False)  # shared constants: read-only, so no call can change them
+TAPE_DRIVE_R.setflags(write=False)
 
 
 @dataclass(frozen=True)
