@@ -8,6 +8,7 @@ from .exceptions import (
     GreyboxWarning,
     IdentificationError,
     ModelError,
+    OutputExistsError,
     RankConditionError,
 )
 
@@ -21,6 +22,7 @@ __all__ = [
     "RankConditionError",
     "CovarianceError",
     "IdentificationError",
+    "OutputExistsError",
     "GreyboxWarning",
 ]
 

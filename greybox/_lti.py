@@ -202,7 +202,9 @@ def lti_states(Phi: NDArray, v: NDArray, x0: NDArray) -> NDArray[np.float64]:
     -------
     ndarray, shape (n, N)
         ``x[0], ..., x[N-1]`` (the state after the last driving sample is not
-        returned; it is ``Phi @ x[:, -1] + v[:, -1]``).
+        returned; it is ``Phi @ x[:, -1] + v[:, -1]``). An unstable recursion
+        may overflow to inf/NaN without a warning: callers check finiteness
+        and raise their own error.
     """
     n, N = v.shape
     x = np.empty((n, N))
@@ -210,7 +212,7 @@ def lti_states(Phi: NDArray, v: NDArray, x0: NDArray) -> NDArray[np.float64]:
         return x
     rec = LTIRecursion(Phi)
     xk = np.asarray(x0, dtype=float)
-    with single_thread_blas():
+    with single_thread_blas(), np.errstate(over="ignore", invalid="ignore"):
         for a in range(0, N, _CHUNK):
             b = min(N, a + _CHUNK)
             xk = rec.run(v[:, a:b], xk, x[:, a:b])

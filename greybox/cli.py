@@ -51,12 +51,14 @@ def _fmt_table3(t3) -> str:
 
 
 def _demo_tape_drive(args) -> int:
-    from .io import atomic_write_json, prepare_output_dir, save_figure
+    from .io import atomic_write_json, check_output_dir, prepare_output_dir, record_outputs
+    from .io import save_figure
     from .reproduce import reproduce_table2, reproduce_table3
 
-    out = prepare_output_dir(args.out, force=args.force, kind="demo")
+    check_output_dir(args.out, force=args.force, kind="demo")  # fail fast, create nothing
     t2 = reproduce_table2()
     t3 = reproduce_table3(t2)
+    out = prepare_output_dir(args.out, force=args.force, kind="demo")
     summary = {"table2": t2.as_dict(), "table3": t3.as_dict()}
     figures = {}
     if not args.no_plots:
@@ -83,6 +85,7 @@ def _demo_tape_drive(args) -> int:
         plt.close(arts["figure"])
     summary["figures"] = figures
     atomic_write_json(out / "summary.json", summary)
+    record_outputs(out, "demo", ["summary.json", *figures.values()])
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
@@ -127,10 +130,18 @@ def _report_markdown(rep, figures) -> str:
 
 
 def _update(args) -> int:
-    from .io import atomic_write_json, atomic_write_text, prepare_output_dir, save_figure
+    from .io import (
+        atomic_write_json,
+        atomic_write_text,
+        check_output_dir,
+        prepare_output_dir,
+        record_outputs,
+        save_figure,
+    )
     from .model_io import model_to_dict, read_csv, read_model
     from .workflow import close_the_loop
 
+    check_output_dir(args.out, force=args.force, kind="report")  # fail fast, create nothing
     spec = read_model(args.model)
     ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
     y, u = read_csv(args.estimation, inputs=ins, outputs=outs, Ts=spec.Ts)
@@ -168,6 +179,8 @@ def _update(args) -> int:
                       model_to_dict(rep.model.sys, rep.model.Q, rep.model.R))
     atomic_write_json(out / "summary.json", summary)
     atomic_write_text(out / "report.md", _report_markdown(rep, figures))
+    record_outputs(out, "report", ["updated_model.json", "summary.json", "report.md",
+                                   *figures.values()])
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

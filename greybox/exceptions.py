@@ -19,6 +19,7 @@ __all__ = [
     "RankConditionError",
     "CovarianceError",
     "IdentificationError",
+    "OutputExistsError",
     "GreyboxWarning",
 ]
 
@@ -49,6 +50,10 @@ class CovarianceError(GreyboxError, ValueError):
 
 class IdentificationError(GreyboxError, RuntimeError):
     """An identification step could not produce a usable model."""
+
+
+class OutputExistsError(GreyboxError, FileExistsError):
+    """An output would overwrite files that greybox did not write."""
 
 
 class GreyboxWarning(UserWarning):

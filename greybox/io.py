@@ -10,30 +10,51 @@ import os
 import tempfile
 from pathlib import Path
 
-from .exceptions import GreyboxError
+from .exceptions import OutputExistsError
 
-__all__ = ["OutputExistsError", "prepare_output_dir", "atomic_write_text", "save_figure"]
+__all__ = ["OutputExistsError", "prepare_output_dir", "check_output_dir", "record_outputs", "atomic_write_text",
+           "atomic_write_json", "save_figure"]
 
 _MARKER = ".greybox-output"
-
-
-class OutputExistsError(GreyboxError, FileExistsError):
-    """An output would overwrite files that greybox did not write."""
 
 
 def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
                        kind: str = "report") -> Path:
     """Create (or reuse) an output folder without clobbering a user's files.
 
-    A folder that greybox created carries a marker file and may be reused. An
-    existing non-empty folder without the marker is refused unless ``force``.
+    A folder that greybox created carries a marker file (its first line the
+    kind of output, then the files it wrote) and may be reused: the files of
+    the previous run are removed so that no stale figure survives. An
+    existing non-empty folder without the marker is refused unless ``force``;
+    a previous report is replaced only with ``force``. Call this after all
+    computing is done, so that a failure leaves nothing behind.
+    """
+    p = Path(path)
+    previous = check_output_dir(p, force=force, kind=kind)
+    p.mkdir(parents=True, exist_ok=True)
+    for name in previous:  # only files greybox itself listed, inside this folder
+        f = p / Path(name).name
+        if f.is_file():
+            f.unlink()
+    (p / _MARKER).write_text(kind + "\n")
+    return p
+
+
+def check_output_dir(path: str | os.PathLike, *, force: bool = False,
+                     kind: str = "report") -> list[str]:
+    """Raise :class:`OutputExistsError` if :func:`prepare_output_dir` would refuse.
+
+    Creates nothing: call it before a long computation to fail fast. Returns
+    the files a previous greybox run listed in the folder's marker.
     """
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise OutputExistsError(f"{p} exists and is not a folder; choose another --out")
+    marker = p / _MARKER
+    previous: list[str] = []
     if p.exists() and any(p.iterdir()):
-        marker = p / _MARKER
-        own = marker.exists() and marker.read_text().strip() == kind
+        lines = marker.read_text().splitlines() if marker.exists() else []
+        own = bool(lines) and lines[0].strip() == kind
         if not own and not force:
             raise OutputExistsError(
                 f"{p} already exists and holds files greybox did not write as a {kind}; "
@@ -43,9 +64,15 @@ def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
             raise OutputExistsError(
                 f"{p} already holds a greybox report; pass --force to overwrite it"
             )
-    p.mkdir(parents=True, exist_ok=True)
-    (p / _MARKER).write_text(kind + "\n")
-    return p
+        previous = [ln.strip() for ln in lines[1:] if ln.strip()] if own else []
+    return previous
+
+
+def record_outputs(path: str | os.PathLike, kind: str, names) -> None:
+    """List the files written into a greybox output folder in its marker."""
+    p = Path(path)
+    atomic_write_text(p / _MARKER, "\n".join([kind, *sorted(Path(n).name for n in names)])
+                      + "\n")
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:

@@ -96,6 +96,8 @@ def read_model(path) -> ModelSpec:
     if d["time"] not in ("continuous", "discrete"):
         raise ModelError(f"{path}: 'time' must be 'continuous' or 'discrete'; found "
                          f"{d['time']!r}")
+    if isinstance(d["Ts"], bool):
+        raise ModelError(f"{path}: 'Ts' must be a number [s]; found {d['Ts']!r}")
     try:
         Ts = float(d["Ts"])
     except (TypeError, ValueError) as e:
@@ -104,6 +106,14 @@ def read_model(path) -> ModelSpec:
         raise ModelError(f"{path}: 'Ts' must be > 0 [s]; found {Ts}")
     xs, us, ys = _names(d, "states"), _names(d, "inputs"), _names(d, "outputs")
     n, m, p = len(xs), len(us), len(ys)
+    clash = sorted(set(us) & set(ys))
+    if clash:
+        raise ModelError(f"{path}: {clash} named both as input and as output; CSV columns "
+                         f"must be unique: rename one of them")
+    reserved = sorted(set(us + ys) & set(_TIME_COLUMNS))
+    if reserved:
+        raise ModelError(f"{path}: signal name(s) {reserved} are reserved for the CSV time "
+                         f"column; rename them")
     try:
         A = check_matrix(d["A"], (n, n), "A")
         B = check_matrix(d["B"], (n, m), "B") if m else np.zeros((n, 0))
@@ -157,7 +167,7 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
         that disagrees with Ts, or fewer than ``min_steps`` rows.
     """
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # tolerate Excel's BOM
             rows = list(csv.reader(f))
     except OSError as e:
         raise DataError(f"cannot read {path}: {e.strerror}") from e

@@ -219,8 +219,11 @@ def simulate(sys: ct.StateSpace, u: ArrayLike | None = None, *, x0: ArrayLike | 
         Q = check_covariance(Q, n, "Q", definite=False)
         drive = drive + _gaussian(Q, N, g)
     x = lti_states(A, drive, x0)
+    if not np.all(np.isfinite(x)):
+        raise DataError("the simulation diverged: the model is unstable over this record "
+                        "(check dt and that sys is discrete-time)")
     y_clean = C @ x + D @ u
-    y = y_clean
+    y = y_clean.copy()  # never the same object as y_clean
     if R is not None:
         R = check_covariance(R, p, "R", definite=False)
         y = y_clean + _gaussian(R, N, g)

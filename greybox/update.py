@@ -377,10 +377,14 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
 
     ``dy = y - y_initial`` (the initial model's simulated output) is identified
     from ``u`` with :func:`greybox.ident.n4sid` (open-loop data: u does not
-    depend on the noise), order chosen by its criterion unless given. An
-    unstable delta model (PAPER_NOTES §8.6) is replaced by the highest stable
-    lower order; if there is none, its unstable poles are mirrored into the
-    unit circle and B, D refitted.
+    depend on the noise). Every order in ``1..max_order`` (or the given
+    ``order``) is identified; an unstable candidate (PAPER_NOTES §8.6) has its
+    unstable poles mirrored into the unit circle and B, D refitted by least
+    squares; the order is chosen by the BIC of the simulated output error.
+
+    Noise of the combined model: ``Q = blockdiag(Q, K_d Re K_d^T)`` and, as
+    its output noise, ``R = Re``, the delta model's innovation covariance
+    (it contains the measurement noise); the cross-covariance is neglected.
 
     Parameters
     ----------
@@ -448,11 +452,12 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     states = list(sys.state_labels) + [f"{state_prefix}[{i}]" for i in range(nD)]
     combined = named_ss(Aa, Ba, Ca, Da, sys.dt, states=states, inputs=sys.input_labels,
                         outputs=sys.output_labels, name=f"{sys.name or 'model'}_delta")
-    Rc = _psd_part(Re) + 1e-12 * np.eye(sys.noutputs) * max(np.trace(R), 1e-300)
+    # output noise: the delta innovation covariance, kept positive definite
+    Rc = _psd_part(Re) + 1e-12 * max(np.trace(R), 1e-300) * np.eye(sys.noutputs)
     delta = named_ss(dA, dB, dC, dD, sys.dt, states=states[n:], inputs=sys.input_labels,
                      outputs=[f"d{s}" for s in sys.output_labels], name="delta")
     return DeltaModel(updated=UpdatedModel(sys=combined, Q=0.5 * (Qa + Qa.T),
-                                           R=np.maximum(Rc, 0) if Rc.size == 1 else Rc,
+                                           R=Rc,
                                            order=n + nD, kind="delta"),
                       delta=delta, order=nD, stabilized=stabilized)
 

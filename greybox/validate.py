@@ -88,7 +88,8 @@ def simulate_output(sys: ct.StateSpace, u: NDArray, x0: NDArray | None = None) -
     A, B, C, D = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
     x0 = np.zeros(A.shape[0]) if x0 is None else x0
     x = lti_states(A, B @ u, x0)
-    return C @ x + D @ u
+    with np.errstate(over="ignore", invalid="ignore"):  # diverged: callers check
+        return C @ x + D @ u
 
 
 def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
@@ -124,6 +125,9 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
     if n == 0:
         return np.zeros(0)
     Nw = min(y.shape[1], nsamples or max(10 * n, 50))
+    if np.max(np.abs(np.linalg.eigvals(A))) > 1.0 + 1e-6 and Nw > 0:
+        # an unstable model: keep the window short enough not to overflow
+        Nw = min(Nw, max(n, int(300 / np.log(np.max(np.abs(np.linalg.eigvals(A)))))))
     y0 = simulate_output(sys, u[:, :Nw])
     O = np.empty((Nw * C.shape[0], n))
     Ak = np.eye(n)
@@ -183,7 +187,9 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         x0v = check_vector(x0, sys.nstates, "x0")
     y_sim = simulate_output(sys, u, x0v)
     if not np.all(np.isfinite(y_sim)):
-        raise DataError(f"the simulation of {name or 'the model'} diverged (unstable model)")
+        raise DataError(f"the simulation of {name or 'the model'} diverged: the model is "
+                        f"unstable (if it came from a file, check that its 'time' field, "
+                        f"continuous or discrete, is right)")
     kf = kalman_filter(sys, y, u, Q=Q, R=R, x0=x0v, P0=np.zeros((sys.nstates, sys.nstates)))
     e = kf.innovations
     return ModelValidation(

@@ -103,3 +103,35 @@ def test_bad_input_exit_2_one_line_no_output(tmp_path, capsys, what, match):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0], err
     assert not out.exists()
+
+
+def test_force_rewrite_leaves_no_stale_figures(tmp_path, capsys):
+    model, est, val = _write_case(tmp_path, "spring")
+    out = tmp_path / "report"
+    base = ["update", str(model), str(est), "--validate", str(val), "--out", str(out)]
+    assert main(base) == 0
+    assert (out / "outputs.png").exists()
+    (out / "my_notes.txt").write_text("mine")  # a user's file in the report folder
+    assert main(base + ["--force", "--no-plots"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["figures"] == {}
+    assert not any(p.suffix == ".png" for p in out.iterdir())  # the old figures are gone
+    assert (out / "my_notes.txt").read_text() == "mine"  # the user's file is kept
+    capsys.readouterr()
+
+
+def test_excel_bom_csv_and_name_clash(tmp_path, capsys):
+    model, est, val = _write_case(tmp_path, "right")
+    est.write_bytes(b"\xef\xbb\xbf" + est.read_bytes())  # UTF-8 BOM as Excel writes it
+    out = tmp_path / "report"
+    assert main(["update", str(model), str(est), "--validate", str(val), "--out", str(out),
+                 "--no-plots"]) == 0
+    d = json.loads(model.read_text())
+    d["outputs"][0] = d["inputs"][0]
+    model.write_text(json.dumps(d))
+    capsys.readouterr()
+    assert main(["update", str(model), str(est), "--validate", str(val), "--out",
+                 str(tmp_path / "r2")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "both as input and as output" in err
+    assert not (tmp_path / "r2").exists()

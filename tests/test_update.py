@@ -134,3 +134,43 @@ def test_delta_update_is_stable_and_helps(spring_case):
     v0 = validate_model(base, val.y, val.u, Q=Q, R=R)
     v1 = validate_model(dm.updated.sys, val.y, val.u, Q=dm.updated.Q, R=dm.updated.R)
     assert v1.se.value < v0.se.value
+
+
+def test_augment_model_checks_the_channel(spring_case):
+    _, nominal, _, res = spring_case
+    sub = identify_subsystem(res, order=0)
+    # the same shapes with another channel called unknown must not pass silently
+    with pytest.raises(gb.DimensionError, match="identified with unknown inputs"):
+        augment_model(nominal, sub, unknown="F", Q=Q, R=R)
+
+
+def test_estimate_initial_state_validates_and_recovers_x0(spring_case):
+    true, *_ = spring_case
+    x0 = np.array([0.3, -0.2])
+    u = np.zeros((1, 200))
+    sim = gb.simulate(true, u, x0=x0)
+    # noise-free response: least squares returns x0 to round-off
+    np.testing.assert_allclose(gb.estimate_initial_state(true, sim.y, u), x0, atol=1e-9)
+    continuous = gb.named_ss(true.A, true.B, true.C, true.D, 0, states=["x", "v"],
+                             inputs=["F"], outputs=["x", "v"])
+    with pytest.raises(gb.ModelError, match="continuous-time"):
+        gb.estimate_initial_state(continuous, sim.y, u)
+    with pytest.raises(gb.DimensionError, match="time must be the last axis"):
+        gb.estimate_initial_state(true, sim.y.T, u)
+
+
+def test_covariances_of_mixed_units_are_accepted():
+    # 1e-12 (an encoder in rad^2) next to 1 (a current in A^2) is positive definite
+    Rm = np.diag([1e-12, 1.0])
+    sys = gb.named_ss(0.5 * np.eye(2), np.eye(2), np.eye(2), np.zeros((2, 2)), 0.1,
+                      states=["a", "b"], inputs=["u", "d"], outputs=["a", "b"])
+    res = gb.uikf(sys, np.zeros((2, 10)), np.zeros((1, 10)), unknown="d", Q=np.eye(2), R=Rm)
+    assert res.d_est.shape == (1, 10)
+    with pytest.raises(gb.CovarianceError, match="perfectly correlated"):
+        gb.uikf(sys, np.zeros((2, 10)), np.zeros((1, 10)), unknown="d", Q=np.eye(2),
+                R=np.ones((2, 2)))
+
+
+def test_shared_constants_are_read_only():
+    with pytest.raises(ValueError, match="read-only"):
+        gb.TAPE_DRIVE_R[0, 0] = 1.0
