@@ -162,6 +162,8 @@ def correlation_band(nsteps: int, level: float = 0.99) -> float:
     ``z_{(1+level)/2} / sqrt(nsteps)``.
     """
     nsteps = check_positive(nsteps, "nsteps", integer=True)
+    if not 0 < level < 1:
+        raise DataError(f"level must be in (0, 1); found {level}")
     return float(norm.ppf(0.5 + level / 2) / np.sqrt(nsteps))
 
 
@@ -220,6 +222,8 @@ def whiteness_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> Whit
     """
     e = as_signal(e, "e")
     N = e.shape[-1]
+    if not 0 < alpha < 1:
+        raise DataError(f"alpha must be in (0, 1); found {alpha}")
     lags = check_positive(lags, "lags", integer=True)
     if N < 2 * lags + 1:
         raise DataError(f"whiteness test with {lags} lags needs at least {2 * lags + 1} samples; "

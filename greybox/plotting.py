@@ -49,7 +49,13 @@ def plot_unknown_input(result, channel=0, *, d_true=None, window=None, ax=None):
     """
     import numpy as np
 
-    j = result.unknown_labels.index(channel) if isinstance(channel, str) else int(channel)
+    from ._validation import resolve_channels
+
+    if not result.unknown_labels:
+        from .exceptions import DataError
+
+        raise DataError("this filter result has no unknown input to plot (a Kalman filter?)")
+    (j,) = resolve_channels(channel, result.unknown_labels, "channel")
     label = result.unknown_labels[j]
     N = result.d_est.shape[1]
     a, b = window if window is not None else (0, N - 1)

@@ -21,7 +21,7 @@ from ._validation import (
     check_signal,
     check_vector,
 )
-from .exceptions import DataError
+from .exceptions import DataError, DimensionError
 
 __all__ = [
     "random_binary",
@@ -33,7 +33,13 @@ __all__ = [
 
 
 def _rng(rng) -> np.random.Generator:
-    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if isinstance(rng, np.random.Generator):
+        return rng
+    try:
+        return np.random.default_rng(rng)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"rng must be a numpy Generator, an integer seed or None; found "
+                             f"{rng!r}") from e
 
 
 def random_binary(nsteps: int, *, nsignals: int = 1, amplitude: float = 1.0,
@@ -58,6 +64,7 @@ def random_binary(nsteps: int, *, nsignals: int = 1, amplitude: float = 1.0,
     ndarray, shape (nsignals, nsteps)
     """
     nsteps = check_positive(nsteps, "nsteps", integer=True)
+    nsignals = check_positive(nsignals, "nsignals", integer=True)
     hold = check_positive(hold, "hold", integer=True)
     g = _rng(rng)
     nclk = -(-nsteps // hold)
@@ -92,6 +99,8 @@ def multisine(nsteps: int, *, dt: float, nsignals: int = 1, amplitude: float = 1
     ndarray, shape (nsignals, nsteps)
     """
     nsteps = check_positive(nsteps, "nsteps", integer=True)
+    nsignals = check_positive(nsignals, "nsignals", integer=True)
+    nfreq = check_positive(nfreq, "nfreq", integer=True)
     dt = check_positive(dt, "dt")
     fs = 1.0 / dt
     fmin = fmin if fmin is not None else 1.0 / (nsteps * dt)
@@ -134,6 +143,8 @@ def lowpass_noise(nsteps: int, *, dt: float, bandwidth: float, nsignals: int = 1
     """
     nsteps = check_positive(nsteps, "nsteps", integer=True)
     dt = check_positive(dt, "dt")
+    nsignals = check_positive(nsignals, "nsignals", integer=True)
+    order = check_positive(order, "order", integer=True)
     bandwidth = check_positive(bandwidth, "bandwidth")
     if bandwidth >= 0.5 / dt:
         raise DataError(f"bandwidth {bandwidth:g} Hz must be below the Nyquist frequency "

@@ -193,6 +193,8 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
         raise DataError("order 0 without feedthrough is no model at all; set feedthrough=True "
                         "or order >= 1")
     N = result.d_est.shape[1] - 1
+    if skip is not None:
+        skip = check_positive(skip, "skip", integer=True, allow_zero=True)
     k0 = skip if skip is not None else max(10, result.period_converged or 10)
     if N - k0 < 50:
         raise DataError(f"only {N - k0} usable samples after the filter transient; "

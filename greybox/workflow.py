@@ -330,6 +330,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         Bad model, shapes or data.
     """
     check_statespace(sys, "sys")
+    lags = check_positive(lags, "lags", integer=True)
     if ct.isdtime(sys, strict=True):
         nominal = sys
         if dt is not None and abs(float(dt) - float(sys.dt)) > 1e-9 * float(sys.dt):
@@ -352,6 +353,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
     chans = resolve_channel_spec(sys, channels)
+    max_order = check_positive(max_order, "max_order", integer=True, allow_zero=True)
+    delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
+    if not parsimony >= 1:
+        raise DataError(f"parsimony must be >= 1 (1.1 keeps candidates within 10 % of the "
+                        f"lowest SE); found {parsimony}")
+    if not 0 < alpha < 1 or not 0 < min_se_drop <= 1 or not bic_factor > 0:
+        raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
+                        f"{alpha}, {min_se_drop}, {bic_factor}")
     crit = CRITERION.format(pct=100 * (parsimony - 1))
     skip = 20
 

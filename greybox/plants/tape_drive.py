@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 
+from .._validation import check_positive
 from ..system import discretize, named_ss
 
 __all__ = [
@@ -89,6 +90,12 @@ class TapeDriveParams:
     Kt: float = 3e-2
     K: float = 2e4
     D: float = 10.0
+
+    def __post_init__(self):
+        for name in ("L", "R", "Ke", "r", "J", "Kt"):
+            check_positive(getattr(self, name), f"TapeDriveParams.{name}")
+        for name in ("beta", "K", "D"):
+            check_positive(getattr(self, name), f"TapeDriveParams.{name}", allow_zero=True)
 
 
 def _motor_matrices(p: TapeDriveParams):
