@@ -11,7 +11,6 @@ standard deviation sigma, with mean ~0.07 sigma and worst ~0.17 sigma for the
 from __future__ import annotations
 
 import tracemalloc
-import warnings
 
 import control as ct
 import matplotlib

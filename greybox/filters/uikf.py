@@ -36,7 +36,7 @@ from .._validation import (
     check_signal,
     check_vector,
 )
-from ..exceptions import DataError, DimensionError, GreyboxError, ModelError, RankConditionError
+from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
 from ..system import named_ss, split_inputs
 
 __all__ = [
@@ -356,7 +356,6 @@ def _combined_gain(K, M, G, C, F=None):
 def _filter_statespace(A, B, C, D, G, L, M, model, labels):
     """The constant-gain filter as a discrete StateSpace: (u, y) -> (x^[k|k], d^[k-1])."""
     n, m = B.shape
-    p = C.shape[0]
     IL = np.eye(n) - L @ C
     Af = A @ IL
     Bf = np.hstack([B - A @ L @ D, A @ L])

@@ -20,7 +20,7 @@ from .n4sid import (
     _check_pe,
     _choose_horizon,
     _common_setup,
-    _criterion_value,
+    _fit_orders,
     _finish,
     _regress,
 )
@@ -200,33 +200,18 @@ def _pbsid_from_factor(h, p, f, ys, us, l, m, dt, input_labels, output_labels, f
                 GK[a * l:(a + 1) * l, t * nz:(t + 1) * nz] = mk[a + lag]
     M = GK @ Zp
     U, s, _ = np.linalg.svd(M, full_matrices=False)
-    nmax_possible = f * l
-    auto = order is None
-    if not auto:
-        if order > nmax_possible:
-            raise DimensionError(
-                f"order={order} is too large for future horizon f={f}: at most f * noutputs = "
-                f"{nmax_possible}. Increase horizon/future"
-            )
-        orders = [order]
-    else:
-        mo = min(10, nmax_possible) if max_order is None else min(max_order, nmax_possible)
-        orders = list(range(mo + 1))
-    crit = np.full(max(orders) + 1, np.nan)
-    fits = {}
-    for n in orders:
-        fits[n] = _pbsid_fit(n, U, s, GK, Zp, Zp1, uk, yk, fed, m, l, rtol)
-        if auto:
-            crit[n] = _criterion_value(criterion, fits[n]["Re"], n, l, m, len(fed), h.ncols)
-    if auto:
-        order = int(np.nanargmin(crit))
-    fit = fits[order]
+    nmax = f * l
+    order, fit, crit, auto = _fit_orders(
+        order, max_order, nmax,
+        f"order={order} is too large for future horizon f={f}: at most f * noutputs = "
+        f"{nmax}. Increase horizon/future",
+        lambda n: _pbsid_fit(n, U, s, GK, Zp, Zp1, uk, yk, fed, m, l, rtol),
+        lambda n, fit_: fit_["Re"], criterion, l, m, len(fed), h.ncols)
     for name in ("A", "B", "C", "D", "K"):
         if not np.all(np.isfinite(fit[name])):
             raise IdentificationError(
                 f"PBSID produced non-finite {name}; check the excitation and the horizon"
             )
-    n = order
     Re, K = fit["Re"], fit["K"]
     Q = K @ Re @ K.T + fit["Qw"]
     S = K @ Re

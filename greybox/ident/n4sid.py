@@ -566,34 +566,46 @@ def n4sid(
                                   state_prefix)
 
 
+def _fit_orders(order, max_order, nmax, too_large, fit, residual_cov, criterion, l, m, nfed,
+                ncols):
+    """Fit the given order, or every order 0..max and choose one by the criterion.
+
+    Shared by :func:`n4sid` and :func:`greybox.ident.pbsid`. ``fit(n)`` returns
+    a fit record, ``residual_cov(n, fit)`` the residual covariance the
+    criterion is computed from. Returns ``(order, fit, criterion_values, auto)``.
+    """
+    auto = order is None
+    if not auto:
+        if order > nmax:
+            raise DimensionError(too_large)
+        orders = [order]
+    else:
+        mo = min(10, nmax) if max_order is None else min(max_order, nmax)
+        orders = list(range(mo + 1))
+    crit = np.full(max(orders) + 1, np.nan)
+    fits = {}
+    for n in orders:
+        fits[n] = fit(n)
+        if auto:
+            crit[n] = _criterion_value(criterion, residual_cov(n, fits[n]), n, l, m, nfed,
+                                       ncols)
+    if auto:
+        order = int(np.nanargmin(crit))
+    return order, fits[order], crit, auto
+
+
 def _n4sid_from_factor(h, i, ys, us, l, m, dt, input_labels, output_labels, fed, order,
                        max_order, rtol, sy, su, weighting, criterion, state_prefix):
     _check_pe(h, 2 * i, input_labels, "B and D")
 
     core = _N4SIDCore(h, i, weighting, fed, rtol)
-    nmax_possible = (i - 1) * l
-    auto = order is None
-    if not auto:
-        if order > nmax_possible:
-            raise DimensionError(
-                f"order={order} is too large for horizon={i}: at most (horizon - 1) * noutputs "
-                f"= {nmax_possible}. Increase the horizon"
-            )
-        orders = [order]
-    else:
-        mo = min(10, nmax_possible) if max_order is None else min(max_order, nmax_possible)
-        orders = list(range(mo + 1))
-    crit_vals = np.full(max(orders) + 1, np.nan)
-    fits = {}
-    for n in orders:
-        fit = core.fit(n)
-        fits[n] = fit
-        if auto:
-            crit_vals[n] = _criterion_value(criterion, core.state_residual_cov(n), n, l, m,
-                                            len(fed), h.ncols)
-    if auto:
-        order = int(np.nanargmin(crit_vals))
-    fit = fits[order]
+    nmax = (i - 1) * l
+    order, fit, crit_vals, auto = _fit_orders(
+        order, max_order, nmax,
+        f"order={order} is too large for horizon={i}: at most (horizon - 1) * noutputs "
+        f"= {nmax}. Increase the horizon",
+        core.fit, lambda n, _fit: core.state_residual_cov(n), criterion, l, m, len(fed),
+        h.ncols)
     A, B, C, D, Sig = fit["A"], fit["B"], fit["C"], fit["D"], fit["Sigma"]
     n = order
     for name, M in (("A", A), ("B", B), ("C", C), ("D", D)):
@@ -680,7 +692,7 @@ class _N4SIDCore:
         return G
 
     def fit(self, n: int) -> dict:
-        h, i, l, m, rtol = self.h, self.i, self.l, self.m, self.rtol
+        i, l, m, rtol = self.i, self.l, self.m, self.rtol
         if n > 0:
             G = self.gamma(n)
             A = np.linalg.lstsq(G[:-l], G[l:], rcond=rtol)[0]
