@@ -34,6 +34,7 @@ from ._validation import check_discrete, check_positive
 from .exceptions import (DataError, DimensionError, GreyboxError, GreyboxWarning, ModelError,
                          RankConditionError)
 from .filters import FilterResult, check_rank_condition, uikf
+from .metrics import autocorrelation
 from .ident.regression import SparseLaw, forward_selection
 from .system import discretize, named_ss
 from .update import Subsystem, UpdatedModel, augment_model, identify_subsystem
@@ -333,6 +334,8 @@ _MIN_DROP = 1e-4
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
 # estimation noise and the static law is chosen by output error on y instead.
 _LOW_SNR = 0.1
+# Below this lag-1 autocorrelation d^ is taken to alternate sign (see trace_channel).
+_ALTERNATING = -0.5
 # Output-error refinements of static laws run on at most this many samples
 # (their cost is then independent of the record length).
 _OE_WINDOW = 10_000
@@ -355,8 +358,11 @@ def _one_direction(coef: NDArray, tscale: NDArray, labels) -> list[str]:
             f"x (one force)"]
 
 
-def _fit_static(d, x, u, sys, nonlinear, labels, units) -> StaticLaw:
+def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False) -> StaticLaw:
     terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear)
+    if pair_mean:  # regress (d[j] + d[j+1]) / 2 on (terms[j] + terms[j+1]) / 2
+        terms = 0.5 * (terms[:, 1:] + terms[:, :-1])
+        d = 0.5 * (d[:, 1:] + d[:, :-1])
     md = d.shape[0]
     n, m = x.shape[0], u.shape[0]
     coef = np.zeros((md, len(spec)))
@@ -647,11 +653,20 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     x = res.x_filt[:, k0:N]
     uu = u[:, k0:N]
     notes = []
-    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units)
+    # d^ alternating sign: the channel reaches the outputs through a ZOH zero
+    # near z = -1 (e.g. a velocity equation seen through positions only, C G ~
+    # dt^2/2) and the filter's inversion leaves an oscillation at the Nyquist
+    # frequency; the mean of two consecutive samples cancels it.
+    r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
+    pair_mean = r1 < _ALTERNATING
+    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units, pair_mean)
+    if pair_mean:
+        notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
+                     f"is fitted on the mean of consecutive samples")
     # d^ barely above its own estimation noise: choose the law by output error
     excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
         max(float(np.trace(np.atleast_2d(res.d_cov))), 1e-300) - 1.0
-    if excess < _LOW_SNR:
+    if excess < _LOW_SNR and not pair_mean:
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units)
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "

@@ -23,6 +23,9 @@ CASES = [
       "tutorial03_report/updated_model.json"],
      ["model error found in eq(v2)", "exit code 0"]),
 ]
+if (TUTORIALS.parents[1] / "shared" / "data" / "emps" / "DATA_EMPS.npz").is_file():
+    CASES.append(("04_measured_data.py", ["fig6_emps.png", "fig7_silverbox.png"],
+                  ["model error found in eq(v): static effect", "sign(v)"]))
 
 
 @pytest.mark.slow

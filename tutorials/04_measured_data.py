@@ -13,8 +13,9 @@ eq(velocity) channel: the unknown-input filter's d^ there is dominated by a
 inverted by the filter). Averaging two consecutive samples of d^ removes it,
 and greybox's own forward selection on the averaged d^ then finds the omitted
 law: sign(v) and |v| for EMPS (the published Coulomb friction and friction
-asymmetry), y^3 for Silverbox. Step (4) uses public API only; it is a
-diagnosis and a workaround, not what ``close_the_loop`` does today.
+asymmetry), y^3 for Silverbox. ``close_the_loop`` now does this averaging
+itself (greybox.trace: lag-1 autocorrelation of d^ below -0.5) and finds the
+EMPS friction in one call; step (4) shows the mechanism with public API.
 
 Choices (stated, not tuned on validation data):
 
