@@ -190,11 +190,11 @@ print("saved", OUT / "fig6_emps.png")
 
 # %% Silverbox ---------------------------------------------------------------------------
 print("\n=== Silverbox (electronic Duffing oscillator, 610.35 Hz) ===")
-import pandas as pd  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 from scipy.signal import lfilter, welch  # noqa: E402
 
-u_raw, y_sb = pd.read_csv(DATA / "silverbox" / "SNLS80mV.csv").iloc[:, :2].to_numpy().T
+u_raw, y_sb = np.loadtxt(DATA / "silverbox" / "SNLS80mV.csv", delimiter=",", skiprows=1,
+                         usecols=(0, 1)).T
 dt = 2**14 / 1e7
 u_mid = np.r_[0.5 * (u_raw[:-1] + u_raw[1:]), u_raw[-1]]   # band-limited input: midpoint hold
 
