@@ -154,7 +154,7 @@ def check_covariance(
 
 def check_signal(
     y: ArrayLike,
-    nrows: int,
+    nrows: int | None,
     name: str,
     *,
     min_steps: int = 1,
@@ -162,12 +162,19 @@ def check_signal(
 ) -> NDArray[np.float64]:
     """Convert a signal to a float array of shape (nrows, nsteps).
 
-    Time is the last axis. A 1-D array is accepted when ``nrows == 1``.
+    Time is the last axis. A 1-D array is accepted when ``nrows == 1``;
+    ``nrows=None`` takes the number of rows from the data (a 1-D array or a
+    scalar is one row).
     """
-    try:
-        a = np.array(y, dtype=float)
-    except (TypeError, ValueError) as e:
-        raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
+    if nrows is None:
+        a = as_signal(y, name)
+        nrows = a.shape[0]
+    else:
+        try:
+            a = np.array(y, dtype=float)
+        except (TypeError, ValueError) as e:
+            raise DimensionError(f"{name} must be a numeric array; could not convert it "
+                                 f"({e})") from e
     if a.ndim == 1 and nrows == 1:
         a = a.reshape(1, -1)
     if a.ndim != 2 or a.shape[0] != nrows:

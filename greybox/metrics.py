@@ -75,8 +75,7 @@ def relative_error(y: ArrayLike, y_hat: ArrayLike, *, squared: bool = False,
     -------
     RelativeError
     """
-    y = as_signal(y, "y")
-    y = check_signal(y, y.shape[0], "y")
+    y = check_signal(y, None, "y")
     y_hat = check_signal(y_hat, y.shape[0], "y_hat")
     check_same_length(("y", y), ("y_hat", y_hat))
     skip = check_positive(skip, "skip", integer=True, allow_zero=True)
@@ -103,8 +102,7 @@ def autocorrelation(e: ArrayLike, maxlag: int = 20) -> NDArray[np.float64]:
     ndarray, shape (nsignals, maxlag + 1)
         ``r[i, 0] == 1``.
     """
-    e = as_signal(e, "e")
-    e = check_signal(e, e.shape[0], "e", min_steps=2)
+    e = check_signal(e, None, "e", min_steps=2)
     maxlag = check_positive(maxlag, "maxlag", integer=True)
     N = e.shape[1]
     if maxlag >= N:
@@ -132,10 +130,8 @@ def cross_correlation(u: ArrayLike, e: ArrayLike, maxlag: int = 20) -> NDArray[n
     ndarray, shape (ninputs, noutputs, 2 maxlag + 1)
         Lags ``-maxlag..maxlag`` along the last axis.
     """
-    u = as_signal(u, "u")
-    e = as_signal(e, "e")
-    u = check_signal(u, u.shape[0], "u", min_steps=2)
-    e = check_signal(e, e.shape[0], "e", min_steps=2)
+    u = check_signal(u, None, "u", min_steps=2)
+    e = check_signal(e, None, "e", min_steps=2)
     N = check_same_length(("u", u), ("e", e))
     maxlag = check_positive(maxlag, "maxlag", integer=True)
     if maxlag >= N:

@@ -37,7 +37,7 @@ from .filters import FilterResult, check_rank_condition, uikf
 from .metrics import autocorrelation
 from .ident.regression import SparseLaw, forward_selection
 from .system import discretize, named_ss
-from .update import Subsystem, UpdatedModel, augment_model, identify_subsystem
+from .update import Subsystem, UpdatedModel, augment_model, identify_subsystem, psd_part
 
 __all__ = [
     "Channel",
@@ -400,9 +400,7 @@ def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Su
     md, n, m = law.Ddx.shape[0], law.Ddx.shape[1], law.Ddu.shape[1]
     e = d - law.Ddx @ x - law.Ddu @ u
     Re = np.atleast_2d(np.cov(e, bias=True))
-    Pd = np.atleast_2d(res.d_cov)
-    w, V = np.linalg.eigh(0.5 * (Re - Pd + (Re - Pd).T))
-    Rn = (V * np.clip(w, 0, None)) @ V.T
+    Rn = psd_part(Re - np.atleast_2d(res.d_cov))  # as identify_subsystem's noise_cov
     return Subsystem(order=0, Ad=np.zeros((0, 0)), Bdu=np.zeros((0, m)), Bdx=np.zeros((0, n)),
                      Cd=np.zeros((md, 0)), Ddu=law.Ddu, Ddx=law.Ddx, K=np.zeros((0, md)),
                      innovation_cov=Re, noise_cov=Rn, criterion={0: np.nan},

@@ -49,7 +49,8 @@ __all__ = [
 ]
 
 
-def _psd_part(S: NDArray) -> NDArray:
+def psd_part(S: NDArray) -> NDArray:
+    """Positive semidefinite part of a symmetric matrix (negative eigenvalues set to 0)."""
     w, V = np.linalg.eigh(0.5 * (S + S.T))
     return (V * np.clip(w, 0, None)) @ V.T
 
@@ -254,7 +255,7 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
     labels_x = tuple(result.sys.state_labels)
     return Subsystem(
         order=Ad.shape[0], Ad=Ad, Bdu=Bw[:, :m], Bdx=Bw[:, m:], Cd=Cd, Ddu=Dw[:, :m], Ddx=Dw[:, m:],
-        K=K, innovation_cov=np.atleast_2d(Re), noise_cov=_psd_part(np.atleast_2d(Re) - Pd),
+        K=K, innovation_cov=np.atleast_2d(Re), noise_cov=psd_part(np.atleast_2d(Re) - Pd),
         criterion={k: v[0] for k, v in cands.items()}, method=method,
         feedthrough=feedthrough, d_sim=dsim, input_labels=labels_u, state_labels=labels_x,
         unknown_labels=tuple(result.unknown_labels),
@@ -503,7 +504,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     combined = named_ss(Aa, Ba, Ca, Da, sys.dt, states=states, inputs=sys.input_labels,
                         outputs=sys.output_labels, name=f"{sys.name or 'model'}_delta")
     # output noise: the delta innovation covariance, kept positive definite
-    Rc = _psd_part(Re) + 1e-12 * max(np.trace(R), 1e-300) * np.eye(sys.noutputs)
+    Rc = psd_part(Re) + 1e-12 * max(np.trace(R), 1e-300) * np.eye(sys.noutputs)
     delta = named_ss(dA, dB, dC, dD, sys.dt, states=states[n:], inputs=sys.input_labels,
                      outputs=[f"d{s}" for s in sys.output_labels], name="delta")
     return DeltaModel(updated=UpdatedModel(sys=combined, Q=0.5 * (Qa + Qa.T),
@@ -577,7 +578,7 @@ def _series_marginal(fA, fB, fC, fD, K, Re, a, T, rho):
     outputs ``w = v / P(q)``: ``w[k] = v[k] - sum a_i w[k-i]``.
     """
     nf, r, p = fA.shape[0], len(a), fC.shape[0]
-    C1, C2, D1, D2 = fC[:rho], fC[rho:], fD[:rho], fD[rho:]
+    C1, C2, D1 = fC[:rho], fC[rho:], fD[:rho]
     Arow = np.kron(a[None, :], np.eye(rho))            # rho x rho*r: sum a_i w[k-i]
     As = np.zeros((rho * r, rho * r))
     As[rho:, :-rho] = np.eye(rho * (r - 1))

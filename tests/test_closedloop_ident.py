@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.optimize import linear_sum_assignment
+
 
 from greybox.exceptions import DataError, DimensionError
 from greybox.ident import n4sid, pbsid
+from test_n4sid import pole_error
 
 # 2nd-order plant in innovation form, stable predictor (A - K C)
 A_CL = np.array([[1.5, -0.7], [1.0, 0.0]])
@@ -20,14 +21,6 @@ K_CL = np.array([[0.6], [0.3]])
 POLES_CL = np.linalg.eigvals(A_CL)
 
 
-def pole_error(est, true):
-    est, true = np.atleast_1d(est), np.atleast_1d(true)
-    assert est.size == true.size
-    if true.size == 0:
-        return 0.0
-    cost = np.abs(est[:, None] - true[None, :])
-    r, c = linear_sum_assignment(cost)
-    return float(cost[r, c].max())
 
 
 def closed_loop_data(N, seed, *, gain=0.5, r_std=0.3):

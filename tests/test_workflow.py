@@ -110,10 +110,8 @@ NOMINAL = {
 }
 
 
-@lru_cache(maxsize=None)
-def run_case(case: str) -> tuple[LoopReport, object]:
-    """Simulate the case's true plant and run close_the_loop (cached per session)."""
-    rng = np.random.default_rng(len(case) * 7919)
+def _run(case: str, rng: np.random.Generator) -> tuple[LoopReport, object]:
+    """Simulate the case's true plant with ``rng`` and run close_the_loop."""
     nom = chain(**NOMINAL[case])
     C = np.asarray(nom.C, dtype=float)
     f, extra = true_dynamics(case)
@@ -125,6 +123,12 @@ def run_case(case: str) -> tuple[LoopReport, object]:
     R = R_STD**2 * np.eye(C.shape[0])
     rep = close_the_loop(nom, y, u, yv, uv, Q=QD + 1e-12 * np.eye(4), R=R, dt=DT)
     return rep, (y, u, yv, uv, nom, R)
+
+
+@lru_cache(maxsize=None)
+def run_case(case: str) -> tuple[LoopReport, object]:
+    """The case's standard draw (cached per session)."""
+    return _run(case, np.random.default_rng(len(case) * 7919))
 
 
 CASES = [
@@ -219,17 +223,7 @@ def test_bad_inputs_raise_greybox_exceptions():
 
 
 def _run_seeded(case, seed):
-    rng = np.random.default_rng(1000 + seed)
-    nom = chain(**NOMINAL[case])
-    C = np.asarray(nom.C, dtype=float)
-    f, extra = true_dynamics(case)
-    _simulate.extra = extra
-    u = gb.lowpass_noise(N_EST, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
-    uv = gb.lowpass_noise(N_VAL, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
-    y = _simulate(f, C, u, noise_q=True, rng=rng)
-    yv = _simulate(f, C, uv, noise_q=False, rng=rng)
-    R = R_STD**2 * np.eye(C.shape[0])
-    return close_the_loop(nom, y, u, yv, uv, Q=QD + 1e-12 * np.eye(4), R=R, dt=DT)
+    return _run(case, np.random.default_rng(1000 + seed))[0]
 
 
 @pytest.mark.slow

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize, minimize_scalar
 from scipy.signal import lfilter
 
-from .._validation import as_signal, check_positive, check_same_length, check_signal
+from .._validation import check_positive, check_same_length, check_signal
 from ..exceptions import DataError
 from ..system import named_ss
 
@@ -182,10 +182,8 @@ def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = 
     -------
     OEResult
     """
-    d = as_signal(d, "d")
-    w = as_signal(w, "w")
-    d = check_signal(d, d.shape[0], "d")
-    w = check_signal(w, w.shape[0], "w")
+    d = check_signal(d, None, "d")
+    w = check_signal(w, None, "w")
     N = check_same_length(("d", d), ("w", w))
     order = check_positive(order, "order", integer=True)
     nin, nout = w.shape[0], d.shape[0]

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._validation import as_signal, check_positive, check_same_length, check_signal
+from .._validation import check_positive, check_same_length, check_signal
 from ..exceptions import DataError, DimensionError
 
 __all__ = ["StaticFit", "static_least_squares", "SparseLaw", "forward_selection"]
@@ -59,10 +59,8 @@ def static_least_squares(w: ArrayLike, d: ArrayLike, *, rtol: float = 1e-10) -> 
     -------
     StaticFit
     """
-    w = as_signal(w, "w")
-    d = as_signal(d, "d")
-    w = check_signal(w, w.shape[0], "w")
-    d = check_signal(d, d.shape[0], "d")
+    w = check_signal(w, None, "w")
+    d = check_signal(d, None, "d")
     N = check_same_length(("w", w), ("d", d))
     if N < w.shape[0] + 1:
         raise DataError(f"{N} samples cannot fit {w.shape[0]} coefficients; give more data")
@@ -184,8 +182,7 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
     >>> law.names
     ('b',)
     """
-    X = as_signal(terms, "terms")
-    X = check_signal(X, X.shape[0], "terms")
+    X = check_signal(terms, None, "terms")
     d = check_signal(d, 1, "d")[0]  # one channel: (nsteps,) or (1, nsteps)
     N = check_same_length(("terms", X), ("d", d[None, :]))
     nterms = X.shape[0]
