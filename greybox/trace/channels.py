@@ -1,0 +1,190 @@
+"""Candidate error channels: which state equations (or inputs) a model error enters."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import control as ct
+import numpy as np
+from numpy.typing import NDArray
+
+from ..exceptions import DataError, DimensionError, ModelError
+from ..system import discretize, named_ss
+
+
+
+# --------------------------------------------------------------------------- channels
+@dataclass(frozen=True, eq=False)
+class Channel:
+    """A candidate error channel: the model error enters as ``G d``.
+
+    Attributes
+    ----------
+    name : str
+        Readable name, e.g. ``"eq(v1)"`` or ``"eq(v1)+eq(v2)"`` or a user name.
+    G : ndarray, shape (nstates, md)
+        Input matrix of d in the nominal model's own time base (continuous
+        if the nominal model is continuous; it is then ZOH-discretized
+        together with B).
+    labels : tuple of str
+        Names of the md components of d.
+    units : tuple of str
+        Units of the components of d ("" if unknown).
+    equations : tuple of str
+        Names of the states whose equations the channel enters.
+    """
+
+    name: str
+    G: NDArray[np.float64]
+    labels: tuple[str, ...]
+    units: tuple[str, ...] = ()
+    equations: tuple[str, ...] = ()
+
+    @property
+    def md(self) -> int:
+        """Number of unknown-input components."""
+        return self.G.shape[1]
+
+    def _key(self):
+        G = np.asarray(self.G, dtype=float)
+        return (self.name, G.shape, G.tobytes(), tuple(self.labels), tuple(self.units),
+                tuple(self.equations))
+
+    def __eq__(self, other):  # G is an array: the generated __eq__ would be ambiguous
+        if not isinstance(other, Channel):
+            return NotImplemented
+        return self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
+
+def _eq_channel(sys: ct.StateSpace, idx: Sequence[int]) -> Channel:
+    n = sys.nstates
+    G = np.zeros((n, len(idx)))
+    for c, i in enumerate(idx):
+        G[i, c] = 1.0
+    names = [sys.state_labels[i] for i in idx]
+    cont = not ct.isdtime(sys, strict=True)
+    return Channel(name="+".join(f"eq({s})" for s in names), G=G,
+                   labels=tuple(f"d_{s}" for s in names),
+                   units=tuple((f"[{s}]/s" if cont else f"[{s}]/sample") for s in names),
+                   equations=tuple(names))
+
+
+def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto") -> tuple[Channel, ...]:
+    """Every single state equation, and pairs of equations where p allows.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Nominal model (continuous or discrete).
+    pairs : bool or "auto"
+        Also try pairs of equations (md = 2, PAPER_NOTES §9.6: an internal
+        force between two bodies enters two equations). "auto": only when
+        ``noutputs >= 2`` and ``nstates <= 4`` (the number of pairs grows as
+        n^2; name channels explicitly for larger models).
+    """
+    if not (isinstance(pairs, (bool, np.bool_)) or pairs == "auto"):
+        raise DataError(f"pairs must be True, False or 'auto'; found {pairs!r}")
+    n = sys.nstates
+    out = [_eq_channel(sys, [i]) for i in range(n)]
+    use_pairs = (sys.noutputs >= 2 and n <= 4) if pairs == "auto" else bool(pairs)
+    if use_pairs and sys.noutputs >= 2:
+        out += [_eq_channel(sys, [i, j]) for i in range(n) for j in range(i + 1, n)]
+    return tuple(out)
+
+
+def resolve_channel_spec(sys: ct.StateSpace, spec) -> tuple[Channel, ...]:
+    """Turn a user's channel specification into :class:`Channel` records.
+
+    ``spec`` may be None (:func:`default_channels`), a sequence whose items
+    are Channel records, state names, or tuples of state names (equations
+    entered together), or a mapping ``{name: G}`` with G of shape
+    (nstates,) or (nstates, md) in the nominal model's time base.
+    """
+    if spec is None:
+        return default_channels(sys)
+    if isinstance(spec, str):  # one state name, not a sequence of one-letter names
+        spec = [spec]
+    n = sys.nstates
+    labels = list(sys.state_labels)
+    out = []
+    items = spec.items() if isinstance(spec, Mapping) else [(None, s) for s in spec]
+    for key, s in items:
+        if isinstance(s, Channel):
+            out.append(s)
+            continue
+        if isinstance(s, str) or (isinstance(s, (tuple, list)) and s and
+                                  all(isinstance(t, str) for t in s)):
+            names = [s] if isinstance(s, str) else list(s)
+            bad = [t for t in names if t not in labels]
+            if bad:
+                raise DimensionError(f"channels: no state named {bad}; states are {labels}")
+            ch = _eq_channel(sys, [labels.index(t) for t in names])
+            out.append(ch if key is None else Channel(key, ch.G, ch.labels, ch.units,
+                                                       ch.equations))
+            continue
+        try:
+            G = np.array(s, dtype=float)
+        except (TypeError, ValueError) as e:
+            raise DimensionError(f"channels[{key!r}] must be a G matrix or state names; "
+                                 f"found {s!r}") from e
+        if G.ndim == 1:
+            G = G.reshape(-1, 1)
+        if G.ndim != 2 or G.shape[0] != n or G.shape[1] < 1:
+            raise DimensionError(f"channels[{key!r}] has shape {G.shape}; expected "
+                                 f"({n},) or ({n}, md)")
+        if not np.all(np.isfinite(G)):
+            raise DimensionError(f"channels[{key!r}] contains NaN or inf")
+        name = str(key) if key is not None else f"G{len(out)}"
+        md = G.shape[1]
+        eqs = tuple(labels[i] for i in range(n) if np.any(G[i] != 0))
+        out.append(Channel(name=name, G=G,
+                           labels=(name,) if md == 1 else tuple(f"{name}[{j}]" for j in range(md)),
+                           units=("",) * md, equations=eqs))
+    if not out:
+        raise DimensionError("channels: give at least one candidate channel")
+    return tuple(out)
+
+
+def channel_model(sys: ct.StateSpace, channel: Channel, dt: float | None = None) -> ct.StateSpace:
+    """Discrete model with inputs ``[u, d]`` for one channel (ZOH once, PAPER_NOTES §1).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Nominal model, continuous or discrete.
+    channel : Channel
+    dt : float, optional
+        Sampling period [s]; needed if ``sys`` is continuous, and must agree
+        with ``sys.dt`` if it is discrete.
+
+    Raises
+    ------
+    ModelError
+        If ``sys`` is continuous and ``dt`` is missing, or ``dt`` disagrees
+        with a discrete ``sys``.
+    DimensionError
+        If ``channel.G`` does not have ``sys.nstates`` rows.
+    """
+    disc = ct.isdtime(sys, strict=True)
+    if not disc and dt is None:
+        raise ModelError("sys is continuous-time; give the sampling period dt [s] so that "
+                         "it can be discretized (ZOH)")
+    if disc and dt is not None and abs(float(dt) - float(sys.dt)) > 1e-9 * float(sys.dt):
+        raise ModelError(f"dt = {dt} disagrees with the discrete model's dt = {sys.dt}")
+    if channel.G.shape[0] != sys.nstates:
+        raise DimensionError(f"channel {channel.name!r} has G of shape {channel.G.shape}; "
+                             f"expected ({sys.nstates}, md)")
+    A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
+    p, md = C.shape[0], channel.md
+    inputs = list(sys.input_labels) + list(channel.labels)
+    full = named_ss(A, np.hstack([B, channel.G]), C, np.hstack([D, np.zeros((p, md))]),
+                    sys.dt if ct.isdtime(sys, strict=True) else 0,
+                    states=sys.state_labels, inputs=inputs, outputs=sys.output_labels,
+                    name=sys.name)
+    if ct.isdtime(sys, strict=True):
+        return full
+    return discretize(full, dt)

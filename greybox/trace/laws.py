@@ -1,0 +1,277 @@
+"""Static laws d = f(x, u): candidate terms, sparse fits, formulas, simulation, parameter notes."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import control as ct
+import numpy as np
+from numpy.typing import NDArray
+
+from ..filters import FilterResult
+from ..ident.regression import SparseLaw, forward_selection
+from ..update import Subsystem, psd_part
+from .channels import Channel
+
+
+
+# --------------------------------------------------------------------------- static laws
+def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
+              input_labels: Sequence[str], *, nonlinear: bool = True,
+              eps: NDArray | None = None) -> tuple[NDArray, list[tuple[str, str, int]], NDArray]:
+    """Candidate terms of a static law, evaluated on (x, u).
+
+    Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
+    list of ``(display name, kind, index)`` with kind in
+    {"x", "u", "x^3", "sign", "abs"}, and the eps of each state's
+    ``tanh(x/eps)`` (5 % of the state's RMS unless given).
+    """
+    n, m = x.shape[0], u.shape[0]
+    if eps is None:
+        eps = 0.05 * np.sqrt(np.mean(x**2, axis=1)) + 1e-300
+    rows, spec = [], []
+    for i in range(n):
+        rows.append(x[i])
+        spec.append((state_labels[i], "x", i))
+    for j in range(m):
+        rows.append(u[j])
+        spec.append((input_labels[j], "u", j))
+    if nonlinear:
+        for i in range(n):
+            s = state_labels[i]
+            rows.append(x[i] ** 3)
+            spec.append((f"{s}^3", "x^3", i))
+            rows.append(np.tanh(x[i] / eps[i]))
+            spec.append((f"sign({s})", "sign", i))
+            rows.append(np.abs(x[i]))
+            spec.append((f"|{s}|", "abs", i))
+    N = x.shape[1]
+    return (np.array(rows) if rows else np.zeros((0, N))), spec, eps
+
+
+def _eval_terms(spec, eps, x, u):
+    out = np.empty((len(spec),) + x.shape[1:])
+    for r, (_, kind, i) in enumerate(spec):
+        v = x[i] if kind != "u" else u[i]
+        out[r] = (v if kind in ("x", "u") else v**3 if kind == "x^3" else
+                  np.tanh(v / eps[i]) if kind == "sign" else np.abs(v))
+    return out
+
+
+@dataclass(frozen=True)
+class StaticLaw:
+    """Sparse static law ``d[j] = coef @ terms(x[j], u[j])`` for each component of d.
+
+    Attributes
+    ----------
+    spec : tuple of (name, kind, index)
+        All candidate terms (see :func:`law_terms`).
+    eps : ndarray, shape (nstates,)
+        Smoothing widths of ``sign(x) ~ tanh(x/eps)``.
+    coef : ndarray, shape (md, nterms)
+        Coefficients (zero for terms not selected).
+    Ddx : ndarray, shape (md, nstates)
+        Linear part in the states (the best linear law when ``nonlinear``).
+    Ddu : ndarray, shape (md, ninputs)
+        Linear part in the inputs.
+    nonlinear : bool
+        True if a nonlinear term was selected.
+    residual_var : ndarray, shape (md,)
+        Variance of d^ minus the law.
+    bic_gain : float
+        BIC of "d = 0" minus BIC of the law (summed over components), on d^.
+    npar : int
+        Number of selected terms.
+    formula : str
+        Readable law in physical names.
+    """
+
+    spec: tuple
+    eps: NDArray[np.float64]
+    coef: NDArray[np.float64]
+    Ddx: NDArray[np.float64]
+    Ddu: NDArray[np.float64]
+    nonlinear: bool
+    residual_var: NDArray[np.float64]
+    bic_gain: float
+    npar: int
+    formula: str
+
+    def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
+        """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
+        return self.coef @ _eval_terms(self.spec, self.eps, x, u)
+
+
+def _fmt_sum(coefs, names) -> str:
+    parts = []
+    for c, nm in zip(coefs, names):
+        s = f"{abs(c):.3g}*{nm}"
+        parts.append(("- " if c < 0 else "+ ") + s)
+    if not parts:
+        return "0"
+    txt = " ".join(parts)
+    return txt[2:] if txt.startswith("+ ") else "-" + txt[2:]
+
+
+# A law term must remove at least this fraction of sum(d^2): d^ is a noisy,
+# coloured output and the BIC alone keeps negligible terms.
+_MIN_DROP = 1e-4
+
+
+def _select(terms: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
+    """Forward selection (BIC) with backward pruning, as used for every static law."""
+    return forward_selection(terms, d, names, min_drop=_MIN_DROP, prune=True)
+
+
+def _one_direction(coef: NDArray, tscale: NDArray, labels) -> list[str]:
+    """A line if the md > 1 law acts along one direction of d (PAPER_NOTES §9.6)."""
+    if coef.shape[0] < 2 or not np.any(coef):
+        return []
+    sc = np.linalg.svd(coef * tscale[None, :], compute_uv=True)
+    if sc[1][1] >= 0.05 * sc[1][0]:
+        return []
+    g = sc[0][:, 0] / sc[0][np.argmax(np.abs(sc[0][:, 0])), 0]
+    return [f"one direction: [{', '.join(labels)}] ~ {np.array2string(g, precision=3)} "
+            f"x (one force)"]
+
+
+def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False) -> StaticLaw:
+    terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear)
+    if pair_mean:  # regress (d[j] + d[j+1]) / 2 on (terms[j] + terms[j+1]) / 2
+        terms = 0.5 * (terms[:, 1:] + terms[:, :-1])
+        d = 0.5 * (d[:, 1:] + d[:, :-1])
+    md = d.shape[0]
+    n, m = x.shape[0], u.shape[0]
+    coef = np.zeros((md, len(spec)))
+    Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
+    rv = np.zeros(md)
+    gain, npar, any_nl = 0.0, 0, False
+    lines = []
+    nlin = n + m
+    names = [s[0] for s in spec]
+    for c in range(md):
+        sel = _select(terms, d[c], names)
+        idx, cf = list(sel.index), sel.coef
+        coef[c, idx] = cf
+        rv[c] = sel.residual_var
+        gain += sel.bic_gain
+        npar += len(idx)
+        nl = any(j >= nlin for j in idx)
+        any_nl |= nl
+        if nl:  # best linear surrogate for the StateSpace
+            lin = _select(terms[:nlin], d[c], names[:nlin])
+            lc = np.zeros(nlin)
+            lc[list(lin.index)] = lin.coef
+        else:
+            lc = coef[c, :nlin]
+        Ddx[c], Ddu[c] = lc[:n], lc[n:nlin]
+        lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
+                               units[c] if c < len(units) else ""))
+    tscale = np.sqrt(np.mean(terms**2, axis=1))
+    lines += _one_direction(coef, tscale, labels)
+    return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
+                     residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines))
+
+
+def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Subsystem:
+    md, n, m = law.Ddx.shape[0], law.Ddx.shape[1], law.Ddu.shape[1]
+    e = d - law.Ddx @ x - law.Ddu @ u
+    Re = np.atleast_2d(np.cov(e, bias=True))
+    Rn = psd_part(Re - np.atleast_2d(res.d_cov))  # as identify_subsystem's noise_cov
+    return Subsystem(order=0, Ad=np.zeros((0, 0)), Bdu=np.zeros((0, m)), Bdx=np.zeros((0, n)),
+                     Cd=np.zeros((md, 0)), Ddu=law.Ddu, Ddx=law.Ddx, K=np.zeros((0, md)),
+                     innovation_cov=Re, noise_cov=Rn, criterion={0: np.nan},
+                     method="forward selection", feedthrough=True,
+                     d_sim=law.Ddx @ x + law.Ddu @ u,
+                     input_labels=tuple(res.sys.input_labels),
+                     state_labels=tuple(res.sys.state_labels),
+                     unknown_labels=tuple(res.unknown_labels))
+
+
+def _law_line(label: str, coefs, names, unit: str) -> str:
+    """``"d_v2 = -15*p2 [v2]/s"``: one component of a law, with its unit."""
+    u = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
+    return f"{label} = {_fmt_sum(coefs, names)}{u}"
+
+
+
+# --------------------------------------------------------------------------- nonlinear laws
+def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArray,
+                      x0: NDArray) -> NDArray[np.float64]:
+    """Simulated output of ``x[k+1] = A x + B u + G law(x, u)``, shape (noutputs, nsteps)."""
+    A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
+    N = u.shape[1]
+    x = np.empty((A.shape[0], N))
+    xk = np.asarray(x0, dtype=float).copy()
+    Bu = B @ u
+    for k in range(N):
+        x[:, k] = xk
+        xk = A @ xk + Bu[:, k] + G @ law.evaluate(xk[:, None], u[:, k:k + 1])[:, 0]
+        if not np.all(np.isfinite(xk)) or np.max(np.abs(xk)) > 1e100:
+            x[:, k + 1:] = np.nan
+            break
+    return C @ x + D @ u
+
+
+def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArray,
+                     u: NDArray, K: NDArray, x0: NDArray) -> NDArray[np.float64]:
+    """One-step predictions ``C x^[k|k-1] + D u`` of a constant-gain filter on the nonlinear model."""
+    A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
+    N = u.shape[1]
+    yp = np.empty((C.shape[0], N))
+    xp = np.asarray(x0, dtype=float).copy()
+    Bu, Du = B @ u, D @ u
+    for k in range(N):
+        yp[:, k] = C @ xp + Du[:, k]
+        xf = xp + K @ (y[:, k] - yp[:, k])
+        xp = A @ xf + Bu[:, k] + G @ law.evaluate(xf[:, None], u[:, k:k + 1])[:, 0]
+        if not np.all(np.isfinite(xp)) or np.max(np.abs(xp)) > 1e100:
+            yp[:, k + 1:] = np.nan
+            break
+    return yp
+
+
+
+def _fmt_values(v: NDArray, digits: int) -> str:
+    """A scalar as a number, several values as a bracketed list."""
+    v = np.atleast_1d(v)
+    if v.size == 1:
+        return f"{v[0]:.{digits}g}"
+    return "[" + ", ".join(f"{a:.{digits}g}" for a in v) + "]"
+
+
+def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tuple[str, ...]:
+    """Where the law mirrors a term the model already has: which parameter is off, by how much.
+
+    A linear term ``c * s`` of component k of d adds ``c * G[:, k]`` to the
+    column of A (state s) or B (input s) of the nominal model ``sys`` (in its
+    own time base). If that column, restricted to the rows G[:, k] enters,
+    is parallel to G[:, k], the law re-scales an existing parameter; if it is
+    zero there, the law is a term the model lacks.
+    """
+    A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
+    out = []
+    for k in range(channel.md):
+        g = channel.G[:, k]
+        S = np.flatnonzero(np.abs(g) > 0)
+        rows = ", ".join(sys.state_labels[i] for i in S)
+        for j, (name, kind, idx) in enumerate(law.spec):
+            c = law.coef[k, j]
+            if c == 0 or kind not in ("x", "u"):
+                continue
+            col = A[:, idx] if kind == "x" else B[:, idx]
+            mat = "A" if kind == "x" else "B"
+            cs, gs = col[S], g[S]
+            new = cs + c * gs
+            if np.all(cs == 0):
+                out.append(f"{mat}[{rows}; {name}] is 0 in the model; the data want "
+                           f"{_fmt_values(new, 3)} (a missing term)")
+                continue
+            cosv = abs(cs @ gs) / (np.linalg.norm(cs) * np.linalg.norm(gs))
+            if cosv > 0.99:
+                alpha = (cs @ gs) / (gs @ gs)
+                pct = 100.0 * c / alpha
+                out.append(f"{mat}[{rows}; {name}] = {_fmt_values(cs, 4)} in the "
+                           f"model; the data want {_fmt_values(new, 4)} ({pct:+.1f}%)")
+    return tuple(out)

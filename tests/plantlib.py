@@ -1,0 +1,90 @@
+"""Test plants with an effect their nominal model omits (shared by trace/workflow tests).
+
+Each true plant is a continuous ODE ``dx/dt = f(x, u)`` simulated by RK4 with
+zero-order-hold inputs (``sub`` steps per sample), discrete process noise on
+chosen states and white measurement noise; the nominal model is a named
+continuous python-control StateSpace. Validation data carry measurement
+noise only (PAPER_NOTES §8.6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+import greybox as gb
+from greybox.system import named_ss
+
+
+def rk4_simulate(f: Callable, x0, u, dt, *, sub=5, q_std=None, rng=None):
+    """States (n, N) of ``dx/dt = f(x, u)`` with ZOH input u (m, N); noise added per sample."""
+    N, h = u.shape[1], dt / sub
+    xk = np.array(x0, dtype=float)
+    x = np.empty((xk.size, N))
+    for k in range(N):
+        x[:, k] = xk
+        uk = u[:, k]
+        for _ in range(sub):
+            a = f(xk, uk)
+            b = f(xk + h / 2 * a, uk)
+            c = f(xk + h / 2 * b, uk)
+            d = f(xk + h * c, uk)
+            xk = xk + h / 6 * (a + 2 * b + 2 * c + d)
+        if q_std is not None:
+            xk[:q_std.size] = xk[:q_std.size] + q_std * rng.standard_normal(q_std.size)
+    return x
+
+
+@dataclass
+class Case:
+    """One drawn data set: nominal model, records, covariances."""
+
+    nominal: object
+    y: np.ndarray
+    u: np.ndarray
+    y_val: np.ndarray
+    u_val: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    dt: float
+
+
+def draw(nominal, f, *, n_true, dt, rng, n_est=6000, n_val=3000, q_std, r_std,
+         bandwidth=1.0, amplitude=2.0, sub=5):
+    """Simulate estimation (process + measurement noise) and validation data (measurement noise).
+
+    ``q_std`` (n_nominal,) is the discrete process-noise std on the nominal
+    states; the nominal model's Q is diag(q_std^2) (+ a tiny jitter).
+    """
+    C = np.asarray(nominal.C, dtype=float)
+    m = nominal.ninputs
+    q_std = np.asarray(q_std, dtype=float)
+    u = np.vstack([gb.lowpass_noise(n_est, dt=dt, bandwidth=bandwidth, amplitude=amplitude,
+                                    rng=rng) for _ in range(m)])
+    uv = np.vstack([gb.lowpass_noise(n_val, dt=dt, bandwidth=bandwidth, amplitude=amplitude,
+                                     rng=rng) for _ in range(m)])
+    n0 = C.shape[1]
+    x = rk4_simulate(f, np.zeros(n_true), u, dt, sub=sub, q_std=q_std, rng=rng)
+    xv = rk4_simulate(f, np.zeros(n_true), uv, dt, sub=sub)
+    y = C @ x[:n0] + r_std * rng.standard_normal((C.shape[0], n_est))
+    yv = C @ xv[:n0] + r_std * rng.standard_normal((C.shape[0], n_val))
+    Q = np.diag(q_std**2) + 1e-12 * np.eye(n0)
+    R = r_std**2 * np.eye(C.shape[0])
+    return Case(nominal, y, u, yv, uv, Q, R, dt)
+
+
+def msd(k=4.0, c=0.6, m=1.0, measured=("pos", "vel")):
+    """Mass-spring-damper, states pos [m], vel [m/s], input F [N]."""
+    A = np.array([[0.0, 1.0], [-k / m, -c / m]])
+    B = np.array([[0.0], [1.0 / m]])
+    idx = [("pos", "vel").index(s) for s in measured]
+    C = np.eye(2)[idx]
+    return named_ss(A, B, C, np.zeros((len(idx), 1)), 0, states=["pos", "vel"],
+                    inputs=["F"], outputs=list(measured), name="msd")
+
+
+def linear_f(sys):
+    A, B = np.asarray(sys.A, float), np.asarray(sys.B, float)
+    return lambda x, u: A @ x + B @ u
