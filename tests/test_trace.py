@@ -169,7 +169,11 @@ def test_trace_channel_static_law():
     # coefficient ~ 1e-3 relative; 1 % is > 5 of them
     np.testing.assert_allclose(law.coef[0, j], C_SPRING, rtol=0.01)
     np.testing.assert_allclose(law.Ddx, [[law.coef[0, j], 0.0]], rtol=0, atol=0)
-    assert law.formula == f"d_v = {law.coef[0, j]:.3g}*p [v]/sample"
+    c, h = law.coef[0, j], law.ci[0, j]
+    assert law.formula == f"d_v = -({abs(c):.3g} ± {h:.2g})*p [v]/sample"
+    # the 95 % interval covers the truth and is not vacuous (< 1 % of the value)
+    assert abs(c - C_SPRING) <= h < 0.01 * abs(C_SPRING)
+    assert law.time_base == "discrete"  # a discrete nominal model: the law stays discrete
     assert law.bic_gain > 0
     # the static model folds the law into A: A[v, p] moves by the coefficient
     sm = tr.static_model.sys

@@ -13,10 +13,11 @@ from .._validation import check_discrete, check_positive
 from ..exceptions import DataError, GreyboxError, GreyboxWarning, RankConditionError
 from ..filters import FilterResult, check_rank_condition, uikf
 from ..metrics import autocorrelation
+from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 from .channels import Channel, channel_model
 from .laws import StaticLaw, _eval_terms, _fit_static, _static_subsystem
-from .oe import _refine_static_oe, _select_static_oe
+from .oe import _refine_static_oe, _select_static_oe, zoh
 
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
 # estimation noise and the static law is chosen by output error on y instead.
@@ -137,20 +138,31 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     # d^ barely above its own estimation noise: choose the law by output error
     excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
         max(float(np.trace(np.atleast_2d(res.d_cov))), 1e-300) - 1.0
+    # a continuous nominal model: linear laws are parametrized in continuous time
+    cont = None if ct.isdtime(sys, strict=True) else (
+        np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
+        np.asarray(channel.G, dtype=float), float(model.dt))
     if excess < _LOW_SNR and not pair_mean:
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
-                                channel.units)
+                                channel.units, cont=cont, noise=(Q, R))
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
                      f"Pd): static law chosen by output error on y")
     elif not law.nonlinear and law.npar:
         tscale = np.sqrt(np.mean(_eval_terms(law.spec, law.eps, x, uu) ** 2, axis=1))
         law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
-                                            k0, labels, channel.units, tscale)
+                                            k0, labels, channel.units, tscale, cont, (Q, R))
         if se_y < se_d:
             notes.append(f"static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
     sub0 = _static_subsystem(law, res, d, x, uu)
     static_model = augment_model(model, sub0, unknown=labels, Q=Q, R=R)
+    if law.time_base == "continuous":  # fold the law in continuous time, discretize exactly
+        Ac, Bc, Gc, h = cont
+        Ad, Bd = zoh(Ac + Gc @ law.Ddx, Bc + Gc @ law.Ddu, h)
+        s0 = static_model.sys
+        static_model = replace(static_model, sys=named_ss(
+            Ad, Bd, s0.C, s0.D, s0.dt, states=s0.state_labels, inputs=s0.input_labels,
+            outputs=s0.output_labels, name=s0.name))
     dyn, dyn_model = None, None
     if max_order >= max(min_order, 1):
         try:

@@ -84,7 +84,17 @@ class StaticLaw:
     npar : int
         Number of selected terms.
     formula : str
-        Readable law in physical names.
+        Readable law in physical names, each coefficient with its 95 % interval
+        (``-15 (-15.3, -14.7)*p2``) where ``ci`` is known.
+    ci : ndarray, shape (md, nterms)
+        95 % half-widths of the coefficients (NaN where unknown or not
+        selected): from the output-error Jacobian with a covariance robust to
+        the residual's autocorrelation (:func:`greybox.trace.oe.hac_covariance`).
+    time_base : str
+        "continuous": ``dx/dt = A x + B u + G d`` with the nominal model's
+        continuous G, d in the channel's physical units (the augmented model is
+        discretized exactly); "discrete": ``d[j]`` acts through the
+        ZOH-discretized G between samples j and j+1.
     """
 
     spec: tuple
@@ -97,16 +107,19 @@ class StaticLaw:
     bic_gain: float
     npar: int
     formula: str
+    ci: NDArray[np.float64] | None = None
+    time_base: str = "discrete"
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
         return self.coef @ _eval_terms(self.spec, self.eps, x, u)
 
 
-def _fmt_sum(coefs, names) -> str:
+def _fmt_sum(coefs, names, half=None) -> str:
     parts = []
-    for c, nm in zip(coefs, names):
-        s = f"{abs(c):.3g}*{nm}"
+    half = np.full(len(coefs), np.nan) if half is None else half
+    for c, nm, h in zip(coefs, names, half):
+        s = f"{abs(c):.3g}*{nm}" if not np.isfinite(h) else f"({abs(c):.3g} ± {h:.2g})*{nm}"
         parts.append(("- " if c < 0 else "+ ") + s)
     if not parts:
         return "0"
@@ -189,10 +202,10 @@ def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Su
                      unknown_labels=tuple(res.unknown_labels))
 
 
-def _law_line(label: str, coefs, names, unit: str) -> str:
-    """``"d_v2 = -15*p2 [v2]/s"``: one component of a law, with its unit."""
+def _law_line(label: str, coefs, names, unit: str, half=None) -> str:
+    """``"d_v2 = -(15 ± 0.3)*p2 [v2]/s"``: one component of a law, with its unit and intervals."""
     u = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
-    return f"{label} = {_fmt_sum(coefs, names)}{u}"
+    return f"{label} = {_fmt_sum(coefs, names, half)}{u}"
 
 
 
@@ -248,7 +261,10 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
     column of A (state s) or B (input s) of the nominal model ``sys`` (in its
     own time base). If that column, restricted to the rows G[:, k] enters,
     is parallel to G[:, k], the law re-scales an existing parameter; if it is
-    zero there, the law is a term the model lacks.
+    zero there, the law is a term the model lacks. With 95 % intervals on the
+    law (``law.ci``) each note carries its interval; a term whose interval
+    contains 0 (the model's value) has already been dropped from the law, so
+    a parameter the data do not contradict is never flagged.
     """
     A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
     out = []
@@ -264,14 +280,17 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
             mat = "A" if kind == "x" else "B"
             cs, gs = col[S], g[S]
             new = cs + c * gs
+            h = law.ci[k, j] if law.ci is not None else np.nan
+            pm = f" ± {_fmt_values(np.abs(h * gs), 2)}" if np.isfinite(h) else ""
             if np.all(cs == 0):
                 out.append(f"{mat}[{rows}; {name}] is 0 in the model; the data want "
-                           f"{_fmt_values(new, 3)} (a missing term)")
+                           f"{_fmt_values(new, 3)}{pm} (a missing term)")
                 continue
             cosv = abs(cs @ gs) / (np.linalg.norm(cs) * np.linalg.norm(gs))
             if cosv > 0.99:
                 alpha = (cs @ gs) / (gs @ gs)
                 pct = 100.0 * c / alpha
+                ppm = f" ± {100.0 * h / abs(alpha):.2g}" if np.isfinite(h) else ""
                 out.append(f"{mat}[{rows}; {name}] = {_fmt_values(cs, 4)} in the "
-                           f"model; the data want {_fmt_values(new, 4)} ({pct:+.1f}%)")
+                           f"model; the data want {_fmt_values(new, 4)}{pm} ({pct:+.1f}{ppm}%)")
     return tuple(out)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from scipy.linalg import expm
+
 import control as ct
 import numpy as np
 from numpy.typing import NDArray
@@ -16,6 +18,95 @@ from .laws import StaticLaw, _law_line, _one_direction
 _OE_WINDOW = 10_000
 
 
+def zoh(A: NDArray, B: NDArray, dt: float) -> tuple[NDArray, NDArray]:
+    """Exact zero-order-hold discretization ``(Ad, Bd)`` of ``dx/dt = A x + B u``."""
+    n, m = B.shape
+    M = np.zeros((n + m, n + m))
+    M[:n, :n], M[:n, n:] = A * dt, B * dt
+    E = expm(M)
+    return E[:n, :n], E[:n, n:]
+
+
+def hac_covariance(jac: NDArray, resid: NDArray, nout: int) -> NDArray[np.float64]:
+    """Covariance of a least-squares estimate under autocorrelated residuals.
+
+    ``(J^T J)^-1 Omega (J^T J)^-1`` with the Newey-West (Bartlett) estimate
+    ``Omega = sum_l w_l (Gamma_l + Gamma_l^T)`` of the long-run covariance of
+    the per-sample score ``s[t] = sum_o J[o, t] r[o, t]``. The bandwidth is
+    twice the last lag at which the residual's mean autocorrelation is still
+    at least 0.05 in magnitude (output-error residuals are coloured by the plant's own
+    dynamics, so the textbook ``4 (T/100)^(2/9)`` lags would be far too few),
+    at most T/4.
+
+    Parameters
+    ----------
+    jac : ndarray, shape (nout * T, k)
+        Jacobian of the stacked residual (output-major: ``r.reshape(nout, T)``).
+    resid : ndarray, shape (nout * T,)
+    nout : int
+    """
+    k = jac.shape[1]
+    T = resid.size // nout
+    r = resid.reshape(nout, T)
+    s = np.einsum("otk,ot->tk", jac.reshape(nout, T, k), r)
+    rc = r - r.mean(axis=1, keepdims=True)
+    f = np.fft.rfft(rc, 2 * T, axis=1)
+    acf = np.fft.irfft(f * np.conj(f), axis=1)[:, :T]
+    acf = np.mean(acf / np.maximum(acf[:, :1], 1e-300), axis=0)
+    above = np.flatnonzero(np.abs(acf[:T // 4]) >= 0.05)
+    L = int(min(max(2 * (above[-1] if above.size else 1), 1), T // 4))
+    Om = s.T @ s
+    for lag in range(1, L + 1):
+        G = s[lag:].T @ s[:-lag]
+        Om += (1.0 - lag / (L + 1.0)) * (G + G.T)
+    JtJ = jac.T @ jac
+    Ji = np.linalg.pinv(JtJ)
+    return Ji @ Om @ Ji
+
+
+def noise_covariance(A: NDArray, C: NDArray, jac: NDArray, scale: NDArray, k0: int,
+                     Q: NDArray, R: NDArray) -> NDArray[np.float64]:
+    """Covariance of ``J^T r`` when r is the output error of the right model under (Q, R).
+
+    The scaled output error of the right model is ``r[t] = S^-1 (C x_w[t] + v[t])``
+    for ``t >= k0``, where ``x_w[t+1] = A x_w[t] + w[t]`` is the response to
+    the process noise (covariance Q) from t = 0 and v the measurement noise
+    (covariance R), S = diag(scale). Then ``Cov(J^T r) = sum_t J_t^T S^-1 R
+    S^-1 J_t + sum_s lam_s^T Q lam_s`` with the adjoint recursion
+    ``lam_s = A^T lam_{s+1} + C^T S^-1 J_{s+1}`` run backwards in time.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+        Discrete state matrix of the fitted (augmented) model.
+    C : ndarray, shape (p, n)
+    jac : ndarray, shape (p * T, k)
+        Jacobian of the scaled residual over the window t = k0 .. k0 + T - 1.
+    scale : ndarray, shape (p,)
+    k0 : int
+    Q : ndarray, shape (n, n)
+    R : ndarray, shape (p, p)
+    """
+    p, n = C.shape
+    k = jac.shape[1]
+    T = jac.shape[0] // p
+    J = jac.reshape(p, T, k)                      # J[o, t, :]
+    Js = J / scale[:, None, None]                 # S^-1 J_t
+    M1 = np.einsum("otk,oq,qtl->kl", J, R / np.outer(scale, scale), J)
+    h = np.einsum("on,otk->tkn", C, Js)           # h_t = C^T S^-1 J_t, as (T, k, n)
+    # backward: lam_s = A^T lam_{s+1} + h_{s+1}; lam over s = 0 .. k0+T-2
+    hr = h[::-1]                                  # hr[i] = h at t = end - i
+    lams = np.empty((k, n, T + k0))
+    for j in range(k):
+        back = lti_states(A.T, hr[:, j, :].T, np.zeros(n))  # lam_s for s = end .. k0
+        if k0:  # then s = k0 - 1 .. 0, where h = 0
+            start = A.T @ back[:, -1] + hr[-1, j, :]
+            back = np.hstack([back, lti_states(A.T, np.zeros((n, k0)), start)])
+        lams[j] = back
+    M2 = np.einsum("ans,nm,bms->ab", lams, Q, lams)
+    return M1 + M2
+
+
 class _OutputErrorLaw:
     """Simulation error on y of the model augmented with a linear static law.
 
@@ -24,11 +115,18 @@ class _OutputErrorLaw:
     output error over at most ``_OE_WINDOW`` samples after ``k0``, scaled per
     output by its RMS (PAPER_NOTES §9.3: output-error fits are unbiased on a
     noisy d^).
+
+    With ``cont = (Ac, Bc, Gc, dt)`` (a continuous nominal model) the law is
+    parametrized in continuous time, ``dx/dt = (Ac + Gc Dx) x + (Bc + Gc Du) u``,
+    and the augmented model is discretized exactly (ZOH) at every evaluation
+    (PAPER_NOTES §9.5): the coefficients are then physical, without the
+    half-sample terms a discrete-time law carries.
     """
 
     def __init__(self, law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
-                 u: NDArray, x0: NDArray, k0: int):
+                 u: NDArray, x0: NDArray, k0: int, cont=None, noise=None):
         self.law, self.md, self.k0, self.x0 = law, md, k0, x0
+        self.noise = noise  # (Q, R) of the discrete model, for the intervals
         self.y, self.u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
         m = model.ninputs - md
         Bf = np.asarray(model.B, dtype=float)
@@ -37,15 +135,23 @@ class _OutputErrorLaw:
         self.C = np.asarray(model.C, dtype=float)
         self.D = np.asarray(model.D, dtype=float)[:, :m]
         self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
+        self.cont = cont
 
     def matrices(self, sel, theta):
-        """(A + G Ddx, B + G Ddu, Ddx, Ddu) for the terms ``sel`` at ``theta``."""
+        """Discrete (A_aug, B_aug) and the law's (Ddx, Ddu) for the terms ``sel`` at ``theta``.
+
+        Ddx, Ddu are in the law's time base (continuous when ``cont`` is given).
+        """
         Ddx = np.zeros((self.md, self.A.shape[0]))
         Ddu = np.zeros((self.md, self.B.shape[1]))
         for (c, j), t in zip(sel, theta):
             _, kind, i = self.law.spec[j]
             (Ddx if kind == "x" else Ddu)[c, i] = t
-        return self.A + self.G @ Ddx, self.B + self.G @ Ddu, Ddx, Ddu
+        if self.cont is None:
+            return self.A + self.G @ Ddx, self.B + self.G @ Ddu, Ddx, Ddu
+        Ac, Bc, Gc, dt = self.cont
+        Ad, Bd = zoh(Ac + Gc @ Ddx, Bc + Gc @ Ddu, dt)
+        return Ad, Bd, Ddx, Ddu
 
     def resid(self, theta, sel):
         """Scaled output error, flattened; a diverged simulation counts as 1e6."""
@@ -65,42 +171,89 @@ class _OutputErrorLaw:
         """Levenberg-Marquardt from ``start``; returns the optimizer result."""
         from scipy.optimize import least_squares
 
+        self._sel = sel
         return least_squares(self.resid, start, args=(sel,), method="lm", x_scale="jac",
                              max_nfev=max_nfev)
 
-    def law_with(self, sel, theta, labels, units, tscale=None, **changes) -> StaticLaw:
-        """The law with the terms ``sel`` at ``theta`` (all others zero)."""
+    def halfwidths(self, sol) -> NDArray[np.float64]:
+        """95 % half-widths of the coefficients of the last fit.
+
+        The larger of two variances per coefficient: the sandwich covariance
+        under the given noise model (Q, R) of the discrete model
+        (:func:`noise_covariance`; calibrated when Q and R are right) and the
+        data-driven one robust to autocorrelation (:func:`hac_covariance`;
+        guards against an understated Q).
+        """
+        if sol.jac is None or not np.all(np.isfinite(sol.jac)) or np.max(np.abs(sol.fun)) >= 1e6:
+            return np.full(sol.x.size, np.nan)
+        jac = np.asarray(sol.jac)
+        var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
+        if self.noise is not None:  # the noise model's covariance; keep the larger
+            Q, R = self.noise
+            Ji = np.linalg.pinv(jac.T @ jac)
+            A = self.matrices(self._sel, sol.x)[0]
+            vm = np.diag(Ji @ noise_covariance(A, self.C, jac, self.scale, self.k0, Q, R) @ Ji)
+            var = np.maximum(var, vm)
+        return 1.96 * np.sqrt(np.clip(var, 0, None))
+
+    def law_with(self, sel, theta, labels, units, tscale=None, ci=None, **changes) -> StaticLaw:
+        """The law with the terms ``sel`` at ``theta`` (all others zero), 95 % half-widths ``ci``."""
         law = self.law
         _, _, Ddx, Ddu = self.matrices(sel, theta)
         coef = np.zeros_like(law.coef)
-        for (c, j), t in zip(sel, theta):
+        half = np.full_like(law.coef, np.nan)
+        for q, ((c, j), t) in enumerate(zip(sel, theta)):
             coef[c, j] = t
+            if ci is not None:
+                half[c, j] = ci[q]
         lines = []
         for c in range(self.md):
             idx = [j for (cc, j) in sel if cc == c]
             lines.append(_law_line(labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
-                                   units[c] if c < len(units) else ""))
+                                   units[c] if c < len(units) else "", half[c, idx]))
         if tscale is not None:
             lines += _one_direction(coef, tscale, labels)
-        return replace(law, coef=coef, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines), **changes)
+        return replace(law, coef=coef, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines), ci=half,
+                       time_base="continuous" if self.cont is not None else "discrete",
+                       **changes)
+
+
+def _prune(prob: _OutputErrorLaw, sel, sol):
+    """Drop, one at a time, the term whose 95 % interval contains 0; refit after each drop."""
+    hw = prob.halfwidths(sol)
+    while sel:
+        t = np.abs(sol.x) / np.where(np.isfinite(hw) & (hw > 0), hw, np.inf)
+        q = int(np.argmin(t))
+        if t[q] >= 1.0:
+            break
+        sel = sel[:q] + sel[q + 1:]
+        if not sel:
+            return [], None, np.zeros(0)
+        sol = prob.fit(sel, np.delete(sol.x, q))
+        hw = prob.halfwidths(sol)
+    return sel, sol, hw
 
 
 def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
-                      u: NDArray, x0: NDArray, k0: int, labels, units, tscale=None):
-    """Refine a linear static law by output error on y (PAPER_NOTES §9.3).
+                      u: NDArray, x0: NDArray, k0: int, labels, units, tscale=None, cont=None,
+                      noise=None):
+    """Refine a linear static law by output error on y (PAPER_NOTES §9.3, §9.5).
 
-    The law's coefficients fitted on d^ are consistent but, when C G is small
-    (e.g. only positions measured), d^ is so noisy that the law can make the
-    augmented model unstable. Here the selected coefficients are re-fitted to
-    minimize the simulation error of the augmented model on the outputs,
-    starting from the d^ fit (shrunk towards zero until the model is stable).
-    Returns ``(law, se_before, se_after)``; the law is unchanged when the
+    The law's coefficients fitted on d^ are consistent but biased by the
+    discretization (a half-sample shift) and, when C G is small (e.g. only
+    positions measured), so noisy that the law can make the augmented model
+    unstable. Here the selected coefficients are re-fitted to minimize the
+    simulation error of the augmented model on the outputs (in continuous
+    time when ``cont`` is given), starting from the d^ fit (shrunk towards
+    zero until the model is stable); terms whose 95 % interval contains 0
+    are then dropped one at a time. Returns ``(law, se_before, se_after)``
+    with the law's ``ci`` set; the law is unchanged (no intervals) when the
     refinement does not lower the simulation error.
     """
     sel = [(c, j) for c in range(md) for j in range(len(law.spec)) if law.coef[c, j] != 0]
     if not sel:
         return law, np.nan, np.nan
-    prob = _OutputErrorLaw(law, model, md, y, u, x0, k0)
+    prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
     theta0 = np.array([law.coef[c, j] for c, j in sel])
     se0 = prob.se(theta0, sel)
     start = theta0.copy()
@@ -110,22 +263,28 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
         start *= 0.5
     sol = prob.fit(sel, start)
     se1 = prob.se(sol.x, sel)
-    if not se1 < se0:
+    if not se1 < se0 and cont is None:
         return law, se0, se0
-    return prob.law_with(sel, sol.x, labels, units, tscale), se0, se1
+    sel, sol, hw = _prune(prob, sel, sol)
+    theta = sol.x if sol is not None else np.zeros(0)
+    se1 = prob.se(theta, sel)
+    return (prob.law_with(sel, theta, labels, units, tscale, ci=hw, npar=len(sel)), se0, se1)
 
 
 def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
-                      u: NDArray, x0: NDArray, k0: int, labels, units, max_terms: int = 4):
+                      u: NDArray, x0: NDArray, k0: int, labels, units, max_terms: int = 4,
+                      cont=None, noise=None):
     """Choose a linear static law by output error on y (forward selection, BIC).
 
     Used when d^ is mostly estimation noise (its variance barely exceeds the
     filter's Pd, e.g. when only positions are measured and C G ~ dt^2/2):
     regressions on d^ then select terms at random. Each candidate support is
     fitted by Levenberg-Marquardt on the simulation error of the augmented
-    model; terms are added while the BIC of the output error drops.
+    model (continuous-time law when ``cont`` is given); terms are added while
+    the BIC of the output error drops, then terms whose 95 % interval
+    contains 0 are dropped.
     """
-    prob = _OutputErrorLaw(law, model, md, y, u, x0, k0)
+    prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
     lin = [j for j, (_, kind, _) in enumerate(law.spec) if kind in ("x", "u")]
     cands = [(c, j) for c in range(md) for j in lin]
     Ny = prob.y[:, k0:].size
@@ -147,7 +306,8 @@ def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
         if trial is None or trial[0] >= best_bic:
             break
         best_bic, sel, theta = trial[0], sel + [trial[1]], trial[2]
-    return prob.law_with(sel, theta, labels, units, nonlinear=False, npar=len(sel))
-
-
-# --------------------------------------------------------------------------- one channel
+    hw = None
+    if sel:
+        sel, sol, hw = _prune(prob, sel, prob.fit(sel, theta, max_nfev=100))
+        theta = sol.x if sol is not None else np.zeros(0)
+    return prob.law_with(sel, theta, labels, units, ci=hw, nonlinear=False, npar=len(sel))
