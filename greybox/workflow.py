@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.signal import lfilter
 
 from ._validation import (
     check_covariance,
@@ -56,6 +57,7 @@ from .trace import (
     simulate_with_law,
     trace_channel,
 )
+from .trace.dynamic import DynamicLaw, fit_sparse_dynamic
 from .update import Subsystem, UpdatedModel, delta_update
 from .validate import ModelValidation, estimate_initial_state, simulate_output, validate_model
 
@@ -90,6 +92,8 @@ class Effect:
         Which existing model parameters the law re-scales, and by how much.
     law : StaticLaw or None
     subsystem : Subsystem or None
+    dynamic_law : DynamicLaw or None
+        A sparse first-order law in continuous time (pole, drivers, intervals).
     """
 
     kind: str
@@ -102,6 +106,7 @@ class Effect:
     parameter_notes: tuple[str, ...] = ()
     law: StaticLaw | None = field(default=None, repr=False)
     subsystem: Subsystem | None = field(default=None, repr=False)
+    dynamic_law: DynamicLaw | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         """JSON-ready summary."""
@@ -241,6 +246,18 @@ def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, sk
         residuals=e, output_labels=tuple(upd.sys.output_labels))
 
 
+def _sparse_d(dl: DynamicLaw, tr: ChannelTrace, x, u, dt) -> np.ndarray:
+    """The sparse law's d on the filter's states (ZOH-equivalent first-order filter)."""
+    names = list(tr.filter_result.sys.state_labels) + list(tr.filter_result.sys.input_labels)
+    w = np.vstack([x, u])
+    phi = np.exp(dl.pole * dt)
+    out = np.zeros((1, w.shape[1]))
+    for nm, b, e in zip(dl.drivers, dl.b, dl.e):
+        wi = w[names.index(nm)]
+        out[0] += e * wi + lfilter([0.0, b * (phi - 1.0) / dl.pole], [1.0, -phi], wi)
+    return out
+
+
 def _dynamic_formula(sub: Subsystem, ch: Channel, dt: float, x, u) -> str:
     nd = sub.order
     Ad = sub.Ad
@@ -269,7 +286,23 @@ def _dynamic_formula(sub: Subsystem, ch: Channel, dt: float, x, u) -> str:
         unit = "" if not uc else f" {uc}" if uc.startswith("[") else f" [{uc}]"
         out.append(f"{ch.labels[c]} = order-{nd} filter of ({body}){unit}, time constant(s) "
                    f"{tau_s}, poles {np.array2string(lam, precision=4)}")
+    if ch.kind == "input" and ch.input in sub.input_labels:
+        out.append(_actuator_line(sub, ch, tau_s))
     return "; ".join(out)
+
+
+def _actuator_line(sub: Subsystem, ch: Channel, tau_s: str) -> str:
+    """How the input reaches the plant: ``u + d`` as a filter of u (DC and high-frequency gain)."""
+    j = list(sub.input_labels).index(ch.input)
+    nd = sub.order
+    try:
+        h1 = float(sub.Cd[0] @ np.linalg.solve(np.eye(nd) - sub.Ad, sub.Bdu[:, j]))
+    except np.linalg.LinAlgError:
+        h1 = np.nan
+    dc = 1.0 + h1 + float(sub.Ddu[0, j])
+    hf = 1.0 + float(sub.Ddu[0, j])
+    return (f"{ch.input} reaches the plant through an order-{nd} filter: DC gain {dc:.3g}, "
+            f"gain at the first sample {hf:.3g}, time constant(s) {tau_s}")
 
 
 def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayLike,
@@ -392,6 +425,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     #    higher orders for the two channels that explain the data best (cost control)
     cands, notes = [], []
     scored = []  # (se, npar, trace, kind)
+    sparse = {}  # id(trace) -> DynamicLaw
 
     def _score(tr):
         ch = tr.channel
@@ -449,6 +483,38 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 continue
             tr = replace(tr, static=None, static_model=None)
             _score(tr)
+    # 2b. sparse first-order laws in continuous time for the best one-component channels
+    if max_order >= 1 and scored and not ct.isdtime(sys, strict=True):
+        done = set()
+        for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
+            ch = tr_.channel
+            if len(done) >= 2 or ch in done or ch.md != 1 or not np.isfinite(se_):
+                continue
+            done.add(ch)
+            dyn = tr_.dynamic
+            if dyn is None or dyn.order < 1:
+                continue
+            lam = np.linalg.eigvals(dyn.Ad)
+            lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
+            if not lam.size:
+                continue
+            res_ = tr_.filter_result
+            k0s = max(20, res_.period_converged or 20)
+            Ns = res_.d_est.shape[1] - 1
+            try:
+                dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
+                                        y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
+                                        pole=float(lam.max()))
+            except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+                notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
+                continue
+            if dl is None:
+                continue
+            ysim = simulate_output(dl.model.sys, u, estimate_initial_state(dl.model.sys, y, u))
+            se = _se(y, ysim, skip)
+            cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
+            sparse[id(tr_)] = dl
+            scored.append((se, dl.npar, tr_, "sparse"))
     finite = [s for s in scored if np.isfinite(s[0])]
     if not finite:
         gate["passed"] = {"whiteness": True, "trace": False}
@@ -476,6 +542,16 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         effect = Effect(kind="static", order=0, formula=formula, channel=ch.name,
                         equations=ch.equations, nonlinear=law.nonlinear,
                         linearized=law.nonlinear, parameter_notes=pnotes, law=law)
+    elif kind == "sparse":
+        dl = sparse[id(tr)]
+        r = d - _sparse_d(dl, tr, x, uu, dt)
+        _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
+        _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
+        gain = float(Nd * (ld0 - ld1))
+        model = dl.model
+        kind = "dynamic"
+        effect = Effect(kind="dynamic", order=1, formula=dl.formula, channel=ch.name,
+                        equations=ch.equations, dynamic_law=dl)
     else:
         sub = tr.dynamic
         r = d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d
@@ -520,7 +596,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"parallel delta baseline failed: {e}")
     ratio = table["nominal"].se.value / max(table["updated"].se.value, 1e-300)
-    msg = (f"model error found in {', '.join(f'eq({s})' for s in ch.equations) or ch.name}: "
+    where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
+    if ch.kind == "input":
+        where = f"input {ch.input} (it enters {where})"
+    msg = (f"model error found in {where}: "
            f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}; "
            f"validation SE {table['nominal'].se.value:.3g}% -> "
            f"{table['updated'].se.value:.3g}% ({ratio:.1f}x)")

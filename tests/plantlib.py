@@ -88,3 +88,34 @@ def msd(k=4.0, c=0.6, m=1.0, measured=("pos", "vel")):
 def linear_f(sys):
     A, B = np.asarray(sys.A, float), np.asarray(sys.B, float)
     return lambda x, u: A @ x + B @ u
+
+
+def push_pair(measured=("p1", "v1", "p2", "v2")):
+    """Two masses (1 kg, 2 kg) on springs to the wall (10, 20 N/m), dampers 0.5 N s/m,
+    an actuator force F pushing them apart: B = [0, 1/m1, 0, -1/m2] (F enters two equations)."""
+    k1, k2, c1, c2, m1, m2 = 10.0, 20.0, 0.5, 0.5, 1.0, 2.0
+    A = np.array([[0, 1, 0, 0], [-k1 / m1, -c1 / m1, 0, 0],
+                  [0, 0, 0, 1], [0, 0, -k2 / m2, -c2 / m2]], dtype=float)
+    B = np.array([[0.0], [1.0 / m1], [0.0], [-1.0 / m2]])
+    states = ["p1", "v1", "p2", "v2"]
+    C = np.eye(4)[[states.index(s) for s in measured]]
+    return named_ss(A, B, C, np.zeros((len(measured), 1)), 0, states=states, inputs=["F"],
+                    outputs=list(measured), name="push_pair")
+
+
+def with_actuator_lag(sys, tau):
+    """True dynamics: the input reaches the plant through 1/(tau s + 1) (one extra state)."""
+    A, B = np.asarray(sys.A, float), np.asarray(sys.B, float)
+    n = A.shape[0]
+
+    def f(x, u):
+        dx = np.empty(n + 1)
+        dx[:n] = A @ x[:n] + B[:, 0] * x[n]
+        dx[n] = (u[0] - x[n]) / tau
+        return dx
+    return f
+
+
+def with_input_gain(sys, gain):
+    A, B = np.asarray(sys.A, float), np.asarray(sys.B, float)
+    return lambda x, u: A @ x + gain * (B @ u)

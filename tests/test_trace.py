@@ -79,16 +79,21 @@ def test_default_channels_singles_and_pairs():
                     states=["a", "b", "c", "e"], inputs=["u"], outputs=["a", "c"])
     chans = default_channels(four)
     assert [c.name for c in chans[:4]] == ["eq(a)", "eq(b)", "eq(c)", "eq(e)"]
-    assert len(chans) == 4 + 6                       # 4 singles, C(4, 2) pairs
-    pair = chans[4]
+    assert len(chans) == 4 + 1 + 6          # 4 singles, the input (enters 4 rows), C(4, 2) pairs
+    inp = chans[4]
+    assert inp.name == "input(u)" and inp.kind == "input" and inp.input == "u"
+    assert inp.equations == ("a", "b", "c", "e") and inp.units == ("[u]",)
+    np.testing.assert_array_equal(inp.G, np.ones((4, 1)))
+    pair = chans[5]
     assert pair.name == "eq(a)+eq(b)" and pair.md == 2 and pair.equations == ("a", "b")
     np.testing.assert_array_equal(pair.G, np.eye(4)[:, :2])
     assert pair.labels == ("d_a", "d_b") and pair.units == ("[a]/s", "[b]/s")
-    assert len(default_channels(four, pairs=False)) == 4
+    assert len(default_channels(four, pairs=False)) == 5
+    assert len(default_channels(four, pairs=False, inputs=False)) == 4
     # one output: md = 2 cannot satisfy rank(C G) = 2, so no pairs even if asked
     one = named_ss(np.eye(2), np.ones((2, 1)), [[1.0, 0.0]], [[0.0]], 0.1,
                    states=["a", "b"], inputs=["u"], outputs=["a"])
-    assert [c.name for c in default_channels(one, pairs=True)] == ["eq(a)", "eq(b)"]
+    assert [c.name for c in default_channels(one, pairs=True)] == ["eq(a)", "eq(b)", "input(u)"]
     assert default_channels(one)[0].units == ("[a]/sample",)
     with pytest.raises(gb.DataError, match="pairs must be True, False or 'auto'"):
         default_channels(four, pairs="yes")

@@ -33,6 +33,11 @@ class Channel:
         Units of the components of d ("" if unknown).
     equations : tuple of str
         Names of the states whose equations the channel enters.
+    kind : str
+        "equation" (d enters state equations directly), "input" (d adds to
+        a known input: ``G = B[:, j]``) or "user".
+    input : str
+        The input's name for an input channel ("" otherwise).
     """
 
     name: str
@@ -40,6 +45,8 @@ class Channel:
     labels: tuple[str, ...]
     units: tuple[str, ...] = ()
     equations: tuple[str, ...] = ()
+    kind: str = "equation"
+    input: str = ""
 
     @property
     def md(self) -> int:
@@ -49,7 +56,7 @@ class Channel:
     def _key(self):
         G = np.asarray(self.G, dtype=float)
         return (self.name, G.shape, G.tobytes(), tuple(self.labels), tuple(self.units),
-                tuple(self.equations))
+                tuple(self.equations), self.kind, self.input)
 
     def __eq__(self, other):  # G is an array: the generated __eq__ would be ambiguous
         if not isinstance(other, Channel):
@@ -73,8 +80,18 @@ def _eq_channel(sys: ct.StateSpace, idx: Sequence[int]) -> Channel:
                    equations=tuple(names))
 
 
-def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto") -> tuple[Channel, ...]:
-    """Every single state equation, and pairs of equations where p allows.
+def _input_channel(sys: ct.StateSpace, j: int) -> Channel:
+    """The channel of input j: G = B[:, j], d in the input's units (an actuator error)."""
+    B = np.asarray(sys.B, dtype=float)
+    name = sys.input_labels[j]
+    rows = tuple(sys.state_labels[i] for i in np.flatnonzero(B[:, j]))
+    return Channel(name=f"input({name})", G=B[:, [j]].copy(), labels=(f"d_{name}",),
+                   units=(f"[{name}]",), equations=rows, kind="input", input=name)
+
+
+def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
+                     inputs: bool = True) -> tuple[Channel, ...]:
+    """Every single state equation, every input, and pairs of equations where p allows.
 
     Parameters
     ----------
@@ -85,11 +102,20 @@ def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto") -> tuple
         force between two bodies enters two equations). "auto": only when
         ``noutputs >= 2`` and ``nstates <= 4`` (the number of pairs grows as
         n^2; name channels explicitly for larger models).
+    inputs : bool
+        Also try each input's own channel ``G = B[:, j]`` (an actuator error:
+        gain, lag or dead zone of input j enters every equation the input
+        enters, with B's ratios). Skipped for inputs that enter a single
+        state equation (the equation's channel is the same).
     """
     if not (isinstance(pairs, (bool, np.bool_)) or pairs == "auto"):
         raise DataError(f"pairs must be True, False or 'auto'; found {pairs!r}")
     n = sys.nstates
     out = [_eq_channel(sys, [i]) for i in range(n)]
+    if inputs:
+        B = np.asarray(sys.B, dtype=float)
+        out += [_input_channel(sys, j) for j in range(sys.ninputs)
+                if np.count_nonzero(B[:, j]) >= 2]
     use_pairs = (sys.noutputs >= 2 and n <= 4) if pairs == "auto" else bool(pairs)
     if use_pairs and sys.noutputs >= 2:
         out += [_eq_channel(sys, [i, j]) for i in range(n) for j in range(i + 1, n)]
@@ -143,7 +169,7 @@ def resolve_channel_spec(sys: ct.StateSpace, spec) -> tuple[Channel, ...]:
         eqs = tuple(labels[i] for i in range(n) if np.any(G[i] != 0))
         out.append(Channel(name=name, G=G,
                            labels=(name,) if md == 1 else tuple(f"{name}[{j}]" for j in range(md)),
-                           units=("",) * md, equations=eqs))
+                           units=("",) * md, equations=eqs, kind="user"))
     if not out:
         raise DimensionError("channels: give at least one candidate channel")
     return tuple(out)

@@ -1,0 +1,243 @@
+"""Sparse first-order dynamic laws in continuous time.
+
+A dynamic model error is often one lag driven by one or two signals: an
+actuator lag (d = -tau s / (tau s + 1) F), a Maxwell element, a thermal
+mass. A subsystem driven by every state and input explains such an error
+with n + m drivers and reads as noise. Here the law is
+
+.. math::
+
+    \\dot z = a z + \\sum_{i \\in S} b_i w_i, \\qquad
+    d = z + \\sum_{i \\in S} e_i w_i, \\qquad w = [x; u],
+
+with a sparse driver set S chosen by forward selection (BIC) on d^ at the
+pole of the unstructured fit, then (a, b_S, e_S) refined by output error on
+y with the augmented continuous model discretized exactly (ZOH), and
+drivers whose two coefficients' intervals both contain 0 dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import control as ct
+import numpy as np
+from numpy.typing import NDArray
+from scipy.signal import lfilter
+
+from .._lti import lti_states
+from ..ident.regression import forward_selection
+from ..system import named_ss
+from ..update import UpdatedModel
+from .channels import Channel
+from .oe import _OE_WINDOW, hac_covariance, noise_covariance, zoh
+
+__all__ = ["DynamicLaw", "fit_sparse_dynamic"]
+
+
+@dataclass(frozen=True)
+class DynamicLaw:
+    """First-order continuous-time law with sparse drivers (see module docstring).
+
+    Attributes
+    ----------
+    pole : float
+        a [1/s] (negative for a stable law).
+    tau : float
+        Time constant -1/a [s].
+    drivers : tuple of str
+        Names of the driving states/inputs S.
+    b, e : ndarray, shape (len(drivers),)
+        Filtered gains [d units * 1/s per driver unit] and feedthrough gains.
+    ci : ndarray, shape (1 + 2 * len(drivers),)
+        95 % half-widths of (a, b, e).
+    npar : int
+        1 + 2 len(drivers).
+    formula : str
+        Readable law, e.g. ``"d_F = -(1 ± 0.01)*F + (20 ± 1)/(s + 20 ± 1)*F"``.
+    model : UpdatedModel
+        The nominal model augmented with the law's state ``z[0]``, discretized
+        exactly.
+    se_estimation : float
+        SE [%] of the augmented model on the output-error window.
+    """
+
+    pole: float
+    tau: float
+    drivers: tuple[str, ...]
+    b: NDArray[np.float64]
+    e: NDArray[np.float64]
+    ci: NDArray[np.float64]
+    npar: int
+    formula: str
+    model: UpdatedModel = field(repr=False)
+    se_estimation: float
+
+
+class _DynProblem:
+    """Output error on y of ``[x; z]`` with the law folded in continuous time."""
+
+    def __init__(self, Ac, Bc, Gc, C, D, dt, y, u, x0, k0, drv):
+        self.Ac, self.Bc, self.Gc, self.C, self.D, self.dt = Ac, Bc, Gc[:, 0], C, D, dt
+        self.y, self.u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
+        self.x0, self.k0, self.drv = np.r_[x0, 0.0], k0, drv
+        self.n = Ac.shape[0]
+        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
+
+    def cont(self, theta):
+        n, drv = self.n, self.drv
+        a, b, e = theta[0], theta[1:1 + len(drv)], theta[1 + len(drv):]
+        bx, bu = np.zeros(n), np.zeros(self.Bc.shape[1])
+        ex, eu = np.zeros(n), np.zeros(self.Bc.shape[1])
+        for (kind, i), bi, ei in zip(drv, b, e):
+            (bx if kind == "x" else bu)[i] = bi
+            (ex if kind == "x" else eu)[i] = ei
+        A = np.zeros((n + 1, n + 1))
+        A[:n, :n] = self.Ac + np.outer(self.Gc, ex)
+        A[:n, n] = self.Gc
+        A[n, :n], A[n, n] = bx, a
+        B = np.vstack([self.Bc + np.outer(self.Gc, eu), bu[None, :]])
+        return A, B
+
+    def disc(self, theta):
+        return zoh(*self.cont(theta), self.dt)
+
+    def resid(self, theta):
+        Ad, Bd = self.disc(theta)
+        Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 1))])
+        with np.errstate(all="ignore"):
+            x = lti_states(Ad, Bd @ self.u, self.x0)
+            r = ((self.y - Ca @ x - self.D @ self.u)[:, self.k0:] / self.scale[:, None]).ravel()
+        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+
+    def fit(self, theta0):
+        from scipy.optimize import least_squares
+
+        return least_squares(self.resid, theta0, method="lm", x_scale="jac", max_nfev=80)
+
+    def halfwidths(self, sol, Q, R):
+        jac = np.asarray(sol.jac)
+        if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
+            return np.full(sol.x.size, np.nan)
+        var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
+        Ad, _ = self.disc(sol.x)
+        Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 1))])
+        Qa = np.zeros((self.n + 1, self.n + 1))
+        Qa[:self.n, :self.n] = Q
+        Ji = np.linalg.pinv(jac.T @ jac)
+        vm = np.diag(Ji @ noise_covariance(Ad, Ca, jac, self.scale, self.k0, Qa, R) @ Ji)
+        return 1.96 * np.sqrt(np.clip(np.maximum(var, vm), 0, None))
+
+
+def _pm(v, h):
+    return f"{v:.3g}" if not np.isfinite(h) else f"({v:.3g} ± {h:.2g})"
+
+
+def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDArray,
+                       y: NDArray, u: NDArray, *, Q: NDArray, R: NDArray, dt: float,
+                       x0: NDArray, k0: int, pole: float, max_drivers: int = 3) -> DynamicLaw | None:
+    """Fit a first-order law with sparse drivers for a one-component channel.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Continuous nominal model.
+    channel : Channel
+        md = 1.
+    x : ndarray, shape (nstates, K)
+        Filtered states aligned with ``d``.
+    d : ndarray, shape (1, K)
+        d^ on the same samples.
+    y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
+        The whole estimation record (the output-error fit starts at sample 0).
+    Q, R : ndarray
+        Noise covariances of the discrete nominal model (for the intervals).
+    dt : float
+        Sampling period [s].
+    x0 : ndarray, shape (nstates,)
+        Initial state for the output-error simulation.
+    k0 : int
+        First sample of the output-error window.
+    pole : float
+        Starting discrete pole (from an unstructured order-1 fit), 0 < pole < 1.
+    max_drivers : int
+        Largest number of drivers.
+
+    Returns
+    -------
+    DynamicLaw or None
+        None when no stable law improves on the start.
+    """
+    if channel.md != 1 or not 0 < pole < 1:
+        return None
+    n, m = sys.nstates, sys.ninputs
+    names = list(sys.state_labels) + list(sys.input_labels)
+    w = np.vstack([x, u[:, k0:k0 + x.shape[1]]])
+    # regressors at the pole: the feedthrough w and the first-order filtered w
+    f = lfilter([0.0, 1.0 - pole], [1.0, -pole], w, axis=1)
+    terms = np.vstack([w, f])
+    tnames = [f"{s}" for s in names] + [f"lag({s})" for s in names]
+    sel = forward_selection(terms, d[0], tnames, max_terms=2 * max_drivers, min_drop=1e-3,
+                            prune=True)
+    idx = sorted({j % (n + m) for j in sel.index})[:max_drivers]
+    if not idx:
+        return None
+    drv = [("x", i) if i < n else ("u", i - n) for i in idx]
+    # starting values: least squares on d^ with the selected drivers
+    cols = np.vstack([f[idx], w[idx]])
+    coef = np.linalg.lstsq(cols.T, d[0], rcond=None)[0]
+    a0 = np.log(pole) / dt
+    theta0 = np.r_[a0, -a0 * coef[:len(idx)], coef[len(idx):]]
+    Ac, Bc = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
+    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
+    while True:
+        prob = _DynProblem(Ac, Bc, np.asarray(channel.G, dtype=float), C, D, dt, y, u, x0, k0,
+                           drv)
+        sol = prob.fit(theta0)
+        hw = prob.halfwidths(sol, Q, R)
+        k = len(drv)
+        b, e = sol.x[1:1 + k], sol.x[1 + k:]
+        hb, he = hw[1:1 + k], hw[1 + k:]
+        weak = [q for q in range(k) if abs(b[q]) < hb[q] and abs(e[q]) < he[q]]
+        if not weak or k == 1:
+            break
+        q = min(weak, key=lambda q: abs(b[q]) / hb[q] + abs(e[q]) / he[q])
+        drv = drv[:q] + drv[q + 1:]
+        theta0 = np.r_[sol.x[0], np.delete(b, q), np.delete(e, q)]
+    a = float(sol.x[0])
+    if not a < 0:
+        return None
+    r = prob.resid(sol.x).reshape(y.shape[0], -1)
+    se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
+    dn = [sys.state_labels[i] if kind == "x" else sys.input_labels[i] for kind, i in drv]
+    unit = channel.units[0] if channel.units else ""
+    unit = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
+    parts = []
+    for nm, ei, hi, bi, hbi in zip(dn, e, he, b, hb):
+        if abs(ei) >= hi or not np.isfinite(hi):
+            parts.append(f"{_pm(ei, hi)}*{nm}")
+        parts.append(f"{_pm(bi, hbi)}/(s + {_pm(-a, hw[0])})*{nm}")
+    formula = f"{channel.labels[0]} = " + " + ".join(parts).replace("+ (-", "- (") + unit
+    formula += f", time constant {1 / -a:.3g} s"
+    if np.isfinite(hw[0]):
+        lo, hi = -a - hw[0], -a + hw[0]
+        formula += (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if lo > 0
+                    else " (not determined by the data)")
+    if channel.kind == "input" and channel.input in dn:
+        q = dn.index(channel.input)
+        dc = 1.0 + e[q] + b[q] / -a
+        formula += (f"; {channel.input} reaches the plant through "
+                    f"({1 + e[q]:.3g} s + {dc * -a:.3g})/(s + {-a:.3g}): DC gain {dc:.3g}, "
+                    f"time constant {1 / -a:.3g} s")
+    Ad, Bd = prob.disc(sol.x)
+    Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
+    Qa = np.zeros((n + 1, n + 1))
+    Qa[:n, :n] = Q
+    Qa[n, n] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300)
+    out = named_ss(Ad, Bd, Ca, D, dt, states=list(sys.state_labels) + ["z[0]"],
+                   inputs=sys.input_labels, outputs=sys.output_labels,
+                   name=f"{sys.name or 'model'}_updated")
+    return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=b, e=e, ci=hw,
+                      npar=1 + 2 * len(drv), formula=formula,
+                      model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
+                      se_estimation=se)

@@ -1,0 +1,56 @@
+"""The right law, not just a good fit: named terms, coefficients and intervals over seeds.
+
+A 2-state mass-spring-damper (k = 4 N/m, c = 0.6 N s/m, m = 1 kg, dt =
+0.01 s) whose nominal model has one parameter wrong. The law must name the
+wrong parameter's term with the right coefficient, its 95 % interval must
+cover the truth, and the correct parameter must never be flagged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import greybox as gb
+from plantlib import draw, linear_f, msd
+
+SEEDS = range(10)
+CASES = {
+    # case: (nominal, truth, term the law must name, its true coefficient, correct term)
+    "damping": (dict(c=0.1), dict(c=0.6), "vel", -0.5, "pos"),
+    "spring": (dict(k=2.0), dict(k=4.0), "pos", -2.0, "vel"),
+}
+
+
+def _run(case, seed):
+    nom_kw, true_kw, *_ = CASES[case]
+    nom = msd(**nom_kw)
+    d = draw(nom, linear_f(msd(**true_kw)), n_true=2, dt=0.01,
+             rng=np.random.default_rng(100 + seed), q_std=np.array([0.0, 1e-4]), r_std=1e-3)
+    return gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                             delta=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(CASES))
+def test_law_named_over_seeds(case):
+    _, _, term, coef, correct = CASES[case]
+    named = covered = 0
+    for seed in SEEDS:
+        rep = _run(case, seed)
+        assert rep.updated and rep.effect.equations == ("vel",), (seed, rep.message)
+        law = rep.effect.law
+        assert law is not None and law.time_base == "continuous", (seed, rep.message)
+        names = [law.spec[j][0] for j in np.flatnonzero(law.coef[0])]
+        j = [s[0] for s in law.spec].index(term)
+        if names == [term] and abs(law.coef[0, j] - coef) <= 0.1 * abs(coef):
+            named += 1
+        covered += abs(law.coef[0, j] - coef) <= law.ci[0, j]
+        # the correct parameter is never flagged
+        assert not any(n.startswith(f"A[vel; {correct}]") for n in rep.effect.parameter_notes), \
+            (seed, rep.effect.parameter_notes)
+        assert any(n.startswith(f"A[vel; {term}]") for n in rep.effect.parameter_notes)
+    # goal of the issue: >= 9 of 10 seeds name the one-term law within 10 %
+    assert named >= 9, named
+    # 95 % intervals: P(<= 7 of 10 covered) ~ 1.2 % if calibrated
+    assert covered >= 8, covered
