@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
+from .._blas import single_thread_blas
 from .._lti import lti_states
 from ..ident.regression import forward_selection
 from ..system import named_ss
@@ -113,9 +114,14 @@ class _DynProblem:
     def fit(self, theta0):
         from scipy.optimize import least_squares
 
-        return least_squares(self.resid, theta0, method="lm", x_scale="jac", max_nfev=80)
+        with single_thread_blas():
+            return least_squares(self.resid, theta0, method="lm", x_scale="jac", max_nfev=80)
 
     def halfwidths(self, sol, Q, R):
+        with single_thread_blas():
+            return self._halfwidths(sol, Q, R)
+
+    def _halfwidths(self, sol, Q, R):
         jac = np.asarray(sol.jac)
         if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
             return np.full(sol.x.size, np.nan)

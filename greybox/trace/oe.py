@@ -10,6 +10,7 @@ import control as ct
 import numpy as np
 from numpy.typing import NDArray
 
+from .._blas import single_thread_blas
 from .._lti import lti_states
 from .laws import StaticLaw, _law_line, _one_direction
 
@@ -172,8 +173,9 @@ class _OutputErrorLaw:
         from scipy.optimize import least_squares
 
         self._sel = sel
-        return least_squares(self.resid, start, args=(sel,), method="lm", x_scale="jac",
-                             max_nfev=max_nfev)
+        with single_thread_blas():  # thin products: threads only cost (150x for a 6x6 expm)
+            return least_squares(self.resid, start, args=(sel,), method="lm", x_scale="jac",
+                                 max_nfev=max_nfev)
 
     def halfwidths(self, sol) -> NDArray[np.float64]:
         """95 % half-widths of the coefficients of the last fit.
@@ -186,6 +188,10 @@ class _OutputErrorLaw:
         """
         if sol.jac is None or not np.all(np.isfinite(sol.jac)) or np.max(np.abs(sol.fun)) >= 1e6:
             return np.full(sol.x.size, np.nan)
+        with single_thread_blas():
+            return self._halfwidths(sol)
+
+    def _halfwidths(self, sol):
         jac = np.asarray(sol.jac)
         var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
         if self.noise is not None:  # the noise model's covariance; keep the larger
