@@ -492,19 +492,15 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 continue
             done.add(ch)
             dyn = tr_.dynamic
-            if dyn is None or dyn.order < 1:
-                continue
-            lam = np.linalg.eigvals(dyn.Ad)
+            lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
             lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
-            if not lam.size:
-                continue
             res_ = tr_.filter_result
             k0s = max(20, res_.period_converged or 20)
             Ns = res_.d_est.shape[1] - 1
             try:
                 dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
                                         y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                        pole=float(lam.max()))
+                                        pole=float(lam.max()) if lam.size else None)
             except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                 notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
                 continue

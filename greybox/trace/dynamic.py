@@ -141,7 +141,8 @@ def _pm(v, h):
 
 def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDArray,
                        y: NDArray, u: NDArray, *, Q: NDArray, R: NDArray, dt: float,
-                       x0: NDArray, k0: int, pole: float, max_drivers: int = 3) -> DynamicLaw | None:
+                       x0: NDArray, k0: int, pole: float | None = None,
+                       max_drivers: int = 3) -> DynamicLaw | None:
     """Fit a first-order law with sparse drivers for a one-component channel.
 
     Parameters
@@ -164,8 +165,10 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         Initial state for the output-error simulation.
     k0 : int
         First sample of the output-error window.
-    pole : float
-        Starting discrete pole (from an unstructured order-1 fit), 0 < pole < 1.
+    pole : float, optional
+        A discrete pole to try as a start (e.g. from an unstructured fit),
+        beside a log grid of time constants from 2 to 500 samples; the two
+        poles that explain d^ best are refined and the better fit is kept.
     max_drivers : int
         Largest number of drivers.
 
@@ -174,12 +177,31 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     DynamicLaw or None
         None when no stable law improves on the start.
     """
-    if channel.md != 1 or not 0 < pole < 1:
+    if channel.md != 1:
         return None
+    w = np.vstack([x, u[:, k0:k0 + x.shape[1]]])
+
+    # the unstructured fit's pole may sit far from the law's (it also fits the noise):
+    # screen a log grid of time constants from 2 to 500 samples on d^ as well
+    grid = list(np.exp(-1.0 / np.geomspace(2.0, 500.0, 16)))
+    if pole is not None and 0 < pole < 1:
+        grid.append(float(pole))
+    # d^ alone ranks slow poles too well (they fit its coloured estimation noise):
+    # rank the grid by the output error of the augmented model at the least-squares start
+    starts = [_start(sys, channel, w, d, y, u, dt, x0, k0, p0, max_drivers) for p0 in grid]
+    starts = sorted((st for st in starts if st is not None), key=lambda st: st[0])
+    best = None
+    for _, p0 in starts[:2]:
+        dl = _fit_from(sys, channel, w, d, y, u, Q, R, dt, x0, k0, p0, max_drivers)
+        if dl is not None and (best is None or dl.se_estimation < best.se_estimation):
+            best = dl
+    return best
+
+
+def _drivers_and_start(sys, w, d, dt, pole, max_drivers):
+    """Drivers by forward selection on d^ at ``pole``, and least-squares (a, b, e)."""
     n, m = sys.nstates, sys.ninputs
     names = list(sys.state_labels) + list(sys.input_labels)
-    w = np.vstack([x, u[:, k0:k0 + x.shape[1]]])
-    # regressors at the pole: the feedthrough w and the first-order filtered w
     f = lfilter([0.0, 1.0 - pole], [1.0, -pole], w, axis=1)
     terms = np.vstack([w, f])
     tnames = [f"{s}" for s in names] + [f"lag({s})" for s in names]
@@ -187,18 +209,39 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
                             prune=True)
     idx = sorted({j % (n + m) for j in sel.index})[:max_drivers]
     if not idx:
-        return None
+        return None, None
     drv = [("x", i) if i < n else ("u", i - n) for i in idx]
-    # starting values: least squares on d^ with the selected drivers
     cols = np.vstack([f[idx], w[idx]])
     coef = np.linalg.lstsq(cols.T, d[0], rcond=None)[0]
     a0 = np.log(pole) / dt
-    theta0 = np.r_[a0, -a0 * coef[:len(idx)], coef[len(idx):]]
-    Ac, Bc = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
+    return drv, np.r_[a0, -a0 * coef[:len(idx)], coef[len(idx):]]
+
+
+def _problem(sys, channel, y, u, dt, x0, k0, drv):
+    return _DynProblem(np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
+                       np.asarray(channel.G, dtype=float), np.asarray(sys.C, dtype=float),
+                       np.asarray(sys.D, dtype=float), dt, y, u, x0, k0, drv)
+
+
+def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers):
+    """(output-error RSS at the least-squares start, pole), or None."""
+    drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers)
+    if drv is None:
+        return None
+    with single_thread_blas():
+        r = _problem(sys, channel, y, u, dt, x0, k0, drv).resid(theta0)
+    return float(np.sum(r**2)), pole
+
+
+def _fit_from(sys, channel, w, d, y, u, Q, R, dt, x0, k0, pole, max_drivers):
+    """One start pole: drivers by forward selection on d^, then output error on y."""
+    n = sys.nstates
+    drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers)
+    if drv is None:
+        return None
     C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     while True:
-        prob = _DynProblem(Ac, Bc, np.asarray(channel.G, dtype=float), C, D, dt, y, u, x0, k0,
-                           drv)
+        prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
         sol = prob.fit(theta0)
         hw = prob.halfwidths(sol, Q, R)
         k = len(drv)
