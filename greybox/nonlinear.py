@@ -165,18 +165,23 @@ def discretize_nonlinear(sys: ct.NonlinearIOSystem, dt: float, *, substeps: int 
     f = sys.updfcn
     h = dt / substeps
 
+    def _eval(t, x, u, params):
+        r = f(t, x, u, params)
+        if type(r) is not np.ndarray or r.shape != x.shape or r.dtype != np.float64:
+            r = np.asarray(r, dtype=float).reshape(x.shape)
+        return r
+
     def upd(t, x, u, params):
         x = np.asarray(x, dtype=float)
-        if x.ndim == 1:
-            x = x.reshape(-1)
         u = np.asarray(u, dtype=float)
         tt = t
+        h2, h6 = h / 2, h / 6
         for _ in range(substeps):
-            k1 = np.asarray(f(tt, x, u, params), dtype=float).reshape(x.shape)
-            k2 = np.asarray(f(tt + h / 2, x + (h / 2) * k1, u, params), float).reshape(x.shape)
-            k3 = np.asarray(f(tt + h / 2, x + (h / 2) * k2, u, params), float).reshape(x.shape)
-            k4 = np.asarray(f(tt + h, x + h * k3, u, params), dtype=float).reshape(x.shape)
-            x = x + (h / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
+            k1 = _eval(tt, x, u, params)
+            k2 = _eval(tt + h2, x + h2 * k1, u, params)
+            k3 = _eval(tt + h2, x + h2 * k2, u, params)
+            k4 = _eval(tt + h, x + h * k3, u, params)
+            x = x + h6 * (k1 + 2.0 * (k2 + k3) + k4)
             tt = tt + h
         return x
 

@@ -96,14 +96,14 @@ class MotorPumpParams:
         return asdict(self)
 
 
-def _rhs(x, V, p: MotorPumpParams):
-    """(dI/dt, domega/dt, dMdot/dt without the load); x may be (3,) or (3, npoints)."""
+def _rhs(x, V, load, p: MotorPumpParams):
+    """dx/dt with the load term ``load`` added to (46); x may be (3,) or (3, npoints)."""
     i, w, mdot = x[0], x[1], x[2]
-    res = p.alpha * i * i + p.R0
-    di = (V - res * i - p.Ke * w) / p.L
-    dw = (p.Psi * i - p.beta0 - p.beta1 * w - p.hp * mdot * w) / p.theta
-    dm = p.hn * w * w
-    return di, dw, dm, mdot
+    out = np.empty(np.shape(x))
+    out[0] = (V - (p.alpha * i * i + p.R0) * i - p.Ke * w) * (1.0 / p.L)
+    out[1] = (p.Psi * i - p.beta0 - p.beta1 * w - p.hp * mdot * w) * (1.0 / p.theta)
+    out[2] = p.hn * w * w + load
+    return out
 
 
 def motor_pump_true(params: MotorPumpParams | None = None) -> ct.NonlinearIOSystem:
@@ -130,8 +130,7 @@ def motor_pump_true(params: MotorPumpParams | None = None) -> ct.NonlinearIOSyst
     p = params or MotorPumpParams()
 
     def f(t, x, u, prm):
-        di, dw, dm, mdot = _rhs(x, u[0], p)
-        return np.stack([di, dw, dm - u[1] * mdot * mdot])
+        return _rhs(x, u[0], -u[1] * x[2] * x[2], p)
 
     return ct.nlsys(f, lambda t, x, u, prm: x, states=list(MOTOR_PUMP_STATES),
                     inputs=["V", "h_r"], outputs=list(MOTOR_PUMP_STATES), dt=0,
@@ -161,8 +160,7 @@ def motor_pump_nominal(params: MotorPumpParams | None = None) -> ct.NonlinearIOS
     p = params or MotorPumpParams()
 
     def f(t, x, u, prm):
-        di, dw, dm, _ = _rhs(x, u[0], p)
-        return np.stack([di, dw, dm + u[1]])
+        return _rhs(x, u[0], u[1], p)
 
     return ct.nlsys(f, lambda t, x, u, prm: x, states=list(MOTOR_PUMP_STATES),
                     inputs=["V", "d"], outputs=list(MOTOR_PUMP_STATES), dt=0,
