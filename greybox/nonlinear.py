@@ -16,8 +16,8 @@ local time constant: the largest eigenvalue modulus ``|lambda|max`` of the
 Jacobian of f at an operating point, with ``|lambda|max h <= 0.35`` (RK4's
 local error per sub-step is then ~ (0.35)^5/120 ~ 4e-5 of the fast mode's
 amplitude, well inside its stability limit 2.78). The motor-pump is stiff
-(PAPER_NOTES §8.9): its speed mode has a ~30 us time constant, which gives
-10 sub-steps at Ts = 1e-4 s. Pass ``substeps`` to override.
+(PAPER_NOTES §8.9): its speed mode has a 56 us time constant at our running
+point, which gives 6 sub-steps at Ts = 1e-4 s. Pass ``substeps`` to override.
 
 Vectorized evaluation: if the update function accepts states of shape
 ``(nstates, npoints)`` (and inputs of shape ``(ninputs, npoints)``) and

@@ -18,9 +18,10 @@ term by an unknown input ``d = -h_r Mdot^2`` added to (46), in the units of
 "R = 1 Ohm" has no place in this reading (R follows from I by (44)) and is
 not used. All three states are measured (C = I); rank(C G) = 1 needs Mdot.
 
-The model is stiff: the speed mode has a time constant of ~30 us at the
-running point (PAPER_NOTES §8.9), so the RK4 discretization at
-Ts = 1e-4 s uses 10 sub-steps (:func:`greybox.rk4_substeps`).
+The model is stiff: the speed mode has a time constant of 56 us at the
+running point ``MOTOR_PUMP_X_OP`` with h_r = 150 (PAPER_NOTES §8.9 quotes
+~30 us), so the RK4 discretization at Ts = 1e-4 s takes 6 sub-steps there
+(:func:`greybox.rk4_substeps`; ~10 at the notes' 30 us).
 """
 
 from __future__ import annotations
