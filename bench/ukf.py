@@ -36,6 +36,7 @@ import gc
 import os
 import platform
 import time
+import timeit
 import tracemalloc
 
 import numpy as np
@@ -172,6 +173,14 @@ def main():
         print(f"{name:<32}{best[name]:>10.3f}{N / best[name]:>12.0f}{ratio:>12.1f}x"
               f"{peak[name]:>11.2f}{dx:>27.2e}"
               f"{(f'{derr:.3f}' if derr is not None else '-'):>14}")
+    f, par = gb.motor_pump_nominal().updfcn, {}
+    x1, u1 = np.array([6.0, 4.0, 1.2]), np.array([10.0, -216.0])
+    x7, u7 = np.repeat(x1[:, None], 7, axis=1), np.repeat(u1[:, None], 7, axis=1)
+    reps = 20000
+    t1 = min(timeit.repeat(lambda: f(0, x1, u1, par), number=reps, repeat=3)) / reps
+    t7 = min(timeit.repeat(lambda: f(0, x7, u7, par), number=reps, repeat=3)) / reps
+    print(f"# one call of the continuous f: {1e6 * t1:.2f} us on one state, {1e6 * t7:.2f} us "
+          f"on 7 sigma points at once ({t7 / t1:.1f}x); 24 calls per sample (6 RK4 sub-steps)")
     print(f"# load average at end {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     print("# 'vs filterpy' = filterpy time / method time (higher is faster); the UKF rows "
           "compare like with like, ui_ukf and the ensemble do more work per sample")
