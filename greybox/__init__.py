@@ -27,6 +27,10 @@ __all__ = [
 ]
 
 from .filters import (  # noqa: E402
+    MerweScaledSigmaPoints,
+    ensemble_uikf,
+    ui_ukf,
+    ukf,
     FilterResult,
     SteadyStateFilter,
     check_rank_condition,
@@ -34,7 +38,19 @@ from .filters import (  # noqa: E402
     steady_state_filter,
     uikf,
 )
+from .nonlinear import (  # noqa: E402
+    discretize_nonlinear,
+    linear_output_map,
+    rk4_substeps,
+    simulate_nonlinear,
+)
 from .plants import (  # noqa: E402
+    MOTOR_PUMP_DT,
+    MOTOR_PUMP_Q,
+    MOTOR_PUMP_R,
+    MotorPumpParams,
+    motor_pump_nominal,
+    motor_pump_true,
     TAPE_DRIVE_DT,
     TAPE_DRIVE_Q,
     TAPE_DRIVE_R,
@@ -68,6 +84,20 @@ from .validate import ModelValidation, estimate_initial_state, validate_model  #
 from .workflow import CandidateScore, Effect, LoopReport, close_the_loop  # noqa: E402
 
 __all__ += [
+    "MerweScaledSigmaPoints",
+    "ensemble_uikf",
+    "ui_ukf",
+    "ukf",
+    "discretize_nonlinear",
+    "linear_output_map",
+    "rk4_substeps",
+    "simulate_nonlinear",
+    "MOTOR_PUMP_DT",
+    "MOTOR_PUMP_Q",
+    "MOTOR_PUMP_R",
+    "MotorPumpParams",
+    "motor_pump_nominal",
+    "motor_pump_true",
     "FilterResult",
     "SteadyStateFilter",
     "check_rank_condition",

@@ -7,7 +7,8 @@ that the compute modules never depend on it.
 
 from __future__ import annotations
 
-__all__: list[str] = ["plot_unknown_input", "plot_residual_autocorrelation", "plot_outputs", "plot_singular_values"]
+__all__: list[str] = ["plot_unknown_input", "plot_residual_autocorrelation", "plot_outputs", "plot_singular_values",
+                     "plot_pump_load"]
 
 
 def _plt():
@@ -185,3 +186,38 @@ def plot_outputs(y, validations, *, outputs=None, dt=None, window=None, ax=None)
     axes[-1].set_xlabel("time [s]" if dt else "sample")
     fig.tight_layout()
     return {"figure": fig, "axes": axes, "lines": lines}
+
+
+def plot_pump_load(table5, *, window=None, ax=None):
+    """True pump load h_r and its recovered estimate with the 95 % band (the paper's Fig. 3).
+
+    Parameters
+    ----------
+    table5 : greybox.reproduce.Table5
+        Record of :func:`greybox.reproduce.reproduce_table5`; the estimate is
+        ``h_r^ = -d^ / Mdot^^2`` (:meth:`Table5.load_estimate`).
+    window : (int, int), optional
+        Sample range to draw; the paper shows samples 1000-2500 (the default).
+    ax : matplotlib Axes, optional
+        Axes to draw on; a new figure is made if None.
+
+    Returns
+    -------
+    dict
+        ``{"figure", "ax", "estimate", "band", "truth"}`` artists.
+    """
+    import numpy as np
+
+    est, half = table5.load_estimate()
+    a, b = window if window is not None else (1000, min(2500, est.size - 1))
+    k = np.arange(a, b)
+    fig, (ax,) = _axes(ax)
+    band = ax.fill_between(k, est[a:b] - half[a:b], est[a:b] + half[a:b], color="C0",
+                           alpha=0.25, lw=0, label="95% confidence interval")
+    line, = ax.plot(k, est[a:b], color="C0", lw=1, label="unknown-input UKF estimate")
+    truth, = ax.plot(k, table5.load[a:b], "k--", lw=1, label="true value")
+    ax.set_xlabel("simulation step k")
+    ax.set_ylabel("pump load h_r")
+    ax.set_title("Fig. 3: true and estimated pump load")
+    ax.legend(loc="best", fontsize="small")
+    return {"figure": fig, "ax": ax, "estimate": line, "band": band, "truth": truth}

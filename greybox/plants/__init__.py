@@ -1,5 +1,15 @@
 """Physical example plants (python-control StateSpace factories)."""
 
+from .motor_pump import (
+    MOTOR_PUMP_DT,
+    MOTOR_PUMP_Q,
+    MOTOR_PUMP_R,
+    MOTOR_PUMP_STATES,
+    MOTOR_PUMP_X_OP,
+    MotorPumpParams,
+    motor_pump_nominal,
+    motor_pump_true,
+)
 from .tape_drive import (
     TAPE_DRIVE_DT,
     TAPE_DRIVE_INPUTS,
@@ -13,6 +23,14 @@ from .tape_drive import (
 )
 
 __all__ = [
+    "MotorPumpParams",
+    "motor_pump_true",
+    "motor_pump_nominal",
+    "MOTOR_PUMP_STATES",
+    "MOTOR_PUMP_DT",
+    "MOTOR_PUMP_Q",
+    "MOTOR_PUMP_R",
+    "MOTOR_PUMP_X_OP",
     "TapeDriveParams",
     "tape_drive_true",
     "tape_drive_nominal",

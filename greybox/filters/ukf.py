@@ -1,0 +1,468 @@
+"""Unscented Kalman filter and unknown-input UKF (Gillijns & De Moor, section IV).
+
+The model (34)-(35)::
+
+    x[k+1] = F(x[k], u[k], d[k]) + w[k] ~ f(x[k], u[k]) + G d[k] + w[k],   w ~ N(0, Q)
+    y[k]   = C x[k] + D u[k] + v[k],                                       v ~ N(0, R)
+
+``sys`` is a discrete-time python-control model whose inputs are ``[u, d]``:
+a ``NonlinearIOSystem`` (e.g. from :func:`greybox.discretize_nonlinear`) or
+a linear ``StateSpace``. The output map must be linear (the paper's (33));
+:func:`greybox.linear_output_map` checks it.
+
+One step (k >= 1): sigma points of (x^[k-1|k-1], P[k-1|k-1]) go through F
+with the unknown input held at its previous estimate d^[k-2] (zero for the
+first step), which gives x^[k|k-1] and P[k|k-1] (unscented transform); then
+(8)-(10) with the linear C exactly as in :func:`greybox.uikf` estimate the
+*correction* of d and update the state. For a model affine in d (every
+linear model, the paper's (34)) this is the paper's filter exactly;
+linearizing at the previous estimate instead of at d = 0 only removes the
+second-order terms in d of a model that is not (e.g. an RK4-discretized
+model, where d acts through the sub-steps).
+
+G: the columns of B for d (linear models), a constant matrix passed as
+``G``, or by default the Jacobian ``dF/dd`` of the *discretized* model at
+(x^[k-1|k-1], u[k-1], d^[k-2]), by central differences, evaluated in the
+same batch as the sigma points. Taking G from the discretized model (not the
+continuous input vector times dt) keeps the part of the discrete model error
+that the sub-steps spread over other states inside range(G)
+(PAPER_NOTES §8.9).
+
+Loss of positive definiteness: every covariance is symmetrized after each
+step and factored by :func:`greybox.filters.sigma_points.robust_cholesky`
+(jitter from eps times the mean variance upward; a truly indefinite P
+raises :class:`CovarianceError`).
+
+The record is the same :class:`FilterResult` as :func:`uikf`'s, with the
+same alignment (``d_est[:, j]`` estimates d[j]; the last column is NaN). Its
+``sys`` is the known-input model linearized at the last filtered state
+(exact C and D: the output map is linear), since ``FilterResult.sys`` must
+be a ``StateSpace``; ``converged`` is False and ``period_converged`` None
+(the gains of a nonlinear filter are recomputed at every sample).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import control as ct
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .._validation import (
+    check_covariance,
+    check_matrix,
+    check_same_length,
+    check_signal,
+    check_vector,
+    resolve_channels,
+)
+from ..exceptions import DataError, DimensionError, ModelError
+from ..nonlinear import linear_output_map, state_map
+from ..system import named_ss
+from .sigma_points import MerweScaledSigmaPoints
+from .uikf import FilterResult, _check_options, _measurement_gains, _split, check_rank_condition
+
+__all__ = ["ukf", "ui_ukf"]
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """Everything a nonlinear filter run needs, validated once."""
+
+    sys: object
+    fun: object          # batch state map F(t, X, U_full)
+    known: tuple         # indices of the known inputs among sys's inputs
+    unknown: tuple       # indices of the unknown inputs
+    labels: tuple        # their names
+    G: NDArray | None    # constant G, or None for the per-step Jacobian
+    C: NDArray
+    D: NDArray           # known-input feedthrough
+    y: NDArray
+    u: NDArray           # known inputs
+    Q: NDArray
+    R: NDArray
+    x0: NDArray
+    P0: NDArray
+    dt: float
+
+
+def _prepare_nl(sys, y, u, unknown, Q, R, x0, P0, G, *, allow_no_unknown, check_rank):
+    """Validate a (non)linear discrete model, data and covariances once."""
+    if isinstance(sys, ct.StateSpace):
+        model, A, B, C, D, Gs, labels = _split(sys, unknown, allow_no_unknown, check_rank)
+        if G is not None:
+            raise DimensionError("G: a StateSpace model already fixes G (its columns of B "
+                                 "for the unknown inputs); do not pass G")
+        fun = state_map(model).fun
+        n, m = model.nstates, model.ninputs
+        known = tuple(range(m))
+        unk = tuple(range(Gs.shape[1])) if check_rank else ()  # d enters through Gc
+        Gc = Gs if check_rank else np.zeros((n, 0))
+        labels = labels if check_rank else ()
+        full_sys = model
+    elif isinstance(sys, ct.NonlinearIOSystem):
+        smap = state_map(sys)
+        fun, n = smap.fun, sys.nstates
+        idx = resolve_channels(unknown, sys.input_labels, "unknown")
+        if not idx and not allow_no_unknown:
+            raise DimensionError("unknown: name at least one unknown-input channel of sys "
+                                 f"(its inputs are {sys.input_labels})")
+        known = tuple(i for i in range(sys.ninputs) if i not in idx)
+        unk = tuple(idx) if check_rank else ()
+        Cf, Df = linear_output_map(sys)
+        if check_rank and unk and np.any(Df[:, list(unk)] != 0):
+            raise ModelError(f"the unknown inputs {[sys.input_labels[i] for i in unk]} feed "
+                             f"through to the outputs; the filter assumes y = C x + D u + v")
+        C, D = Cf, Df[:, list(known)]
+        labels = tuple(sys.input_labels[i] for i in unk) if check_rank else ()
+        m = len(known)
+        Gc = None
+        if G is not None and check_rank:
+            Gc = check_matrix(G, (n, len(unk)), "G")
+        elif not check_rank:
+            Gc = np.zeros((n, 0))
+        full_sys = sys
+    else:
+        raise ModelError(f"sys must be a control.StateSpace or control.NonlinearIOSystem; "
+                         f"found {type(sys).__name__}")
+    p = C.shape[0]
+    y = check_signal(y, p, "y", min_steps=2)
+    if u is None:
+        if m:
+            raise DimensionError(f"the model has {m} known inputs; pass u with shape "
+                                 f"({m}, nsteps)")
+        u = np.zeros((0, y.shape[1]))
+    u = check_signal(u, m, "u")
+    check_same_length(("y", y), ("u", u))
+    Q = check_covariance(Q, n, "Q", definite=False)
+    R = check_covariance(R, p, "R", definite=True)
+    x0 = np.zeros(n) if x0 is None else check_vector(x0, n, "x0", what="nstates = ")
+    P0 = check_covariance(np.eye(n) if P0 is None else P0, n, "P0", definite=False)
+    return _Problem(full_sys, fun, known, unk, labels, Gc, C, D, y, u, Q, R, x0, P0,
+                    float(full_sys.dt))
+
+
+def _full_input(pb: _Problem, uk: NDArray, d: NDArray) -> NDArray:
+    """Input vector of the model: known inputs uk, unknown inputs d (zero if ignored)."""
+    if isinstance(pb.sys, ct.StateSpace):
+        return uk  # the known-input model of a split StateSpace
+    out = np.zeros(pb.sys.ninputs)
+    out[list(pb.known)] = uk
+    if pb.unknown:
+        out[list(pb.unknown)] = d
+    return out
+
+
+def _d_steps(d: NDArray) -> NDArray:
+    """Central-difference steps for dF/dd: 1e-4 of the level, at least 1e-4 (units of d)."""
+    return 1e-4 * np.maximum(1.0, np.abs(d))
+
+
+def _propagate(pb: _Problem, k: int, X: NDArray, uk: NDArray, dlin: NDArray, xc: NDArray,
+               jac: bool):
+    """F at the points X and, if ``jac``, the Jacobian dF/dd at xc; checks finiteness.
+
+    Returns (FX (n, npoints), G (n, md) or None).
+    """
+    npts = X.shape[1]
+    md = len(pb.unknown)
+    ufull = _full_input(pb, uk, dlin)
+    if jac and md:
+        h = _d_steps(dlin)
+        cols = [X]
+        U = [np.repeat(ufull[:, None], npts, axis=1)]
+        for j in range(md):
+            for s in (1.0, -1.0):
+                uj = ufull.copy()
+                uj[pb.unknown[j]] += s * h[j]
+                cols.append(xc[:, None])
+                U.append(uj[:, None])
+        Xall, Uall = np.concatenate(cols, axis=1), np.concatenate(U, axis=1)
+    else:
+        Xall, Uall = X, ufull
+    t = (k - 1) * pb.dt
+    try:
+        with np.errstate(all="ignore"):
+            FX = pb.fun(t, Xall, Uall)
+    except Exception as e:  # a user function: report where it failed, chain the cause
+        raise ModelError(f"the state update of {pb.sys.name} failed at step {k} (time "
+                         f"{t:g} s) on a sigma point or ensemble member: {e}") from e
+    if not np.all(np.isfinite(FX)):
+        bad = np.argwhere(~np.isfinite(FX))[0]
+        state = list(pb.sys.state_labels)[bad[0]]
+        which = f"point {bad[1]}" if bad[1] < npts else "the G Jacobian probe"
+        raise ModelError(
+            f"the state update of {pb.sys.name} returned NaN or inf for state {state!r} at "
+            f"step {k} (time {t:g} s, {which} of {npts}); the model is not defined there. "
+            f"Check f near x = {np.array2string(Xall[:, bad[1]], precision=4)} or reduce the "
+            f"sigma-point spread (alpha) / P0")
+    if isinstance(pb.sys, ct.StateSpace) and md:
+        FX = FX + (pb.G @ dlin)[:, None]  # the split linear model takes known inputs only
+    if jac and md:
+        G = (FX[:, npts::2] - FX[:, npts + 1::2]) / (2 * h)[None, :]
+        return FX[:, :npts], G
+    return FX, None
+
+
+def _check_d(dh: NDArray, k: int, labels) -> None:
+    if not np.all(np.isfinite(dh)):
+        j = int(np.flatnonzero(~np.isfinite(dh))[0])
+        raise DataError(f"the unknown-input estimate {labels[j]!r} is not finite at step "
+                        f"{k - 1}; the filter diverged (check Q, R and the model)")
+
+
+def _linearized_record_sys(pb: _Problem, xf: NDArray) -> ct.StateSpace:
+    """Known-input model linearized at xf (for FilterResult.sys: exact C and D)."""
+    if isinstance(pb.sys, ct.StateSpace):
+        return pb.sys
+    n, m = xf.size, len(pb.known)
+    d0 = np.zeros(len(pb.unknown))
+    uk = np.zeros(m)
+    hx = 1e-6 * np.maximum(1.0, np.abs(xf))
+    X = np.concatenate([xf[:, None] + np.diag(hx), xf[:, None] - np.diag(hx)], axis=1)
+    with np.errstate(all="ignore"):
+        FX = pb.fun(0.0, X, _full_input(pb, uk, d0))
+    A = (FX[:, :n] - FX[:, n:]) / (2 * hx)[None, :]
+    B = np.zeros((n, m))
+    for j in range(m):
+        e = np.zeros(m)
+        e[j] = 1e-6
+        with np.errstate(all="ignore"):
+            Fp = pb.fun(0.0, xf[:, None], _full_input(pb, e, d0))[:, 0]
+            Fm = pb.fun(0.0, xf[:, None], _full_input(pb, -e, d0))[:, 0]
+        B[:, j] = (Fp - Fm) / 2e-6
+    A = np.where(np.isfinite(A), A, 0.0)
+    B = np.where(np.isfinite(B), B, 0.0)
+    s = pb.sys
+    return named_ss(A, B, pb.C, pb.D, pb.dt, states=list(s.state_labels),
+                    inputs=[s.input_labels[i] for i in pb.known],
+                    outputs=list(s.output_labels), name=f"{s.name}_linearized")
+
+
+def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
+             d_lin: str = "previous") -> FilterResult:
+    n, N = pb.x0.size, pb.y.shape[1]
+    C, D, Q, R = pb.C, pb.D, pb.Q, pb.R
+    p, m, md = C.shape[0], pb.u.shape[0], len(pb.unknown)
+    wm, wc = points.weights(n)
+    x_filt, x_pred = np.empty((n, N)), np.empty((n, N))
+    innov = np.empty((p, N))
+    d_est, d_var = np.full((md, N), np.nan), np.full((md, N), np.nan)
+    Phist = np.empty((n, n, N)) if store_covariances else None
+    has_D = m > 0 and bool(np.any(D))
+    y, u = pb.y, pb.u
+    # k = 0: measurement update of the prior
+    K, _, _, Rt, Pf = _measurement_gains(pb.P0, C, np.zeros((n, 0)), R)
+    yk = y[:, 0] - D @ u[:, 0] if has_D else y[:, 0]
+    e = yk - C @ pb.x0
+    x_pred[:, 0], innov[:, 0] = pb.x0, e
+    xf = pb.x0 + K @ e
+    x_filt[:, 0] = xf
+    if Phist is not None:
+        Phist[:, :, 0] = Pf
+    Pp, M, Pd = pb.P0, np.zeros((md, p)), np.zeros((md, md))
+    dlin = np.zeros(md)
+    jac = md > 0 and pb.G is None
+    G = pb.G if pb.G is not None else np.zeros((n, md))
+    for k in range(1, N):
+        X = points.points(xf, Pf)
+        FX, Gk = _propagate(pb, k, X, u[:, k - 1], dlin, xf, jac)
+        if Gk is not None:
+            G = Gk
+        xp = FX @ wm
+        dX = FX - xp[:, None]
+        Pp = (dX * wc) @ dX.T + Q
+        Pp = 0.5 * (Pp + Pp.T)
+        if md:
+            K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
+        else:
+            K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, np.zeros((n, 0)), R)
+        yk = y[:, k] - D @ u[:, k] if has_D else y[:, k]
+        e = yk - C @ xp
+        if md:
+            dd = M @ e
+            dh = dlin + dd
+            _check_d(dh, k, pb.labels)
+            d_est[:, k - 1] = dh
+            d_var[:, k - 1] = Pd.diagonal()
+            xs = xp + G @ dd
+            xf = xs + K @ (yk - C @ xs)
+            x0pred = xp - G @ dlin  # f(x, u) without d, as uikf's x_pred
+            if d_lin == "previous":
+                dlin = dh
+        else:
+            xf = xp + K @ e
+            x0pred = xp
+        x_pred[:, k] = x0pred
+        innov[:, k] = yk - C @ x0pred
+        x_filt[:, k] = xf
+        if Phist is not None:
+            Phist[:, :, k] = Pf
+    return FilterResult(
+        t=np.arange(N) * pb.dt, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var,
+        d_cov=Pd, level=level, innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=Pp,
+        P_filt_history=Phist, K=K, M=M, converged=False, period_converged=None,
+        sys=_linearized_record_sys(pb, xf), G=G, unknown_labels=tuple(pb.labels), u=u, y=y)
+
+
+def _points(points):
+    if points is None:
+        return MerweScaledSigmaPoints()
+    if not all(hasattr(points, a) for a in ("weights", "points")):
+        raise DimensionError(f"points must be a sigma-point strategy such as "
+                             f"MerweScaledSigmaPoints(); found {type(points).__name__}")
+    return points
+
+
+def _initial_G(pb: _Problem) -> NDArray:
+    """G at the prior (x0, u[0], d = 0), for the rank condition (17)."""
+    if pb.G is not None:
+        return pb.G
+    _, G = _propagate(pb, 1, pb.x0[:, None], pb.u[:, 0], np.zeros(len(pb.unknown)), pb.x0,
+                      True)
+    return G
+
+
+def ui_ukf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
+           unknown: int | str | Sequence[int | str], Q: ArrayLike, R: ArrayLike,
+           x0: ArrayLike | None = None, P0: ArrayLike | None = None,
+           G: ArrayLike | None = None, points: MerweScaledSigmaPoints | None = None,
+           d_lin: str = "previous", level: float = 0.95, store_covariances: bool = False
+           ) -> FilterResult:
+    """Unknown-input unscented Kalman filter (section IV, eqs. 32-35 with 8-10).
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem or control.StateSpace
+        Discrete-time model with inputs ``[u, d]`` and a linear output map.
+    y : array_like, shape (noutputs, nsteps)
+        Measured outputs.
+    u : array_like, shape (ninputs_known, nsteps), optional
+        Measured known inputs (omit if the model has none).
+    unknown : label(s) or index(es)
+        Which inputs of ``sys`` are unknown (md >= 1 of them).
+    Q : array_like, shape (nstates, nstates)
+        Process-noise covariance (PSD).
+    R : array_like, shape (noutputs, noutputs)
+        Measurement-noise covariance (PD).
+    x0 : array_like, shape (nstates,), optional
+        Prior mean of x[0] (zero by default).
+    P0 : array_like, shape (nstates, nstates), optional
+        Prior covariance of x[0] (identity by default).
+    G : array_like, shape (nstates, md), optional
+        Constant unknown-input matrix for a nonlinear model; by default the
+        Jacobian dF/dd of the discretized model at every step.
+    points : MerweScaledSigmaPoints, optional
+        Sigma-point strategy; ``MerweScaledSigmaPoints(alpha=1, beta=2,
+        kappa=0)`` by default.
+    d_lin : {"previous", "zero"}
+        Where the sigma points are propagated in d: at the previous estimate
+        d^[k-2] (default; removes the terms of second and higher order in d
+        of a model that is not affine in d), or at d = 0, the paper's
+        ``f(x, u) + G d`` read literally.
+    level : float
+        Confidence level of ``d_lower``/``d_upper`` (0.95).
+    store_covariances : bool
+        Keep every ``P[k|k]`` in ``P_filt_history``.
+
+    Returns
+    -------
+    FilterResult
+        Same record and alignment as :func:`greybox.uikf`.
+
+    Raises
+    ------
+    ModelError
+        Continuous-time model; non-linear output map; d feeds through to y;
+        f fails or returns NaN/inf (naming the state and the step).
+    RankConditionError
+        rank(C G) = rank(G) = md (17) fails at the prior.
+    DataError
+        Non-finite data, or the estimate of d becomes non-finite.
+    DimensionError, CovarianceError
+        Wrong shapes; non-symmetric or indefinite Q, R, P0.
+
+    Notes
+    -----
+    With sigma points :math:`\\mathcal X_i` of :math:`(\\hat x_{k-1|k-1}, P_{k-1|k-1})`
+    and weights :math:`W^m_i, W^c_i`:
+
+    .. math::
+
+        \\hat x_{k|k-1} = \\sum_i W^m_i F(\\mathcal X_i, u_{k-1}, \\hat d_{k-2}),\\quad
+        P_{k|k-1} = \\sum_i W^c_i (\\cdot)(\\cdot)^T + Q
+
+    then eqs. (8)-(10) and (14)-(18) as in :func:`greybox.uikf`, estimating
+    :math:`\\hat d_{k-1} = \\hat d_{k-2} + M (y_k - C \\hat x_{k|k-1} - D u_k)`.
+    On a linear model this is :func:`greybox.uikf` with ``gain="time-varying"``
+    up to rounding (the unscented transform is exact for linear maps).
+
+    References
+    ----------
+    Gillijns & De Moor (CDC 2006), section IV; S. Julier and J. Uhlmann,
+    "Unscented filtering and nonlinear estimation", Proc. IEEE 92 (2004) 401-422.
+
+    Examples
+    --------
+    >>> import numpy as np, greybox as gb
+    >>> sys = gb.tape_drive_nominal(dt=1e-4)
+    >>> sim = gb.simulate(gb.tape_drive_true(dt=1e-4), np.ones((2, 200)), rng=0)
+    >>> res = gb.ui_ukf(sys, sim.y, sim.u, unknown="T", Q=gb.TAPE_DRIVE_Q * 1e-3,
+    ...                 R=gb.TAPE_DRIVE_R)
+    >>> res.d_est.shape
+    (1, 200)
+    """
+    level, _, _ = _check_options(level, "auto", 1.0)
+    if d_lin not in ("previous", "zero"):
+        raise DimensionError(f"d_lin must be 'previous' or 'zero'; found {d_lin!r}")
+    pts = _points(points)
+    pb = _prepare_nl(sys, y, u, unknown, Q, R, x0, P0, G, allow_no_unknown=False,
+                     check_rank=True)
+    if not isinstance(pb.sys, ct.StateSpace):
+        check_rank_condition(pb.C, _initial_G(pb), pb.labels)
+    return _run_ukf(pb, pts, level=level, store_covariances=store_covariances, d_lin=d_lin)
+
+
+def ukf(sys, y: ArrayLike, u: ArrayLike | None = None, *, Q: ArrayLike, R: ArrayLike,
+        unknown=None, x0: ArrayLike | None = None, P0: ArrayLike | None = None,
+        points: MerweScaledSigmaPoints | None = None, store_covariances: bool = False
+        ) -> FilterResult:
+    """Unscented Kalman filter that ignores the unknown input (the paper's baseline).
+
+    Same interface and record as :func:`ui_ukf`; inputs listed in
+    ``unknown`` are held at zero (their effect is left to the process noise)
+    and ``d_est`` has zero rows.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem or control.StateSpace
+        Discrete-time model with a linear output map.
+    y : array_like, shape (noutputs, nsteps)
+        Measured outputs.
+    u : array_like, shape (ninputs_known, nsteps), optional
+        Measured known inputs.
+    Q : array_like, shape (nstates, nstates)
+        Process-noise covariance.
+    R : array_like, shape (noutputs, noutputs)
+        Measurement-noise covariance.
+    unknown : label(s) or index(es), optional
+        Inputs of ``sys`` to ignore (held at zero).
+    x0 : array_like, shape (nstates,), optional
+        Prior mean.
+    P0 : array_like, shape (nstates, nstates), optional
+        Prior covariance.
+    points : MerweScaledSigmaPoints, optional
+        Sigma-point strategy.
+    store_covariances : bool
+        Keep every ``P[k|k]``.
+
+    Returns
+    -------
+    FilterResult
+    """
+    pts = _points(points)
+    pb = _prepare_nl(sys, y, u, unknown, Q, R, x0, P0, None, allow_no_unknown=True,
+                     check_rank=False)
+    return _run_ukf(pb, pts, level=0.95, store_covariances=store_covariances)

@@ -1,0 +1,408 @@
+"""Nonlinear models as python-control ``NonlinearIOSystem`` objects (section IV).
+
+A nominal nonlinear model is a ``control.NonlinearIOSystem`` (``ct.nlsys``)
+with named states, inputs ``[u, d]`` (known inputs and unknown model-error
+inputs) and outputs. The filters of section IV (:func:`greybox.ui_ukf`,
+:func:`greybox.ensemble_uikf`) need a discrete-time model with a *linear*
+output map ``y = C x + D u`` (the paper's (33)); :func:`linear_output_map`
+extracts (C, D) and says so clearly when the output map is not linear.
+
+Discretization (one documented rule): :func:`discretize_nonlinear` integrates
+the continuous dynamics over each sample with classical fourth-order
+Runge-Kutta (RK4) in ``substeps`` equal sub-steps, the inputs held constant
+over the sample (zero-order hold, as for the linear models, so that ``d``
+keeps its physical units). The sub-step count is chosen from the fastest
+local time constant: the largest eigenvalue modulus ``|lambda|max`` of the
+Jacobian of f at an operating point, with ``|lambda|max h <= 0.35`` (RK4's
+local error per sub-step is then ~ (0.35)^5/120 ~ 4e-5 of the fast mode's
+amplitude, well inside its stability limit 2.78). The motor-pump is stiff
+(PAPER_NOTES §8.9): its speed mode has a 56 us time constant at our running
+point, which gives 6 sub-steps at Ts = 1e-4 s. Pass ``substeps`` to override.
+
+Vectorized evaluation: if the update function accepts states of shape
+``(nstates, npoints)`` (and inputs of shape ``(ninputs, npoints)``) and
+returns the same shape - true of most functions written with ``x[0]``,
+``x[1]``, ``np.sin`` ... - the filters evaluate all sigma points or ensemble
+members in one call; otherwise they loop over the points. RK4-discretized
+models inherit the property from the continuous function.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import control as ct
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ._validation import check_covariance, check_positive, check_signal, check_vector
+from .exceptions import DataError, DimensionError, ModelError
+from .signals import SimulationResult, _gaussian, _rng
+
+__all__ = [
+    "rk4_substeps",
+    "discretize_nonlinear",
+    "linear_output_map",
+    "simulate_nonlinear",
+    "StateMap",
+    "state_map",
+]
+
+_RK4_H_LAMBDA = 0.35
+"""Largest ``|lambda| h`` allowed per RK4 sub-step (see the module notes)."""
+
+
+def _check_nlsys(sys, name: str = "sys") -> ct.NonlinearIOSystem:
+    if isinstance(sys, ct.StateSpace) or not isinstance(sys, ct.NonlinearIOSystem):
+        raise ModelError(f"{name} must be a control.NonlinearIOSystem (control.nlsys); found "
+                         f"{type(sys).__name__}")
+    if sys.nstates is None or sys.ninputs is None or sys.noutputs is None:
+        raise ModelError(f"{name} must declare its states, inputs and outputs (names or "
+                         f"counts) so that the filters can check shapes")
+    return sys
+
+
+def _jacobian_x(fun: Callable, x: NDArray, u: NDArray) -> NDArray:
+    """Central-difference Jacobian of ``fun(x, u)`` with respect to x."""
+    n = x.size
+    J = np.empty((n, n))
+    for i in range(n):
+        h = 1e-6 * max(1.0, abs(x[i]))
+        e = np.zeros(n)
+        e[i] = h
+        J[:, i] = (np.asarray(fun(x + e, u), float).reshape(-1)
+                   - np.asarray(fun(x - e, u), float).reshape(-1)) / (2 * h)
+    return J
+
+
+def _op_point(sys, x_op, u_op):
+    x = np.zeros(sys.nstates) if x_op is None else check_vector(x_op, sys.nstates, "x_op")
+    u = np.zeros(sys.ninputs) if u_op is None else check_vector(u_op, sys.ninputs, "u_op")
+    return x, u
+
+
+def rk4_substeps(sys: ct.NonlinearIOSystem, dt: float, *, x_op: ArrayLike | None = None,
+                 u_op: ArrayLike | None = None) -> int:
+    """RK4 sub-steps per sample from the fastest local time constant.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem
+        Continuous-time model.
+    dt : float
+        Sampling period [s].
+    x_op : array_like, shape (nstates,), optional
+        Operating point where the Jacobian of f is evaluated (zero by default;
+        pick a typical running point for models that are stiffer there).
+    u_op : array_like, shape (ninputs,), optional
+        Input at the operating point (zero by default).
+
+    Returns
+    -------
+    int
+        ``ceil(dt |lambda|max / 0.35)``, at least 1.
+
+    Raises
+    ------
+    ModelError
+        If f is not finite at the operating point.
+    """
+    _check_nlsys(sys)
+    dt = check_positive(dt, "dt")
+    x, u = _op_point(sys, x_op, u_op)
+    p = sys.params
+
+    def f(xx, uu):
+        return sys.updfcn(0.0, xx, uu, p)
+
+    J = _jacobian_x(f, x, u)
+    if not np.all(np.isfinite(J)):
+        raise ModelError("the Jacobian of f is not finite at the operating point; pass x_op "
+                         "and u_op where the model is defined, or give substeps directly")
+    lam = float(np.max(np.abs(np.linalg.eigvals(J)))) if J.size else 0.0
+    return max(1, int(np.ceil(dt * lam / _RK4_H_LAMBDA)))
+
+
+def discretize_nonlinear(sys: ct.NonlinearIOSystem, dt: float, *, substeps: int | None = None,
+                         x_op: ArrayLike | None = None, u_op: ArrayLike | None = None
+                         ) -> ct.NonlinearIOSystem:
+    """Discretize a continuous nonlinear model with RK4 sub-steps (inputs held per sample).
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem
+        Continuous-time model ``dx/dt = f(t, x, u)``, ``y = h(t, x, u)``.
+    dt : float
+        Sampling period [s].
+    substeps : int, optional
+        RK4 sub-steps per sample; chosen by :func:`rk4_substeps` when omitted.
+    x_op : array_like, shape (nstates,), optional
+        Operating point for :func:`rk4_substeps`.
+    u_op : array_like, shape (ninputs,), optional
+        Input at the operating point.
+
+    Returns
+    -------
+    control.NonlinearIOSystem
+        Discrete-time model (``dt`` set) with the same signal names, params
+        and output function; its update function accepts a batch of states
+        ``(nstates, npoints)`` whenever the continuous f does.
+
+    Raises
+    ------
+    ModelError
+        ``sys`` is not a continuous-time NonlinearIOSystem.
+    """
+    _check_nlsys(sys)
+    if not sys.isctime(strict=True):
+        raise ModelError(f"sys is already discrete (dt={sys.dt}); discretize_nonlinear "
+                         f"expects a continuous-time model")
+    dt = check_positive(dt, "dt")
+    if substeps is None:
+        substeps = rk4_substeps(sys, dt, x_op=x_op, u_op=u_op)
+    substeps = check_positive(substeps, "substeps", integer=True)
+    f = sys.updfcn
+    h = dt / substeps
+
+    def _eval(t, x, u, params):
+        r = f(t, x, u, params)
+        if type(r) is not np.ndarray or r.shape != x.shape or r.dtype != np.float64:
+            r = np.asarray(r, dtype=float).reshape(x.shape)
+        return r
+
+    def upd(t, x, u, params):
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        tt = t
+        h2, h6 = h / 2, h / 6
+        for _ in range(substeps):
+            k1 = _eval(tt, x, u, params)
+            k2 = _eval(tt + h2, x + h2 * k1, u, params)
+            k3 = _eval(tt + h2, x + h2 * k2, u, params)
+            k4 = _eval(tt + h, x + h * k3, u, params)
+            x = x + h6 * (k1 + 2.0 * (k2 + k3) + k4)
+            tt = tt + h
+        return x
+
+    out = sys.outfcn
+    return ct.nlsys(upd, out, states=list(sys.state_labels), inputs=list(sys.input_labels),
+                    outputs=list(sys.output_labels), dt=dt, params=dict(sys.params or {}),
+                    name=f"{sys.name}_rk4x{substeps}")
+
+
+def linear_output_map(sys, *, rtol: float = 1e-9) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(C, D) of an output map that is linear, ``y = C x + D u`` (the paper's (33)).
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem or control.StateSpace
+        The model; for a StateSpace its C and D are returned.
+    rtol : float
+        Relative tolerance of the linearity check at random test points.
+
+    Returns
+    -------
+    C : ndarray, shape (noutputs, nstates)
+    D : ndarray, shape (noutputs, ninputs)
+
+    Raises
+    ------
+    ModelError
+        If the output function is not linear in (x, u) (or has an offset):
+        the unknown-input filters of section IV assume a linear output map.
+    """
+    if isinstance(sys, ct.StateSpace):
+        return np.asarray(sys.C, float), np.asarray(sys.D, float)
+    _check_nlsys(sys)
+    n, m, p = sys.nstates, sys.ninputs, sys.noutputs
+    if sys.outfcn is None:
+        if p > n:
+            raise ModelError(f"sys has no output function and {p} outputs > {n} states")
+        return np.eye(n)[:p].copy(), np.zeros((p, m))
+    par = sys.params
+
+    def h(x, u):
+        try:
+            yv = np.asarray(sys.outfcn(0.0, x, u, par), dtype=float).reshape(-1)
+        except Exception as e:  # a user function: report whatever it raised
+            raise ModelError(f"the output function of sys failed at x = {x}, u = {u}: "
+                             f"{e}") from e
+        if yv.size != p:
+            raise DimensionError(f"the output function returns {yv.size} values; expected "
+                                 f"noutputs = {p}")
+        return yv
+
+    x0, u0 = np.zeros(n), np.zeros(m)
+    y0 = h(x0, u0)
+    C = np.column_stack([h(np.eye(n)[i], u0) - y0 for i in range(n)]) if n else np.zeros((p, 0))
+    D = np.column_stack([h(x0, np.eye(m)[j]) - y0 for j in range(m)]) if m else np.zeros((p, 0))
+    g = np.random.default_rng(0)
+    worst = float(np.max(np.abs(y0))) / max(1.0, float(np.max(np.abs(C), initial=0.0)))
+    for _ in range(3):
+        x = g.standard_normal(n) * 3
+        u = g.standard_normal(m) * 3
+        yv = h(x, u)
+        lin = C @ x + D @ u
+        worst = max(worst, float(np.max(np.abs(yv - lin), initial=0.0))
+                    / max(1.0, float(np.max(np.abs(lin), initial=0.0))))
+    if not np.isfinite(worst) or worst > rtol:
+        raise ModelError(
+            f"the output map of {sys.name} is not linear in (x, u) (relative deviation "
+            f"{worst:.2g}); the unknown-input filters assume y = C x + D u + v (the paper's "
+            f"(33)). Make the measured quantity a state, or measure a linear function of them"
+        )
+    return C, D
+
+
+@dataclass(frozen=True)
+class StateMap:
+    """The discrete state map ``x[k+1] = F(t, x[k], u[k])`` of a model, evaluated in batches.
+
+    Attributes
+    ----------
+    fun : callable
+        ``fun(t, X, U)`` with X of shape (nstates, npoints) and U of shape
+        (ninputs,) or (ninputs, npoints) (the full input vector, unknown
+        inputs included); returns shape (nstates, npoints).
+    vectorized : bool
+        True when the model's update function took all points in one call.
+    nstates, ninputs : int
+        Sizes.
+    """
+
+    fun: Callable
+    vectorized: bool
+    nstates: int
+    ninputs: int
+
+
+def state_map(sys) -> StateMap:
+    """Batch evaluator of a discrete model's state update (linear or nonlinear).
+
+    Parameters
+    ----------
+    sys : control.StateSpace or control.NonlinearIOSystem
+        Discrete-time model.
+
+    Returns
+    -------
+    StateMap
+
+    Raises
+    ------
+    ModelError
+        If ``sys`` is continuous-time or of another type.
+    """
+    if isinstance(sys, ct.StateSpace):
+        A, B = np.asarray(sys.A, float), np.asarray(sys.B, float)
+
+        def lin(t, X, u):
+            bu = B @ u
+            return A @ X + (bu[:, None] if bu.ndim == 1 else bu)
+
+        return StateMap(lin, True, sys.nstates, sys.ninputs)
+    _check_nlsys(sys)
+    if not sys.isdtime(strict=True) or sys.dt is True:
+        raise ModelError(
+            f"{sys.name} is continuous-time (or has no numeric dt); the filters need a "
+            f"discrete-time model. Discretize it with greybox.discretize_nonlinear(sys, dt)")
+    n, m, upd, par = sys.nstates, sys.ninputs, sys.updfcn, sys.params
+
+    def loop(t, X, u):
+        out = np.empty_like(X)
+        u = np.asarray(u, dtype=float)
+        for i in range(X.shape[1]):
+            ui = u if u.ndim == 1 else u[:, i]
+            out[:, i] = np.asarray(upd(t, X[:, i], ui, par), dtype=float).reshape(-1)
+        return out
+
+    # probe: does f take a batch of states (and broadcast inputs)?
+    vec = False
+    X = np.outer(np.ones(n), [0.0, 1e-3]) + np.arange(n)[:, None] * 1e-4
+    u = np.zeros(m)
+    try:
+        with np.errstate(all="ignore"):
+            Yb = np.asarray(upd(0.0, X, np.repeat(u[:, None], 2, axis=1), par), dtype=float)
+            Yl = loop(0.0, X, u)
+        vec = Yb.shape == (n, 2) and bool(np.allclose(Yb, Yl, rtol=1e-12, atol=1e-300,
+                                                      equal_nan=True))
+    except Exception:  # noqa: BLE001 - a model that cannot take a batch is looped over
+        vec = False
+    if vec:
+        def batch(t, X, u):
+            u = np.asarray(u, dtype=float)
+            U = np.broadcast_to(u[:, None], (m, X.shape[1])) if u.ndim == 1 else u
+            return np.asarray(upd(t, X, U, par), dtype=float).reshape(X.shape)
+
+        return StateMap(batch, True, n, m)
+    return StateMap(loop, False, n, m)
+
+
+def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None = None,
+                       Q: ArrayLike | None = None, R: ArrayLike | None = None,
+                       nsteps: int | None = None, rng=None) -> SimulationResult:
+    """Simulate ``x[k+1] = F(x, u) + w``, ``y = h(x, u) + v`` for a discrete model.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem
+        Discrete-time model (e.g. from :func:`discretize_nonlinear`).
+    u : array_like, shape (ninputs, nsteps), optional
+        Inputs (all of them; omit for a model without inputs).
+    x0 : array_like, shape (nstates,), optional
+        Initial state (zero by default).
+    Q : array_like, shape (nstates, nstates), optional
+        Process-noise covariance; None for none.
+    R : array_like, shape (noutputs, noutputs), optional
+        Measurement-noise covariance; None for noise-free outputs.
+    nsteps : int, optional
+        Number of samples when ``u`` is None.
+    rng : numpy.random.Generator or int, optional
+        Source of the noise.
+
+    Returns
+    -------
+    SimulationResult
+        With ``sys`` the nonlinear model.
+
+    Raises
+    ------
+    DataError
+        If the state becomes NaN or inf (naming the step and the state).
+    """
+    smap = state_map(sys)
+    n, m, p = sys.nstates, sys.ninputs, sys.noutputs
+    if u is None:
+        if m:
+            raise DataError(f"sys has {m} inputs; pass u with shape ({m}, nsteps)")
+        nsteps = check_positive(nsteps, "nsteps", integer=True)
+        u = np.zeros((0, nsteps))
+    u = check_signal(u, m, "u")
+    N = u.shape[1]
+    x = np.empty((n, N))
+    x[:, 0] = np.zeros(n) if x0 is None else check_vector(x0, n, "x0")
+    g = _rng(rng)
+    w = None
+    if Q is not None:
+        w = _gaussian(check_covariance(Q, n, "Q", definite=False), N, g)
+    dt = float(sys.dt)
+    for k in range(N - 1):
+        with np.errstate(all="ignore"):
+            xn = smap.fun(k * dt, x[:, k:k + 1], u[:, k])[:, 0]
+        if not np.all(np.isfinite(xn)):
+            i = int(np.flatnonzero(~np.isfinite(xn))[0])
+            raise DataError(f"the simulation of {sys.name} gave a non-finite state "
+                            f"{sys.state_labels[i]!r} at step {k + 1}; check the inputs and "
+                            f"dt (a stiff model needs more RK4 sub-steps)")
+        x[:, k + 1] = xn if w is None else xn + w[:, k]
+    if isinstance(sys, ct.StateSpace):
+        y_clean = np.asarray(sys.C, float) @ x + np.asarray(sys.D, float) @ u
+    else:
+        y_clean = np.column_stack([sys._out(k * dt, x[:, k], u[:, k]) for k in range(N)]) \
+            if N else np.zeros((p, 0))
+        y_clean = y_clean.reshape(p, N)
+    y = y_clean.copy()
+    if R is not None:
+        y = y + _gaussian(check_covariance(R, p, "R", definite=False), N, g)
+    return SimulationResult(t=np.arange(N) * dt, x=x, y=y, u=u, y_clean=y_clean, sys=sys)
