@@ -34,6 +34,9 @@ from .filters import (  # noqa: E402
     steady_state_filter,
     uikf,
 )
+from .filters.delayed import RelativeDegree, delayed_uikf, detect_relative_degree  # noqa: E402
+from .filters.feedthrough import feedthrough_uikf  # noqa: E402
+from .filters.smoother import smooth_uikf  # noqa: E402
 from .plants import (  # noqa: E402
     TAPE_DRIVE_DT,
     TAPE_DRIVE_Q,
@@ -116,4 +119,13 @@ __all__ += [
     "Effect",
     "LoopReport",
     "close_the_loop",
+]
+
+# unknown inputs behind the sensors (issue 11)
+__all__ += [
+    "RelativeDegree",
+    "delayed_uikf",
+    "detect_relative_degree",
+    "feedthrough_uikf",
+    "smooth_uikf",
 ]
