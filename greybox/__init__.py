@@ -35,7 +35,7 @@ from .filters import (  # noqa: E402
     uikf,
 )
 from .filters.delayed import RelativeDegree, delayed_uikf, detect_relative_degree  # noqa: E402
-from .filters.feedthrough import feedthrough_uikf  # noqa: E402
+from .filters.feedthrough import feedthrough_uikf, with_sensor_error  # noqa: E402
 from .filters.smoother import smooth_uikf  # noqa: E402
 from .plants import (  # noqa: E402
     TAPE_DRIVE_DT,
@@ -128,4 +128,5 @@ __all__ += [
     "detect_relative_degree",
     "feedthrough_uikf",
     "smooth_uikf",
+    "with_sensor_error",
 ]

@@ -169,3 +169,24 @@ def test_errors():
         gb.feedthrough_uikf(sys, y, u, unknown="s", Q=Q, R=R, gain="steady")
     with pytest.raises(DimensionError, match="y"):
         gb.feedthrough_uikf(sys, np.zeros((3, 5)), u, unknown="s", Q=Q, R=R)
+
+
+def test_with_sensor_error_builds_the_output_channel(rng):
+    A, B = _msd()
+    base = gb.named_ss(A, B, np.eye(2), np.zeros((2, 1)), DT, states=["p", "v"],
+                       inputs=["u"], outputs=["p_meas", "v_meas"])
+    aug = gb.with_sensor_error(base, "p_meas")
+    assert aug.input_labels == ["u", "p_meas_err"]
+    np.testing.assert_array_equal(np.asarray(aug.D)[:, 1], [1.0, 0.0])
+    np.testing.assert_array_equal(np.asarray(aug.B)[:, 1], [0.0, 0.0])
+    N = 200
+    u, y = rng.standard_normal((1, N)), rng.standard_normal((2, N)) * 0.01
+    a = gb.feedthrough_uikf(aug, y, u, unknown="p_meas_err", Q=Q, R=R)
+    b = gb.feedthrough_uikf(_sensor_plant(), y, u, unknown="s", Q=Q, R=R)
+    np.testing.assert_array_equal(a.d_est, b.d_est)  # the same model, built two ways
+    with pytest.raises(DimensionError, match="no signal named 'q'"):
+        gb.with_sensor_error(base, "q")
+    with pytest.raises(DimensionError, match="already inputs"):
+        gb.with_sensor_error(base, "p_meas", names=["u"])
+    with pytest.raises(DimensionError, match="expected 1"):
+        gb.with_sensor_error(base, "p_meas", names=["a", "b"])

@@ -9,7 +9,7 @@ from .uikf import (
     uikf,
 )
 from .delayed import RelativeDegree, delayed_uikf, detect_relative_degree
-from .feedthrough import feedthrough_uikf
+from .feedthrough import feedthrough_uikf, with_sensor_error
 from .smoother import smooth_uikf
 
 __all__ = [
@@ -28,4 +28,5 @@ __all__ += [
     "detect_relative_degree",
     "feedthrough_uikf",
     "smooth_uikf",
+    "with_sensor_error",
 ]

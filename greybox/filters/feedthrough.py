@@ -23,10 +23,67 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .._lti import lti_states
-from ..exceptions import RankConditionError
+from .._validation import check_statespace, resolve_channels
+from ..exceptions import DimensionError, RankConditionError
+from ..system import named_ss
 from .uikf import FilterResult, _check_options, _prepare
 
-__all__ = ["feedthrough_uikf"]
+__all__ = ["feedthrough_uikf", "with_sensor_error"]
+
+
+def with_sensor_error(sys: ct.StateSpace, outputs: int | str | Sequence[int | str], *,
+                      names: Sequence[str] | None = None) -> ct.StateSpace:
+    """Append one unknown input per named output that adds to that output only.
+
+    The candidate "the error is on sensor i" for :func:`feedthrough_uikf`:
+    a new input ``d_i`` with a zero column in B and the unit vector e_i in D,
+    so ``y_i = C_i x + D_i u + d_i + v_i``. Then ``feedthrough_uikf(aug, y,
+    u, unknown=names)`` gives d^[k] = what sensor i shows beyond the model
+    (offset, gain error ``g C_i x``, sensor dynamics, ``|.|``, saturation).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        The model (any inputs; discrete or continuous).
+    outputs : label(s) or index(es)
+        Outputs that get an error channel.
+    names : sequence of str, optional
+        Names of the new inputs (default ``"<output>_err"``).
+
+    Returns
+    -------
+    control.StateSpace
+        ``sys`` with the new inputs appended after its own.
+
+    Raises
+    ------
+    DimensionError
+        Unknown output, or a name that clashes with an existing input.
+
+    Examples
+    --------
+    >>> import greybox as gb
+    >>> aug = gb.with_sensor_error(gb.tape_drive_nominal(dt=1e-4), "T_meas") \
+    ...     if "T_meas" in gb.tape_drive_nominal(dt=1e-4).output_labels else None
+    """
+    sys = check_statespace(sys)
+    idx = resolve_channels(outputs, sys.output_labels, "outputs")
+    if not idx:
+        raise DimensionError("outputs: name at least one output")
+    names = [f"{sys.output_labels[i]}_err" for i in idx] if names is None else list(names)
+    if len(names) != len(idx):
+        raise DimensionError(f"names has {len(names)} entries; expected {len(idx)} (one per "
+                             f"output)")
+    clash = [s for s in names if s in sys.input_labels]
+    if clash:
+        raise DimensionError(f"names {clash} are already inputs of sys; choose other names")
+    n, p = sys.nstates, sys.noutputs
+    H = np.zeros((p, len(idx)))
+    H[idx, range(len(idx))] = 1.0
+    return named_ss(sys.A, np.hstack([np.asarray(sys.B), np.zeros((n, len(idx)))]), sys.C,
+                    np.hstack([np.asarray(sys.D), H]), sys.dt, states=sys.state_labels,
+                    inputs=list(sys.input_labels) + names, outputs=sys.output_labels,
+                    name=sys.name)
 
 
 def _feedthrough_gains(Pp, C, H, R):
