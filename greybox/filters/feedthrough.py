@@ -63,8 +63,9 @@ def with_sensor_error(sys: ct.StateSpace, outputs: int | str | Sequence[int | st
     Examples
     --------
     >>> import greybox as gb
-    >>> aug = gb.with_sensor_error(gb.tape_drive_nominal(dt=1e-4), "T_meas") \
-    ...     if "T_meas" in gb.tape_drive_nominal(dt=1e-4).output_labels else None
+    >>> aug = gb.with_sensor_error(gb.tape_drive_nominal(dt=1e-4), "p1")
+    >>> aug.input_labels
+    ['V1', 'V2', 'T', 'p1_err']
     """
     sys = check_statespace(sys)
     idx = resolve_channels(outputs, sys.output_labels, "outputs")
