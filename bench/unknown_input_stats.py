@@ -30,21 +30,22 @@ from scipy.stats import norm
 import greybox as gb
 
 
-def simulate_runs(A, B, C, G, Q, R, x0, P0, u, d_of, nruns, rng):
-    """x[k+1] = A x + B u + G d + w, y = C x + v, all runs at once."""
+def simulate_runs(A, B, C, G, Q, R, x0, P0, u, d_of, nruns, rng, D=None):
+    """x[k+1] = A x + B u + G d + w, y = C x + D u + v, all runs at once."""
     n, N, p = A.shape[0], u.shape[1], C.shape[0]
     LQ = np.linalg.cholesky(Q + 1e-30 * np.eye(n))
     LR = np.linalg.cholesky(R)
     x = x0[:, None] + np.linalg.cholesky(P0) @ rng.standard_normal((n, nruns))
-    X, Y, D = [], [], []
+    X, Y, Ds = [], [], []
     for k in range(N):
         d = d_of(k, x)
         X.append(x)
-        D.append(d)
-        Y.append(C @ x + LR @ rng.standard_normal((p, nruns)))
+        Ds.append(d)
+        Du = 0.0 if D is None else (D @ u[:, k])[:, None]
+        Y.append(C @ x + Du + LR @ rng.standard_normal((p, nruns)))
         x = A @ x + (B @ u[:, k])[:, None] + G @ d + LQ @ rng.standard_normal((n, nruns))
     return (np.array(X).transpose(2, 1, 0), np.array(Y).transpose(2, 1, 0),
-            np.array(D).transpose(2, 1, 0))
+            np.array(Ds).transpose(2, 1, 0))
 
 
 def stats(err, var):
@@ -129,7 +130,8 @@ def main(argv=None) -> int:
     N = 70
     ur = rg.standard_normal((1, N))
     _, y, d = simulate_runs(rs.A, rs.B, rs.C, rs.G, Qr, rs.R, np.zeros(4), np.eye(4), ur,
-                            lambda k, xx: 1.0 + np.sin(0.3 * k) + 0.5 * xx[:1], nruns, rg)
+                            lambda k, xx: 1.0 + np.sin(0.3 * k) + 0.5 * xx[:1], nruns, rg,
+                            D=rs.D)
     kk = np.arange(3, N - 3)
     ef, es, vs = [], [], []
     for i in range(nruns):
