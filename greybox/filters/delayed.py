@@ -42,6 +42,7 @@ import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._validation import check_covariance, check_positive
 from ..exceptions import GreyboxError, ModelError, RankConditionError
 from .uikf import (
     FilterResult,
@@ -50,6 +51,7 @@ from .uikf import (
     _measurement_gains,
     _prepare,
     _run,
+    _split,
 )
 
 __all__ = ["RelativeDegree", "delayed_uikf", "detect_relative_degree"]
@@ -128,8 +130,9 @@ def _choose(A, C, G, Q, R, labels, max_degree, switch_ratio, maxiter):
     cands = tuple(range(1, max_degree + 1))
     var = np.full(len(cands), np.nan)
     for i, r in enumerate(cands):
-        if _shifted_input(A, C, G, r) is not None:
-            var[i] = _steady_d_var(A, C, _shifted_input(A, C, G, r)[1], Q, R, maxiter)
+        shifted = _shifted_input(A, C, G, r)
+        if shifted is not None:
+            var[i] = _steady_d_var(A, C, shifted[1], Q, R, maxiter)
     if np.all(np.isnan(var)):
         raise RankConditionError(
             f"Unknown input {list(labels)} not observable at any delay: rank(C A^(r-1) G~) < "
@@ -200,8 +203,6 @@ def detect_relative_degree(sys: ct.StateSpace, *, unknown: int | str | Sequence[
     GreyboxError
         If no candidate's covariance recursion converges.
     """
-    from .._validation import check_covariance, check_positive
-
     max_degree = None if max_degree is None else check_positive(max_degree, "max_degree",
                                                                 integer=True)
     switch_ratio = check_positive(switch_ratio, "switch_ratio")
@@ -223,8 +224,6 @@ def _check_no_feedthrough(sys, labels):
 
 def _split_any(sys, unknown):
     """Split without the r = 1 rank check; d must not feed through."""
-    from .uikf import _split
-
     model, A, B, C, D, G, labels = _split(sys, unknown, allow_no_unknown=False,
                                           check_rank=False)
     _check_no_feedthrough(sys, labels)
@@ -342,8 +341,6 @@ def _delayed_parts(sys, y, u, unknown, Q, R, x0, P0, relative_degree):
                                f"{relative_degree!r}")
         r = _choose(A, C, G, Q, R, labels, None, 100.0, 5000).r
     else:
-        from .._validation import check_positive
-
         r = check_positive(relative_degree, "relative_degree", integer=True)
     shifted = _shifted_input(A, C, G, r)
     if shifted is None:
