@@ -10,6 +10,15 @@ Issue 2 item 10. One process, one data set, every method side by side:
   time-varying state intercept; checked against greybox's Kalman ``x_filt``
 * filterpy ``KalmanFilter``              - predict/update loop
 * a plain numpy per-sample loop of the same unbiased minimum-variance recursion
+* greybox ``smooth_uikf`` (time-varying / auto) - fixed-interval smoother (issue 11)
+
+A second table (issue 11) runs the delayed filter on a ZOH mass whose force is
+unknown and whose position only is measured (relative degree 2, where uikf's
+r = 1 estimate diverges): ``delayed_uikf`` and ``smooth_uikf`` with
+``relative_degree=2``, time-varying and auto, beside statsmodels' KF on the
+same mass (force dropped). Its accuracy column is the RMS error of d^ against
+the two-sample mean of the true force (what the r = 2 filter estimates under
+ZOH, see greybox.filters.delayed).
 
 Per-sample Python loops (greybox time-varying, filterpy, numpy loop) run on the
 first ``--loop-n`` samples only; their samples/s is measured there and is
@@ -92,6 +101,40 @@ class Problem:
         self.n = self.A.shape[0]
         self.x0 = np.zeros(self.n)
         self.P0 = np.eye(self.n)  # greybox's default prior, used by every peer
+        self.d_target = self.T_true
+        self.unknown = "T"
+        self.rd = 1
+
+
+class MassProblem(Problem):
+    """ZOH mass, known force u and unknown force F, position measured (r = 2)."""
+
+    def __init__(self, N: int, seed: int):
+        dt, m = 1e-3, 2.0
+        self.N = N
+        A = np.array([[1.0, dt], [0.0, 1.0]])
+        Bc = np.array([[dt**2 / 2], [dt]]) / m
+        self.sys = gb.named_ss(A, np.hstack([Bc, Bc]), [[1.0, 0.0]], [[0.0, 0.0]], dt,
+                               states=["p", "v"], inputs=["u", "F"], outputs=["p"])
+        rng = np.random.default_rng(seed)
+        self.u = gb.lowpass_noise(N, dt=dt, bandwidth=5, nsignals=1, amplitude=1, rng=seed)
+        F = 50.0 * np.tanh(gb.lowpass_noise(N, dt=dt, bandwidth=2, rng=seed + 1)[0] * 50)
+        # 1 um position noise; 50 N Coulomb-like force on a 2 kg mass
+        self.Q, self.R = np.diag([1e-14, 1e-10]), np.array([[1e-12]])
+        x = np.zeros(2)
+        xs = np.empty((2, N))
+        w = rng.standard_normal((2, N)) * np.sqrt(np.diag(self.Q))[:, None]
+        for k in range(N):  # plain loop: the truth, not a greybox routine
+            xs[:, k] = x
+            x = A @ x + Bc[:, 0] * (self.u[0, k] + F[k]) + w[:, k]
+        self.y = xs[:1] + 1e-6 * rng.standard_normal((1, N))
+        self.T_true = F
+        self.d_target = np.append(0.5 * (F[:-1] + F[1:]), np.nan)
+        self.A, self.B, self.C, self.D, self.G = A, Bc, np.array([[1.0, 0.0]]), np.zeros((1, 1)), Bc
+        self.n = 2
+        self.x0, self.P0 = np.zeros(2), np.eye(2)
+        self.unknown = "F"
+        self.rd = 2
 
 
 def _nbytes(*arrays) -> int:
@@ -121,6 +164,43 @@ def gb_kf_auto(prob, n):
                          R=prob.R)
     _CONVERGED["greybox kalman_filter auto"] = r.period_converged
     return r.x_filt, None, _gb_out_bytes(r)
+
+
+def gb_kf_auto_mass(prob, n):
+    r = gb.kalman_filter(prob.sys, prob.y[:, :n], prob.u[:, :n], unknown=prob.unknown,
+                         Q=prob.Q, R=prob.R)
+    return r.x_filt, None, _gb_out_bytes(r)
+
+
+def gb_uikf_r1_mass(prob, n):
+    r = gb.uikf(prob.sys, prob.y[:, :n], prob.u[:, :n], unknown=prob.unknown, Q=prob.Q,
+                R=prob.R)
+    return r.x_filt, r.d_est, _gb_out_bytes(r)
+
+
+def gb_delayed_tv(prob, n):
+    r = gb.delayed_uikf(prob.sys, prob.y[:, :n], prob.u[:, :n], unknown=prob.unknown, Q=prob.Q,
+                        R=prob.R, relative_degree=prob.rd, gain="time-varying")
+    return r.x_filt, r.d_est, _gb_out_bytes(r)
+
+
+def gb_delayed_auto(prob, n):
+    r = gb.delayed_uikf(prob.sys, prob.y[:, :n], prob.u[:, :n], unknown=prob.unknown, Q=prob.Q,
+                        R=prob.R, relative_degree=prob.rd)
+    _CONVERGED["greybox delayed_uikf auto"] = r.period_converged
+    return r.x_filt, r.d_est, _gb_out_bytes(r)
+
+
+def gb_smooth_tv(prob, n):
+    r = gb.smooth_uikf(prob.sys, prob.y[:, :n], prob.u[:, :n], unknown=prob.unknown, Q=prob.Q,
+                       R=prob.R, relative_degree=prob.rd, gain="time-varying")
+    return r.x_filt, r.d_est, _gb_out_bytes(r)
+
+
+def gb_smooth_auto(prob, n):
+    r = gb.smooth_uikf(prob.sys, prob.y[:, :n], prob.u[:, :n], unknown=prob.unknown, Q=prob.Q,
+                       R=prob.R, relative_degree=prob.rd)
+    return r.x_filt, r.d_est, _gb_out_bytes(r)
 
 
 def _gb_out_bytes(r) -> int:
@@ -256,6 +336,74 @@ def _blas_info() -> str:
         return "unknown (threadpoolctl not installed)"
 
 
+def _section(methods, prob, args, N, nloop):
+    """Time every method (round-robin), trace its memory, print the table; return d_est's."""
+    # pass 1: one timed run per method, with the accuracy checks
+    rows, ref_x, uif_d = [], None, {}
+    for label, f, n, kind in methods:
+        t, (x_filt, d_est, out_bytes) = _time(f, prob, n, 1)
+        if kind == "ref":
+            ref_x = x_filt
+            acc = "reference for KF peers"
+        elif kind in ("uif", "uif1"):
+            target = prob.T_true if kind == "uif1" else prob.d_target  # r = 1 targets d[k]
+            ok = ~np.isnan(d_est[0]) & ~np.isnan(target[:n])
+            rms = float(np.sqrt(np.mean((d_est[0, ok] - target[:n][ok]) ** 2)))
+            acc = f"d RMS err {rms:.3g} N"
+            uif_d[label] = d_est[0]
+        else:
+            dx = np.abs(x_filt - ref_x[:, :n])
+            scale = np.max(np.abs(ref_x[:, :n]), axis=1)
+            rel = float(np.max(np.max(dx, axis=1) / scale))
+            verdict = "OK" if rel <= args.kf_rtol else "FAIL"
+            acc = (f"x_filt max abs diff {dx.max():.2g} (rel {rel:.1g} <= {args.kf_rtol:g}: "
+                   f"{verdict})")
+        del x_filt, d_est
+        rows.append(dict(label=label, f=f, n=n, times=[t], out=out_bytes / MB, acc=acc,
+                         extrap=n < N))
+        print(f"#   {label}: {t:.3f} s on {n} samples", flush=True)
+    ref_x = None
+    # passes 2..repeat: round-robin over the methods, so a change of machine load hits all
+    for _ in range(args.repeat - 1):
+        for r in rows:
+            r["times"].append(_time(r["f"], prob, r["n"], 1)[0])
+    for r in rows:
+        r["t"] = min(r["times"])
+        r["sps"] = r["n"] / r["t"]
+        print(f"#   {r['label']}: best {r['t']:.3f} s, worst {max(r['times']):.3f} s "
+              f"over {len(r['times'])} runs", flush=True)
+    # memory: one traced run each
+    for r in rows:
+        r["peak"] = np.nan if args.no_memory else _peak(r["f"], prob, r["n"]) / MB
+
+    sm = next((r for r in rows if r["label"] == "statsmodels KalmanFilter"), None)
+    hdr = ("| method | N | time [s] | samples/s | vs statsmodels KF | peak mem [MB] "
+           "| outputs [MB] | peak/outputs | accuracy |")  # MB = 2**20 bytes
+    print()
+    print(hdr)
+    print("|" + "---|" * 9)
+    for r in rows:
+        ratio = f"{r['sps'] / sm['sps']:.2f}x" if sm else "n/a"
+        ntxt = f"{r['n']:,}" + (" (*)" if r["extrap"] else "")
+        pk = "n/a" if np.isnan(r["peak"]) else f"{r['peak']:.1f}"
+        po = "n/a" if np.isnan(r["peak"]) else f"{r['peak'] / r['out']:.1f}"
+        print(f"| {r['label']} | {ntxt} | {r['t']:.3f} | {r['sps']:,.0f} | {ratio} | {pk} "
+              f"| {r['out']:.1f} | {po} | {r['acc']} |")
+    if any(r["extrap"] for r in rows):
+        print(f"\n(*) per-sample loop timed on the first {nloop:,} of N = {N:,} samples; "
+              f"samples/s extrapolated to N (constant cost per sample), memory at that length.")
+    if sm is not None:
+        print("(**) statsmodels with set_conserve_memory(MEMORY_NO_FORECAST_COV | "
+              "MEMORY_NO_PREDICTED_COV | MEMORY_NO_FILTERED_COV | MEMORY_NO_GAIN | "
+              "MEMORY_NO_SMOOTHING | MEMORY_NO_STD_FORECAST); filtered_state kept.")
+    print("peak mem: tracemalloc peak of the call (numpy buffers included); outputs: arrays "
+          "the method returns (greybox: t, x_filt, x_pred, d_est, d_var, innovations; "
+          "statsmodels: every array of its FilterResults; loops: x_filt [+ d_est]). "
+          "MB = 2**20 bytes.")
+
+    return uif_d, rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("-N", type=float, default=1e6, help="samples (default 1e6)")
@@ -312,67 +460,10 @@ def main(argv=None) -> int:
         methods.append(("filterpy KalmanFilter loop", make_filterpy(fp_mod), nloop, "kf"))
     methods.append(("numpy per-sample UMV loop", numpy_umv_loop, nloop, "uif"))
 
-    # pass 1: one timed run per method, with the accuracy checks
-    rows, ref_x, uif_d = [], None, {}
-    for label, f, n, kind in methods:
-        t, (x_filt, d_est, out_bytes) = _time(f, prob, n, 1)
-        if kind == "ref":
-            ref_x = x_filt
-            acc = "reference for KF peers"
-        elif kind == "uif":
-            ok = ~np.isnan(d_est[0])
-            rms = float(np.sqrt(np.mean((d_est[0, ok] - prob.T_true[:n][ok]) ** 2)))
-            acc = f"tension RMS err {rms:.3g} N"
-            uif_d[label] = d_est[0]
-        else:
-            dx = np.abs(x_filt - ref_x[:, :n])
-            scale = np.max(np.abs(ref_x[:, :n]), axis=1)
-            rel = float(np.max(np.max(dx, axis=1) / scale))
-            verdict = "OK" if rel <= args.kf_rtol else "FAIL"
-            acc = (f"x_filt max abs diff {dx.max():.2g} (rel {rel:.1g} <= {args.kf_rtol:g}: "
-                   f"{verdict})")
-        del x_filt, d_est
-        rows.append(dict(label=label, f=f, n=n, times=[t], out=out_bytes / MB, acc=acc,
-                         extrap=n < N))
-        print(f"#   {label}: {t:.3f} s on {n} samples", flush=True)
-    ref_x = None
-    # passes 2..repeat: round-robin over the methods, so a change of machine load hits all
-    for _ in range(args.repeat - 1):
-        for r in rows:
-            r["times"].append(_time(r["f"], prob, r["n"], 1)[0])
-    for r in rows:
-        r["t"] = min(r["times"])
-        r["sps"] = r["n"] / r["t"]
-        print(f"#   {r['label']}: best {r['t']:.3f} s, worst {max(r['times']):.3f} s "
-              f"over {len(r['times'])} runs", flush=True)
-    # memory: one traced run each
-    for r in rows:
-        r["peak"] = np.nan if args.no_memory else _peak(r["f"], prob, r["n"]) / MB
-
+    methods.insert(2, ("greybox smooth_uikf time-varying", gb_smooth_tv, nloop, "uif"))
+    methods.insert(3, ("greybox smooth_uikf auto", gb_smooth_auto, N, "uif"))
+    uif_d, rows = _section(methods, prob, args, N, nloop)
     sm = next((r for r in rows if r["label"] == "statsmodels KalmanFilter"), None)
-    hdr = ("| method | N | time [s] | samples/s | vs statsmodels KF | peak mem [MB] "
-           "| outputs [MB] | peak/outputs | accuracy |")  # MB = 2**20 bytes
-    print()
-    print(hdr)
-    print("|" + "---|" * 9)
-    for r in rows:
-        ratio = f"{r['sps'] / sm['sps']:.2f}x" if sm else "n/a"
-        ntxt = f"{r['n']:,}" + (" (*)" if r["extrap"] else "")
-        pk = "n/a" if np.isnan(r["peak"]) else f"{r['peak']:.1f}"
-        po = "n/a" if np.isnan(r["peak"]) else f"{r['peak'] / r['out']:.1f}"
-        print(f"| {r['label']} | {ntxt} | {r['t']:.3f} | {r['sps']:,.0f} | {ratio} | {pk} "
-              f"| {r['out']:.1f} | {po} | {r['acc']} |")
-    if any(r["extrap"] for r in rows):
-        print(f"\n(*) per-sample loop timed on the first {nloop:,} of N = {N:,} samples; "
-              f"samples/s extrapolated to N (constant cost per sample), memory at that length.")
-    if sm is not None:
-        print("(**) statsmodels with set_conserve_memory(MEMORY_NO_FORECAST_COV | "
-              "MEMORY_NO_PREDICTED_COV | MEMORY_NO_FILTERED_COV | MEMORY_NO_GAIN | "
-              "MEMORY_NO_SMOOTHING | MEMORY_NO_STD_FORECAST); filtered_state kept.")
-    print("peak mem: tracemalloc peak of the call (numpy buffers included); outputs: arrays "
-          "the method returns (greybox: t, x_filt, x_pred, d_est, d_var, innovations; "
-          "statsmodels: every array of its FilterResults; loops: x_filt [+ d_est]). "
-          "MB = 2**20 bytes.")
 
     # cross-checks among the unknown-input filters (same first nloop samples)
     a = uif_d.get("greybox uikf time-varying")
@@ -391,6 +482,29 @@ def main(argv=None) -> int:
                 verdict = "meets" if r["sps"] >= 10 * sm["sps"] else "MISSES"
                 print(f"goal: greybox uikf auto at {r['sps'] / sm['sps']:.1f}x statsmodels "
                       f"KF throughput ({verdict} >= 10x)")
+
+    print(f"\n## delayed unknown-input estimation (relative degree 2): ZOH mass, position "
+          f"only, dt = 1e-3 s, N = {N:,}; accuracy: d^ vs the two-sample mean of the force")
+    mprob = MassProblem(N, args.seed)
+    mmethods = [
+        ("greybox uikf (r = 1, diverging gains) auto", gb_uikf_r1_mass, nloop, "uif1"),
+        ("greybox delayed_uikf time-varying", gb_delayed_tv, nloop, "uif"),
+        ("greybox delayed_uikf auto", gb_delayed_auto, N, "uif"),
+        ("greybox kalman_filter auto (force dropped)", gb_kf_auto_mass, N, "ref"),
+        ("greybox smooth_uikf r=2 time-varying", gb_smooth_tv, nloop, "uif"),
+        ("greybox smooth_uikf r=2 auto", gb_smooth_auto, N, "uif"),
+    ]
+    if sm_mod is not None:
+        mmethods.append(("statsmodels KalmanFilter", make_statsmodels(sm_mod), N, "kf"))
+    md, _ = _section(mmethods, mprob, args, N, nloop)
+    a = md.get("greybox delayed_uikf time-varying")
+    b = md.get("greybox delayed_uikf auto")
+    if a is not None and b is not None:
+        ok = ~np.isnan(a) & ~np.isnan(b[:a.size])
+        print(f"d_est max abs diff delayed auto vs time-varying (first {a.size:,} samples): "
+              f"{np.max(np.abs(a[ok] - b[:a.size][ok])):.2g} N")
+    print(f"greybox delayed_uikf auto: per-sample recursion for the first "
+          f"{_CONVERGED.get('greybox delayed_uikf auto')} samples, constant gain after")
     return 0
 
 

@@ -44,6 +44,9 @@ from .nonlinear import (  # noqa: E402
     rk4_substeps,
     simulate_nonlinear,
 )
+from .filters.delayed import RelativeDegree, delayed_uikf, detect_relative_degree  # noqa: E402
+from .filters.feedthrough import feedthrough_uikf, with_sensor_error  # noqa: E402
+from .filters.smoother import smooth_uikf  # noqa: E402
 from .plants import (  # noqa: E402
     MOTOR_PUMP_DT,
     MOTOR_PUMP_Q,
@@ -146,4 +149,14 @@ __all__ += [
     "Effect",
     "LoopReport",
     "close_the_loop",
+]
+
+# unknown inputs behind the sensors (issue 11)
+__all__ += [
+    "RelativeDegree",
+    "delayed_uikf",
+    "detect_relative_degree",
+    "feedthrough_uikf",
+    "smooth_uikf",
+    "with_sensor_error",
 ]

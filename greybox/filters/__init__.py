@@ -11,6 +11,9 @@ from .uikf import (
     steady_state_filter,
     uikf,
 )
+from .delayed import RelativeDegree, delayed_uikf, detect_relative_degree
+from .feedthrough import feedthrough_uikf, with_sensor_error
+from .smoother import smooth_uikf
 
 __all__ = [
     "MerweScaledSigmaPoints",
@@ -24,4 +27,14 @@ __all__ = [
     "kalman_filter",
     "steady_state_filter",
     "uikf",
+]
+
+# unknown inputs behind the sensors (issue 11)
+__all__ += [
+    "RelativeDegree",
+    "delayed_uikf",
+    "detect_relative_degree",
+    "feedthrough_uikf",
+    "smooth_uikf",
+    "with_sensor_error",
 ]

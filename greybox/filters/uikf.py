@@ -137,6 +137,16 @@ class FilterResult:
         The data the filter ran on, shapes (ninputs, nsteps), (noutputs, nsteps).
         When the caller passed float64 2-D arrays these are those arrays (no
         copy is made), so modifying them afterwards changes the record too.
+    relative_degree : int
+        Delay r (in samples) between d[j] and the first output that sees it:
+        ``d_est[:, j]`` is computed from ``y[0..j+r]``. 1 for :func:`uikf`
+        (d[k-1] from y[k]); r >= 2 for :func:`~greybox.delayed_uikf` (whose
+        ``x_filt[:, k]`` is then ``x^[k|k+r-1]``, see there); 0 for
+        :func:`~greybox.feedthrough_uikf` (d[k] from y[k]).
+    smoothed : bool
+        True if ``x_filt``, ``d_est``, ``d_var`` hold fixed-interval smoothed
+        estimates ``x^[k|N-1]``, ``d^[k|N-1]`` (:func:`~greybox.smooth_uikf`);
+        ``x_pred`` and ``innovations`` are then those of the forward pass.
     """
 
     t: NDArray[np.float64]
@@ -160,6 +170,8 @@ class FilterResult:
     unknown_labels: tuple[str, ...]
     u: NDArray[np.float64] = field(repr=False)
     y: NDArray[np.float64] = field(repr=False)
+    relative_degree: int = 1
+    smoothed: bool = False
 
     @property
     def y_filt(self) -> NDArray[np.float64]:
@@ -575,8 +587,8 @@ def _check_options(level, gain, tol):
 def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
          unknown: int | str | Sequence[int | str], Q: ArrayLike, R: ArrayLike,
          x0: ArrayLike | None = None, P0: ArrayLike | None = None, level: float = 0.95,
-         gain: str = "auto", tol: float = 1e-12, store_covariances: bool = False
-         ) -> FilterResult:
+         gain: str = "auto", tol: float = 1e-12, store_covariances: bool = False,
+         relative_degree: int | str = 1) -> FilterResult:
     """Unbiased minimum-variance input and state filter (Gillijns & De Moor 2007).
 
     Estimates the states x and the unknown input d of::
@@ -613,6 +625,10 @@ def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
         Relative change of ``P[k|k-1]`` (max norm) that counts as converged.
     store_covariances : bool
         Keep every ``P[k|k]`` in ``P_filt_history`` (memory n^2 N).
+    relative_degree : int or "auto"
+        1 (default): the filter of eqs. (7)-(18), d[k-1] from y[k]. An int
+        r >= 2 or "auto" (detect r from the model and Q, R, and report it in
+        ``FilterResult.relative_degree``) runs :func:`~greybox.delayed_uikf`.
 
     Returns
     -------
@@ -623,7 +639,7 @@ def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     ModelError
         ``sys`` is continuous-time, or d feeds through to y.
     RankConditionError
-        rank(C G) = rank(G) = md (17) fails.
+        rank(C G) = rank(G) = md (17) fails (for relative_degree = 1).
     DimensionError, DataError, CovarianceError
         Wrong shapes, NaN/inf data, non-symmetric or indefinite Q, R, P0.
 
@@ -666,6 +682,12 @@ def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     >>> res.d_est.shape
     (1, 500)
     """
+    if not (isinstance(relative_degree, (int, np.integer)) and relative_degree == 1):
+        from .delayed import delayed_uikf
+
+        return delayed_uikf(sys, y, u, unknown=unknown, Q=Q, R=R,
+                            relative_degree=relative_degree, x0=x0, P0=P0, level=level,
+                            gain=gain, tol=tol, store_covariances=store_covariances)
     level, gain, tol = _check_options(level, gain, tol)
     parts = _prepare(sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown=False)
     return _run(*parts, level=level, gain=gain, tol=tol, store_covariances=store_covariances)
