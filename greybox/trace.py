@@ -38,6 +38,7 @@ from .metrics import autocorrelation
 from .ident.regression import SparseLaw, forward_selection
 from .system import discretize, named_ss
 from .update import Subsystem, UpdatedModel, augment_model, identify_subsystem, psd_part
+from .validate import unstable_reason
 
 __all__ = [
     "Channel",
@@ -664,12 +665,16 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     # d^ barely above its own estimation noise: choose the law by output error
     excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
         max(float(np.trace(np.atleast_2d(res.d_cov))), 1e-300) - 1.0
-    if excess < _LOW_SNR and not pair_mean:
+    oe_ok = not unstable_reason(model)  # output error needs a simulation that stays bounded
+    if not oe_ok:
+        notes.append("the nominal model is unstable: the static law is the least-squares fit "
+                     "on d^ (no output-error refinement)")
+    if excess < _LOW_SNR and not pair_mean and oe_ok:
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units)
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
                      f"Pd): static law chosen by output error on y")
-    elif not law.nonlinear and law.npar:
+    elif not law.nonlinear and law.npar and oe_ok:
         tscale = np.sqrt(np.mean(_eval_terms(law.spec, law.eps, x, uu) ** 2, axis=1))
         law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
                                             k0, labels, channel.units, tscale)
