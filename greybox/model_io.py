@@ -47,7 +47,7 @@ import control as ct
 import numpy as np
 
 from ._validation import check_covariance, check_matrix
-from .exceptions import DataError, DimensionError, GreyboxWarning, ModelError
+from .exceptions import CovarianceError, DataError, DimensionError, GreyboxWarning, ModelError
 from .system import named_ss
 
 __all__ = ["ModelSpec", "read_model", "model_to_dict", "write_model", "read_csv"]
@@ -276,7 +276,7 @@ def read_model(path) -> ModelSpec:
         D = check_matrix(d.get("D", np.zeros((p, m))), (p, m), "D") if m else np.zeros((p, 0))
         Q = check_covariance(d["Q"], n, "Q", definite=False)
         R = check_covariance(d["R"], p, "R", definite=True)
-    except (DimensionError, DataError) as e:
+    except (DimensionError, DataError, CovarianceError) as e:
         raise ModelError(f"{path}: {e} (states {n}, inputs {m}, outputs {p})") from e
     for k, M in (("A", A), ("B", B), ("C", C), ("D", D), ("Q", Q), ("R", R)):
         if M.size and np.max(np.abs(M)) > MAX_MAGNITUDE:
