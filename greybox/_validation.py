@@ -29,7 +29,13 @@ __all__ = [
 
 
 def check_positive(value, name: str, *, integer: bool = False, allow_zero: bool = False):
-    """Return ``value`` if it is a finite positive number (or integer)."""
+    """Return ``value`` if it is a finite positive number (or integer).
+
+    Strings and booleans are refused (``"0.8"`` is a typo for 0.8, not 0.8).
+    """
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise DimensionError(f"{name} must be a number; found {value!r} "
+                             f"({type(value).__name__})")
     try:
         v = float(value)
     except (TypeError, ValueError) as e:

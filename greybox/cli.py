@@ -1,23 +1,38 @@
 """Command line of greybox.
 
-``greybox demo tape-drive [--json] [--out DIR] [--force]``
-``greybox demo motor-pump [--json] [--out DIR] [--force]``
-``greybox update MODEL.json ESTIMATION.csv --validate VALIDATION.csv [--out DIR] [--json] [--force]``
+``greybox demo tape-drive|motor-pump [--json] [--out DIR] [--force] [--no-plots] [--quiet]``
+``greybox update MODEL.json ESTIMATION.csv --validate VALIDATION.csv [--out DIR] [--json]
+[--force] [--no-plots] [--quiet]``
 
 The command line only parses arguments, calls public functions and prints or
-saves their records. Bad input ends with one line on stderr and exit code 2.
+saves their records. Bad input ends with one line on stderr and exit code 2;
+Ctrl-C with one line and exit code 130. Every precondition (input files,
+output folder writable) is checked before computing. Under ``--json`` stdout
+holds the JSON document alone (strict: no NaN or Infinity); warnings,
+progress and anything a numerical library prints go to stderr. A report
+folder is written into a temporary folder beside the target and renamed into
+place at the end, so an interrupted run leaves the old report or the new one.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import contextlib
+import os
 import sys
+import warnings
 from pathlib import Path
+
+import numpy as np
 
 from .exceptions import GreyboxError
 
 __all__ = ["main"]
+
+
+def _pct(v: float, fmt: str) -> str:
+    """A percentage, or "n/a" when it is undefined (NaN)."""
+    return "n/a" if not np.isfinite(v) else format(v, fmt)
 
 
 def _fmt_table2(t2) -> str:
@@ -46,49 +61,111 @@ def _fmt_table3(t3) -> str:
     for name, v in t3.rows.items():
         ref = paper.get(name)
         ref_s = f"{ref[0]} / {ref[1]} / {ref[2]}" if ref else "-"
-        lines.append(f"  {name:<26}{v.order:>6}{v.se.value:>9.2f}{v.pe.value:>9.2f}{ref_s:>22}")
+        lines.append(f"  {name:<26}{v.order:>6}{_pct(v.se.value, '>9.2f'):>9}"
+                     f"{_pct(v.pe.value, '>9.2f'):>9}{ref_s:>22}")
     lines.append(f"  greybox selects: {t3.selected} (orders 0..2, see identify_subsystem)")
     return "\n".join(lines)
 
 
-def _demo_tape_drive(args) -> int:
-    from .io import atomic_write_json, check_output_dir, prepare_output_dir, record_outputs
+class _Run:
+    """What every subcommand shares: quiet stdout, progress, the staged output folder."""
+
+    def __init__(self, args):
+        self.args = args
+        self.stage = None
+        self.progress = None
+        if not args.quiet and sys.stderr.isatty():
+            from .progress import TerminalProgress
+
+            self.progress = TerminalProgress()
+
+    @contextlib.contextmanager
+    def computing(self):
+        """stdout (file descriptor 1) sent to stderr while computing.
+
+        Fortran and C libraries (LAPACK's XERBLA, SLICOT) print on the file
+        descriptor, bypassing ``sys.stdout``: under ``--json`` nothing but
+        the document may reach stdout.
+        """
+        sys.stdout.flush()
+        try:
+            saved = os.dup(1)
+        except OSError:  # pragma: no cover - no file descriptor 1
+            yield
+            return
+        try:
+            os.dup2(2, 1)
+            yield
+        finally:
+            sys.stdout.flush()
+            os.dup2(saved, 1)
+            os.close(saved)
+            if self.progress is not None:
+                self.progress.close()
+
+    def stage_dir(self) -> Path:
+        from .io import stage_output_dir
+
+        self.stage = stage_output_dir(self.args.out)
+        return self.stage
+
+    def commit(self, kind: str, names) -> Path:
+        from .io import commit_output_dir
+
+        out = commit_output_dir(self.stage, self.args.out, kind=kind, names=names,
+                                force=self.args.force)
+        self.stage = None
+        return out
+
+    def cleanup(self) -> None:
+        from .io import discard_output_dir
+
+        discard_output_dir(self.stage)
+        self.stage = None
+
+
+def _save(fig_path_pairs, figures, stage, final):
+    """Save figures into the staging folder; record their final paths."""
+    import matplotlib.pyplot as plt
+
     from .io import save_figure
+
+    for key, fig in fig_path_pairs:
+        save_figure(fig, stage / f"{key}.png")
+        figures[key] = str(Path(final) / f"{key}.png")
+        plt.close(fig)
+
+
+def _demo_tape_drive(args, run: _Run) -> int:
+    from .io import atomic_write_json, check_output_dir, dumps_json
     from .reproduce import reproduce_table2, reproduce_table3
 
     check_output_dir(args.out, force=args.force, kind="demo")  # fail fast, create nothing
-    t2 = reproduce_table2()
-    t3 = reproduce_table3(t2)
-    out = prepare_output_dir(args.out, force=args.force, kind="demo")
-    summary = {"table2": t2.as_dict(), "table3": t3.as_dict()}
-    figures = {}
-    if not args.no_plots:
-        import matplotlib
+    with run.computing():
+        t2 = reproduce_table2()
+        t3 = reproduce_table3(t2)
+        summary = {"table2": t2.as_dict(), "table3": t3.as_dict()}
+        figures = {}
+        stage = run.stage_dir()
+        if not args.no_plots:
+            import matplotlib
 
-        matplotlib.use("Agg")
-        from .plotting import plot_unknown_input
+            matplotlib.use("Agg")
+            from .plotting import plot_residual_autocorrelation, plot_unknown_input
 
-        arts = plot_unknown_input(t2.uif, "T", d_true=t2.tension, window=(1750, 2250))
-        arts["ax"].set_title("Fig. 1: true and estimated tape tension")
-        arts["ax"].set_ylabel("tape tension T [N]")
-        path = out / "fig1_tension.png"
-        save_figure(arts["figure"], path)
-        figures["fig1"] = str(path)
-        import matplotlib.pyplot as plt
-
-        plt.close(arts["figure"])
-        from .plotting import plot_residual_autocorrelation
-
-        arts = plot_residual_autocorrelation([t3.rows["initial"], t3.rows[t3.selected]])
-        path = out / "fig2_autocorrelation.png"
-        save_figure(arts["figure"], path)
-        figures["fig2"] = str(path)
-        plt.close(arts["figure"])
-    summary["figures"] = figures
-    atomic_write_json(out / "summary.json", summary)
-    record_outputs(out, "demo", ["summary.json", *figures.values()])
+            arts = plot_unknown_input(t2.uif, "T", d_true=t2.tension, window=(1750, 2250))
+            arts["ax"].set_title("Fig. 1: true and estimated tape tension")
+            arts["ax"].set_ylabel("tape tension T [N]")
+            _save([("fig1_tension", arts["figure"])], figures, stage, args.out)
+            arts = plot_residual_autocorrelation([t3.rows["initial"], t3.rows[t3.selected]])
+            _save([("fig2_autocorrelation", arts["figure"])], figures, stage, args.out)
+            figures = {"fig1": figures.get("fig1_tension"),
+                       "fig2": figures.get("fig2_autocorrelation")}
+        summary["figures"] = figures
+        atomic_write_json(stage / "summary.json", summary)
+        run.commit("demo", ["summary.json", *figures.values()])
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(dumps_json(summary))
     else:
         print(_fmt_table2(t2))
         print()
@@ -96,10 +173,6 @@ def _demo_tape_drive(args) -> int:
         for name, path in figures.items():
             print(f"saved {name}: {path}")
     return 0
-
-
-def _demo(args) -> int:
-    return _demo_motor_pump(args) if args.example == "motor-pump" else _demo_tape_drive(args)
 
 
 def _fmt_table5(t5) -> str:
@@ -122,39 +195,43 @@ def _fmt_table5(t5) -> str:
     return "\n".join(lines)
 
 
-def _demo_motor_pump(args) -> int:
-    from .io import atomic_write_json, check_output_dir, prepare_output_dir, record_outputs
-    from .io import save_figure
+def _demo_motor_pump(args, run: _Run) -> int:
+    from .io import atomic_write_json, check_output_dir, dumps_json
     from .reproduce import reproduce_table5
 
     check_output_dir(args.out, force=args.force, kind="demo")  # fail fast, create nothing
-    t5 = reproduce_table5()
-    out = prepare_output_dir(args.out, force=args.force, kind="demo")
-    summary = {"table5": t5.as_dict()}
-    figures = {}
-    if not args.no_plots:
-        import matplotlib
+    with run.computing():
+        t5 = reproduce_table5()
+        summary = {"table5": t5.as_dict()}
+        figures = {}
+        stage = run.stage_dir()
+        if not args.no_plots:
+            import matplotlib
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+            matplotlib.use("Agg")
+            from .plotting import plot_pump_load
 
-        from .plotting import plot_pump_load
-
-        arts = plot_pump_load(t5)
-        path = out / "fig3_pump_load.png"
-        save_figure(arts["figure"], path)
-        figures["fig3"] = str(path)
-        plt.close(arts["figure"])
-    summary["figures"] = figures
-    atomic_write_json(out / "summary.json", summary)
-    record_outputs(out, "demo", ["summary.json", *figures.values()])
+            arts = plot_pump_load(t5)
+            _save([("fig3_pump_load", arts["figure"])], figures, stage, args.out)
+            figures = {"fig3": figures.get("fig3_pump_load")}
+        summary["figures"] = figures
+        atomic_write_json(stage / "summary.json", summary)
+        run.commit("demo", ["summary.json", *figures.values()])
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(dumps_json(summary))
     else:
         print(_fmt_table5(t5))
         for name, path in figures.items():
             print(f"saved {name}: {path}")
     return 0
+
+
+#: Example name -> function(args, run) of ``greybox demo``; add new demos here.
+DEMOS = {"tape-drive": _demo_tape_drive, "motor-pump": _demo_motor_pump}
+
+
+def _demo(args, run: _Run) -> int:
+    return DEMOS[args.example](args, run)
 
 
 def _fmt_update(rep) -> str:
@@ -164,8 +241,10 @@ def _fmt_update(rep) -> str:
         lines += [f"  {s}" for s in rep.effect.parameter_notes]
     lines.append(f"  {'model':<24}{'order':>6}{'SE [%]':>10}{'PE [%]':>10}{'white':>7}")
     for name, v in rep.table.items():
-        lines.append(f"  {name:<24}{v.order:>6}{v.se.value:>10.3g}{v.pe.value:>10.3g}"
+        lines.append(f"  {name:<24}{v.order:>6}{_pct(v.se.value, '>10.3g'):>10}"
+                     f"{_pct(v.pe.value, '>10.3g'):>10}"
                      f"{'yes' if v.whiteness.all_white else 'no':>7}")
+    lines += [f"note: {s}" for s in rep.notes]
     return "\n".join(lines)
 
 
@@ -183,83 +262,86 @@ def _report_markdown(rep, figures) -> str:
     out += ["", "## Validation data: before and after (eq. 42, relative RMS)", "",
             "| model | order | SE [%] | PE [%] | residual white |", "|---|---|---|---|---|"]
     for name, v in rep.table.items():
-        out.append(f"| {name} | {v.order} | {v.se.value:.3g} | {v.pe.value:.3g} | "
+        out.append(f"| {name} | {v.order} | {_pct(v.se.value, '.3g')} | "
+                   f"{_pct(v.pe.value, '.3g')} | "
                    f"{'yes' if v.whiteness.all_white else 'no'} |")
     out += ["", "## Figures", ""] + [f"![{k}]({Path(v).name})" for k, v in figures.items()]
     return "\n".join(out) + "\n"
 
 
-def _update(args) -> int:
-    from .io import (
-        atomic_write_json,
-        atomic_write_text,
-        check_output_dir,
-        prepare_output_dir,
-        record_outputs,
-        save_figure,
-    )
+def _warn(msg: str) -> None:
+    print(f"greybox: warning: {msg}", file=sys.stderr)
+
+
+def _update(args, run: _Run) -> int:
+    from .io import atomic_write_json, atomic_write_text, check_output_dir, dumps_json
     from .model_io import model_to_dict, read_csv, read_model
     from .workflow import close_the_loop
 
-    check_output_dir(args.out, force=args.force, kind="report")  # fail fast, create nothing
+    # every precondition first: the output folder, then all input files
+    check_output_dir(args.out, force=args.force, kind="report")
     spec = read_model(args.model)
     ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
     y, u = read_csv(args.estimation, inputs=ins, outputs=outs, Ts=spec.Ts)
     yv, uv = read_csv(args.validate, inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
-    rep = close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
-                         channels=spec.channels)
-    out = prepare_output_dir(args.out, force=args.force, kind="report")
-    figures = {}
-    if not args.no_plots:
-        import matplotlib
+    try:
+        same = os.path.samefile(args.estimation, args.validate)
+    except OSError:
+        same = False
+    if same or (y.shape == yv.shape and np.array_equal(y, yv) and np.array_equal(u, uv)):
+        _warn("the estimation and validation data are the same; the validation table then "
+              "measures the fit, not the prediction of fresh data")
+    with run.computing():
+        rep = close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
+                             channels=spec.channels, progress=run.progress)
+        stage = run.stage_dir()
+        figures = {}
+        if not args.no_plots:
+            import matplotlib
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+            matplotlib.use("Agg")
+            from .plotting import plot_outputs, plot_residual_autocorrelation, plot_unknown_input
 
-        from .plotting import plot_outputs, plot_residual_autocorrelation, plot_unknown_input
-
-        rows = [rep.table["nominal"]] + ([rep.table["updated"]] if rep.updated else [])
-        arts = plot_residual_autocorrelation(rows)
-        figures["autocorrelation"] = out / "autocorrelation.png"
-        save_figure(arts["figure"], figures["autocorrelation"])
-        plt.close(arts["figure"])
-        arts = plot_outputs(yv, list(rep.table.values()), dt=spec.Ts)
-        figures["outputs"] = out / "outputs.png"
-        save_figure(arts["figure"], figures["outputs"])
-        plt.close(arts["figure"])
-        if rep.trace is not None and rep.trace.filter_result is not None:
-            arts = plot_unknown_input(rep.trace.filter_result, 0)
-            figures["d_estimate"] = out / "d_estimate.png"
-            save_figure(arts["figure"], figures["d_estimate"])
-            plt.close(arts["figure"])
-    summary = rep.as_dict()
-    summary["figures"] = {k: str(v) for k, v in figures.items()}
-    summary["updated_model"] = str(out / "updated_model.json")
-    atomic_write_json(out / "updated_model.json",
-                      model_to_dict(rep.model.sys, rep.model.Q, rep.model.R))
-    atomic_write_json(out / "summary.json", summary)
-    atomic_write_text(out / "report.md", _report_markdown(rep, figures))
-    record_outputs(out, "report", ["updated_model.json", "summary.json", "report.md",
-                                   *figures.values()])
+            rows = [rep.table["nominal"]] + ([rep.table["updated"]] if rep.updated else [])
+            figs = [("autocorrelation", plot_residual_autocorrelation(rows)["figure"]),
+                    ("outputs", plot_outputs(yv, list(rep.table.values()), dt=spec.Ts)["figure"])]
+            if rep.trace is not None and rep.trace.filter_result is not None:
+                figs.append(("d_estimate", plot_unknown_input(rep.trace.filter_result, 0)["figure"]))
+            _save(figs, figures, stage, args.out)
+        summary = rep.as_dict()
+        summary["figures"] = figures
+        summary["updated_model"] = str(Path(args.out) / "updated_model.json")
+        atomic_write_json(stage / "updated_model.json",
+                          model_to_dict(rep.model.sys, rep.model.Q, rep.model.R))
+        atomic_write_json(stage / "summary.json", summary)
+        atomic_write_text(stage / "report.md", _report_markdown(rep, figures))
+        out = run.commit("report", ["updated_model.json", "summary.json", "report.md",
+                                    *figures.values()])
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(dumps_json(summary))
     else:
         print(_fmt_update(rep))
         print(f"report: {out / 'report.md'}")
     return 0
 
 
+def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
+    p.add_argument("--json", action="store_true", help="print the JSON summary only")
+    p.add_argument("--out", default=default_out, help=f"{what} (default: %(default)s)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing output, or write into a folder holding files "
+                        "greybox did not write (they are kept)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress on stderr (shown only when stderr is a terminal)")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="greybox", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="reproduce one of the paper's examples")
-    demo.add_argument("example", choices=["tape-drive", "motor-pump"], help="which example")
-    demo.add_argument("--json", action="store_true", help="print a JSON summary only")
-    demo.add_argument("--out", default="greybox-demo-output",
-                      help="folder for figures and summary.json (default: %(default)s)")
-    demo.add_argument("--force", action="store_true",
-                      help="write into --out even if it holds files greybox did not write")
-    demo.add_argument("--no-plots", action="store_true", help="skip the figures")
+    demo.add_argument("example", choices=sorted(DEMOS), help="which example")
+    _common(demo, "greybox-demo-output", "folder for figures and summary.json")
     demo.set_defaults(func=_demo)
     upd = sub.add_parser("update", help="find, trace and add the effect a model lacks, "
                                         "from measured data")
@@ -268,24 +350,52 @@ def _parser() -> argparse.ArgumentParser:
                                         "optional time)")
     upd.add_argument("--validate", required=True, metavar="VALIDATION.csv",
                      help="validation data CSV, same columns")
-    upd.add_argument("--out", default="greybox-update-report",
-                     help="report folder (default: %(default)s)")
-    upd.add_argument("--json", action="store_true", help="print the JSON summary")
-    upd.add_argument("--force", action="store_true", help="overwrite an existing report")
-    upd.add_argument("--no-plots", action="store_true", help="skip the figures")
+    _common(upd, "greybox-update-report", "report folder")
     upd.set_defaults(func=_update)
     return p
 
 
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``greybox`` command; returns the exit code."""
+    """Entry point of the ``greybox`` command; returns the exit code.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        0 on success, 2 on bad input, 130 when interrupted (Ctrl-C).
+    """
     parser = _parser()
     args = parser.parse_args(argv)
+    run = _Run(args)
+    show = warnings.showwarning
+
+    def _show(message, category, filename, lineno, file=None, line=None):
+        _warn(_one_line(message) if isinstance(message, Warning) else " ".join(str(message).split()))
+
     try:
-        return args.func(args)
+        warnings.showwarning = _show
+        return args.func(args, run)
+    except KeyboardInterrupt:
+        print("greybox: interrupted", file=sys.stderr)
+        return 130
     except (GreyboxError, OSError) as e:
-        print(f"greybox: error: {e}", file=sys.stderr)
+        print(f"greybox: error: {_one_line(e)}", file=sys.stderr)
         return 2
+    except np.linalg.LinAlgError as e:
+        print(f"greybox: error: numerical failure ({_one_line(e)}); check the model's units "
+              f"and scaling", file=sys.stderr)
+        return 2
+    finally:
+        warnings.showwarning = show
+        run.cleanup()
 
 
 if __name__ == "__main__":  # pragma: no cover

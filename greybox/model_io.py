@@ -19,15 +19,27 @@ MODEL.json schema (one JSON object)::
       "name": "my model"                   # optional
     }
 
+The file must be UTF-8 JSON. It is read strictly: unknown keys (a typo such
+as ``chanels``), repeated keys, empty or repeated names, an all-zero channel
+and a ``Ts`` that disagrees with the model's time scale by orders of
+magnitude are refused with one line saying what to change. A model without
+inputs (``"inputs": []``, B and D may then be omitted) is valid.
+
 CSV: a header row naming every input and every output of the model (any
 order) and optionally a time column named ``time`` or ``t`` [s]; one row
-per sample; numbers only.
+per sample; numbers only (UTF-8, an Excel byte-order mark is accepted).
+:func:`read_csv` parses with numpy's compiled text parser chunk by chunk
+(>= 5e6 values/s; peak memory about twice the numbers) and re-reads only a
+chunk that fails, to name the row and column at fault.
 """
 
 from __future__ import annotations
 
+import codecs
 import csv
+import difflib
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,12 +47,21 @@ import control as ct
 import numpy as np
 
 from ._validation import check_covariance, check_matrix
-from .exceptions import DataError, DimensionError, ModelError
+from .exceptions import CovarianceError, DataError, DimensionError, GreyboxWarning, ModelError
 from .system import named_ss
 
 __all__ = ["ModelSpec", "read_model", "model_to_dict", "write_model", "read_csv"]
 
 _TIME_COLUMNS = ("time", "t")
+_KEYS = ("time", "Ts", "states", "inputs", "outputs", "A", "B", "C", "D", "Q", "R",
+         "channels", "name")
+_REQUIRED = ("time", "Ts", "states", "inputs", "outputs", "A", "C", "Q", "R")
+#: Largest magnitude accepted in data and model files: its square (in sums of
+#: squares, covariances) must stay far below float64's 1.8e308.
+MAX_MAGNITUDE = 1e150
+#: |eigenvalue| * Ts bounds of a continuous model outside which Ts cannot be
+#: the sampling period of data that show its dynamics (refused).
+_TS_TOO_FAST, _TS_TOO_SLOW = 1e-9, 1e3
 
 
 @dataclass(frozen=True)
@@ -66,46 +87,180 @@ class ModelSpec:
     channels: dict | None = None
 
 
-def _names(d, key):
+def _read_text(path, what: str) -> str:
+    """The UTF-8 text of a file (a UTF-8 byte-order mark is dropped), or one clear DataError."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as e:
+        raise DataError(f"cannot read {what} {path}: {e.strerror}") from e
+    enc = _foreign_encoding(raw)
+    if enc:
+        raise DataError(f"{path} is {enc} text; greybox reads UTF-8: save it as UTF-8")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise DataError(f"{path} is not UTF-8 text (byte {e.start}: {raw[e.start:e.start + 1]!r}); "
+                        f"save it as UTF-8") from e
+
+
+def _foreign_encoding(head: bytes) -> str:
+    for bom, name in ((codecs.BOM_UTF32_LE, "UTF-32"), (codecs.BOM_UTF32_BE, "UTF-32"),
+                      (codecs.BOM_UTF16_LE, "UTF-16"), (codecs.BOM_UTF16_BE, "UTF-16")):
+        if head.startswith(bom):
+            return name
+    if len(head) >= 4 and head[1:4:2] == b"\0\0" and head[0] and head[2]:
+        return "UTF-16"  # little-endian without a byte-order mark
+    return ""
+
+
+def _no_repeated_keys(pairs):
+    keys = [k for k, _ in pairs]
+    seen = set()
+    for k in keys:
+        if k in seen:
+            raise ModelError(f"key {k!r} appears twice in one object; keep one")
+        seen.add(k)
+    return dict(pairs)
+
+
+def _names(d, key, path, *, allow_empty=False):
     v = d.get(key)
     if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
-        raise ModelError(f"MODEL.json: '{key}' must be a list of names; found {v!r}")
+        raise ModelError(f"{path}: '{key}' must be a list of names; found {v!r}")
+    if not v and not allow_empty:
+        raise ModelError(f"{path}: '{key}' is empty; give at least one name")
+    blank = [i for i, s in enumerate(v) if not s.strip()]
+    if blank:
+        raise ModelError(f"{path}: '{key}'[{blank[0]}] is an empty name; every signal needs "
+                         f"a name")
     if len(set(v)) != len(v):
-        raise ModelError(f"MODEL.json: '{key}' has repeated names {v}")
+        raise ModelError(f"{path}: '{key}' has repeated names {v}")
     return v
 
 
+def _check_channels(chans, xs, path):
+    if chans is None:
+        return None
+    if not isinstance(chans, dict):
+        raise ModelError(f"{path}: 'channels' must be an object {{name: G column or state "
+                         f"names}}; found {type(chans).__name__}")
+    if not chans:
+        raise ModelError(f"{path}: 'channels' is empty; leave it out to try every state "
+                         f"equation")
+    n = len(xs)
+    for name, v in chans.items():
+        if not name.strip():
+            raise ModelError(f"{path}: a channel has an empty name; name every channel")
+        if isinstance(v, list) and v and all(isinstance(t, str) for t in v):
+            bad = [t for t in v if t not in xs]
+            if bad:
+                raise ModelError(f"{path}: channel {name!r} names unknown states {bad}; "
+                                 f"states are {xs}")
+            if len(set(v)) != len(v):
+                raise ModelError(f"{path}: channel {name!r} repeats a state: {v}")
+            continue
+        try:
+            G = check_matrix(v, (n, 1), f"channel {name!r}") if not (
+                isinstance(v, list) and v and isinstance(v[0], list)) else \
+                np.array(v, dtype=float)
+        except (DimensionError, DataError) as e:
+            raise ModelError(f"{path}: {e}; a channel is a G column of {n} numbers or a list "
+                             f"of state names") from e
+        except (TypeError, ValueError) as e:
+            raise ModelError(f"{path}: channel {name!r} must be a G column of {n} numbers or "
+                             f"a list of state names; found {v!r}") from e
+        if G.ndim != 2 or G.shape[0] != n or not np.all(np.isfinite(G)):
+            raise ModelError(f"{path}: channel {name!r} has shape {G.shape}; expected ({n},) "
+                             f"or ({n}, md), finite")
+        zero = np.flatnonzero(np.all(G == 0, axis=0))
+        if zero.size:
+            raise ModelError(f"{path}: channel {name!r} is all zero"
+                             f"{f' in column {zero[0]}' if G.shape[1] > 1 else ''}: it enters "
+                             f"no state equation; remove it or give its G entries")
+    return chans
+
+
+def _check_time_scale(A, Ts, time, path):
+    """Refuse a Ts orders of magnitude away from a continuous model's time scale."""
+    if time != "continuous" or A.size == 0:
+        return
+    lam = np.abs(np.linalg.eigvals(A))
+    lam = lam[lam > 1e-12 * max(1.0, lam.max())]
+    if lam.size == 0:
+        return  # pure integrators: no time scale
+    fast, slow = lam.max() * Ts, lam.min() * Ts
+    if fast < _TS_TOO_FAST:
+        raise ModelError(f"{path}: Ts = {Ts:g} s is {fast:.2g} of the model's fastest time "
+                         f"constant ({1 / lam.max():.3g} s): the sampled model would be the "
+                         f"identity to {-np.log10(fast):.0f} digits. Check Ts (in seconds) and "
+                         f"the units of A")
+    if slow > _TS_TOO_SLOW:
+        raise ModelError(f"{path}: Ts = {Ts:g} s is {slow:.2g} times the model's slowest time "
+                         f"constant ({1 / lam.min():.3g} s): every mode settles (or explodes) "
+                         f"within one sample. Check Ts (in seconds) and the units of A")
+    if fast < 1e-6 or slow > 20:
+        warnings.warn(f"{path}: Ts = {Ts:g} s vs the model's time constants "
+                      f"{1 / lam.max():.3g}..{1 / lam.min():.3g} s: "
+                      f"{'heavily oversampled' if fast < 1e-6 else 'every mode settles within a few samples'}"
+                      f"; check Ts and the units of A", GreyboxWarning, stacklevel=3)
+
+
 def read_model(path) -> ModelSpec:
-    """Read and check MODEL.json (schema in the module docstring)."""
+    """Read and check MODEL.json (schema in the module docstring).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The MODEL.json file (UTF-8).
+
+    Returns
+    -------
+    ModelSpec
+
+    Raises
+    ------
+    DataError
+        The file cannot be read, is not UTF-8 or not JSON.
+    ModelError
+        The content breaks the schema (one line says what and where).
+    """
+    text = _read_text(path, "model file")
     try:
-        text = Path(path).read_text()
-    except OSError as e:
-        raise DataError(f"cannot read model file {path}: {e.strerror}") from e
-    try:
-        d = json.loads(text)
+        d = json.loads(text, object_pairs_hook=_no_repeated_keys)
     except json.JSONDecodeError as e:
         raise DataError(f"{path} is not valid JSON (line {e.lineno}, column {e.colno}: "
                         f"{e.msg})") from e
+    except ModelError as e:
+        raise ModelError(f"{path}: {e}") from e
+    except RecursionError as e:
+        raise DataError(f"{path}: JSON nested too deeply") from e
     if not isinstance(d, dict):
         raise ModelError(f"{path}: expected a JSON object with A, B, C, ...; found "
                          f"{type(d).__name__}")
-    missing = [k for k in ("time", "Ts", "states", "inputs", "outputs", "A", "B", "C", "Q", "R")
-               if k not in d]
+    unknown = [k for k in d if k not in _KEYS]
+    if unknown:
+        k = unknown[0]
+        near = difflib.get_close_matches(k, _KEYS, n=1)
+        raise ModelError(f"{path}: unknown key {k!r}"
+                         + (f" (did you mean {near[0]!r}?)" if near else "")
+                         + f"; the keys are {list(_KEYS)}")
+    missing = [k for k in _REQUIRED if k not in d]
     if missing:
         raise ModelError(f"{path}: missing keys {missing}; see the MODEL.json schema")
     if d["time"] not in ("continuous", "discrete"):
         raise ModelError(f"{path}: 'time' must be 'continuous' or 'discrete'; found "
                          f"{d['time']!r}")
-    if isinstance(d["Ts"], bool):
+    if isinstance(d["Ts"], bool) or not isinstance(d["Ts"], (int, float)):
         raise ModelError(f"{path}: 'Ts' must be a number [s]; found {d['Ts']!r}")
-    try:
-        Ts = float(d["Ts"])
-    except (TypeError, ValueError) as e:
-        raise ModelError(f"{path}: 'Ts' must be a number [s]; found {d['Ts']!r}") from e
+    Ts = float(d["Ts"])
     if not np.isfinite(Ts) or Ts <= 0:
         raise ModelError(f"{path}: 'Ts' must be > 0 [s]; found {Ts}")
-    xs, us, ys = _names(d, "states"), _names(d, "inputs"), _names(d, "outputs")
+    xs = _names(d, "states", path)
+    us = _names(d, "inputs", path, allow_empty=True)
+    ys = _names(d, "outputs", path)
     n, m, p = len(xs), len(us), len(ys)
+    if m and "B" not in d:
+        raise ModelError(f"{path}: missing key 'B' (the model has {m} inputs)")
     clash = sorted(set(us) & set(ys))
     if clash:
         raise ModelError(f"{path}: {clash} named both as input and as output; CSV columns "
@@ -121,12 +276,17 @@ def read_model(path) -> ModelSpec:
         D = check_matrix(d.get("D", np.zeros((p, m))), (p, m), "D") if m else np.zeros((p, 0))
         Q = check_covariance(d["Q"], n, "Q", definite=False)
         R = check_covariance(d["R"], p, "R", definite=True)
-    except (DimensionError, DataError) as e:
+    except (DimensionError, DataError, CovarianceError) as e:
         raise ModelError(f"{path}: {e} (states {n}, inputs {m}, outputs {p})") from e
-    chans = d.get("channels")
-    if chans is not None and not isinstance(chans, dict):
-        raise ModelError(f"{path}: 'channels' must be an object {{name: G column or state "
-                         f"names}}; found {type(chans).__name__}")
+    for k, M in (("A", A), ("B", B), ("C", C), ("D", D), ("Q", Q), ("R", R)):
+        if M.size and np.max(np.abs(M)) > MAX_MAGNITUDE:
+            raise ModelError(f"{path}: '{k}' has entries up to {np.max(np.abs(M)):.3g}; above "
+                             f"{MAX_MAGNITUDE:g} the computations overflow: rescale (change "
+                             f"units)")
+    if "name" in d and not isinstance(d["name"], str):
+        raise ModelError(f"{path}: 'name' must be a string; found {d['name']!r}")
+    chans = _check_channels(d.get("channels"), xs, path)
+    _check_time_scale(A, Ts, d["time"], path)
     dt = Ts if d["time"] == "discrete" else 0
     sys = named_ss(A, B, C, D, dt, states=xs, inputs=us, outputs=ys,
                    name=str(d.get("name", "model")))
@@ -160,58 +320,164 @@ def write_model(path, sys: ct.StateSpace, Q, R, *, Ts: float | None = None) -> N
 def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
     """Read a measurement CSV; return ``(y, u)``, shapes (noutputs, N), (ninputs, N).
 
+    Parameters
+    ----------
+    path : str or path-like
+        The CSV file (UTF-8; a header row, then one row per sample).
+    inputs, outputs : sequence of str
+        Column names of the model's inputs and outputs.
+    Ts : float
+        The model's sampling period [s], checked against a time column.
+    min_steps : int
+        Fewest rows accepted.
+
+    Returns
+    -------
+    y : ndarray, shape (noutputs, N)
+    u : ndarray, shape (ninputs, N)
+
     Raises
     ------
     DataError
-        Missing or extra columns, non-numeric cells, NaN rows, a time column
-        that disagrees with Ts, or fewer than ``min_steps`` rows.
+        Missing or extra columns, non-numeric cells (row and column named),
+        NaN rows, values beyond 1e150 in magnitude, a time column that
+        disagrees with Ts, fewer than ``min_steps`` rows, a file that is not
+        UTF-8.
     """
     try:
-        with open(path, newline="", encoding="utf-8-sig") as f:  # tolerate Excel's BOM
-            rows = list(csv.reader(f))
+        f = open(path, "rb")
     except OSError as e:
         raise DataError(f"cannot read {path}: {e.strerror}") from e
-    except (UnicodeDecodeError, csv.Error) as e:
-        raise DataError(f"{path} is not a readable CSV file ({e})") from e
-    rows = [r for r in rows if any(c.strip() for c in r)]
-    if not rows:
-        raise DataError(f"{path} is empty; expected a header row and data")
-    header = [h.strip() for h in rows[0]]
-    want = list(inputs) + list(outputs)
-    tcol = [h for h in header if h in _TIME_COLUMNS]
-    missing = [c for c in want if c not in header]
-    extra = [h for h in header if h not in want and h not in _TIME_COLUMNS]
-    if missing or extra or len(set(header)) != len(header) or len(tcol) > 1:
-        raise DataError(f"{path}: columns {header}; expected {want} (+ optional 'time')"
-                        + (f"; missing {missing}" if missing else "")
-                        + (f"; unexpected {extra}" if extra else ""))
-    data = rows[1:]
-    for i, r in enumerate(data):
-        if len(r) != len(header):
-            raise DataError(f"{path}, row {i + 2}: {len(r)} cells; expected {len(header)}")
-    try:
-        arr = np.array([[float(c) for c in r] for r in data], dtype=float).reshape(-1, len(header))
-    except ValueError as e:
-        for i, r in enumerate(data):
-            for j, c in enumerate(r):
-                try:
-                    float(c)
-                except ValueError:
-                    raise DataError(f"{path}, row {i + 2}, column '{header[j]}': {c!r} is not "
-                                    f"a number") from e
-        raise DataError(f"{path}: non-numeric cells") from e
-    bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
-    if bad.size:
-        raise DataError(f"{path}: {bad.size} row(s) with NaN or inf (first: row {bad[0] + 2}); "
-                        f"remove or interpolate them")
-    if arr.shape[0] < min_steps:
-        raise DataError(f"{path}: {arr.shape[0]} samples; at least {min_steps} are needed")
-    if tcol:
-        t = arr[:, header.index(tcol[0])]
+    with f:
+        head = f.read(4)
+        enc = _foreign_encoding(head)
+        if enc:
+            raise DataError(f"{path} is {enc} text; greybox reads UTF-8: save it as UTF-8")
+        f.seek(3 if head.startswith(codecs.BOM_UTF8) else 0)
+        header, line_no = _read_header(f, path)
+        want = list(inputs) + list(outputs)
+        tcol = [h for h in header if h in _TIME_COLUMNS]
+        missing = [c for c in want if c not in header]
+        extra = [h for h in header if h not in want and h not in _TIME_COLUMNS]
+        if missing or extra or len(set(header)) != len(header) or len(tcol) > 1:
+            raise DataError(f"{path}: columns {header}; expected {want} (+ optional 'time')"
+                            + (f"; missing {missing}" if missing else "")
+                            + (f"; unexpected {extra}" if extra else ""))
+        ncol = len(header)
+        parts = []
+        for first, chunk in _chunks(f, line_no + 1):
+            parts.append(_parse_chunk(chunk, first, ncol, header, path))
+    nrows = sum(a.shape[0] for a in parts)
+    if nrows < min_steps:
+        raise DataError(f"{path}: {nrows} samples; at least {min_steps} are needed")
+    y, u = np.empty((len(outputs), nrows)), np.empty((len(inputs), nrows))
+    t = np.empty(nrows) if tcol else None
+    dest = [(y[i], outputs[i]) for i in range(len(outputs))] + \
+        [(u[i], inputs[i]) for i in range(len(inputs))] + ([(t, tcol[0])] if tcol else [])
+    k = 0
+    while parts:  # move the chunks into the signals, freeing each as it goes
+        a = parts.pop(0)
+        for v, c in dest:
+            v[k:k + a.shape[0]] = a[:, header.index(c)]
+        k += a.shape[0]
+    for v, c in dest:
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            raise DataError(f"{path}: {bad.size} row(s) with NaN or inf (first: data row "
+                            f"{bad[0] + 1}, column '{c}'); remove or interpolate them")
+        big = np.flatnonzero(np.abs(v) > MAX_MAGNITUDE)
+        if big.size:
+            raise DataError(f"{path}: data row {big[0] + 1}, column '{c}': {v[big[0]]:.3g} is "
+                            f"beyond {MAX_MAGNITUDE:g} in magnitude and would overflow the "
+                            f"fit; rescale (change units)")
+    if t is not None:
         dtv = np.diff(t)
-        if np.max(np.abs(dtv - Ts)) > 1e-3 * Ts:
+        if dtv.size and np.max(np.abs(dtv - Ts)) > 1e-3 * Ts:
             raise DataError(f"{path}: the time column steps by {np.median(dtv):g} s (range "
                             f"{dtv.min():g}..{dtv.max():g}); the model's Ts is {Ts:g} s")
-    u = np.array([arr[:, header.index(c)] for c in inputs]).reshape(len(inputs), -1)
-    y = np.array([arr[:, header.index(c)] for c in outputs]).reshape(len(outputs), -1)
     return y, u
+
+
+_CHUNK_BYTES = 1 << 22
+
+
+def _read_header(f, path):
+    """Header cells and the header's line number (blank leading lines skipped)."""
+    line_no = 0
+    while True:
+        raw = f.readline()
+        if not raw:
+            raise DataError(f"{path} is empty; expected a header row and data")
+        line_no += 1
+        try:
+            line = raw.decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise DataError(f"{path} is not UTF-8 text (line {line_no}: {e.reason}); save it "
+                            f"as UTF-8") from e
+        if line.strip().strip(","):
+            try:
+                cells = next(csv.reader([line]))
+            except csv.Error as e:
+                raise DataError(f"{path}: header is not readable CSV ({e})") from e
+            return [h.strip() for h in cells], line_no
+
+
+def _chunks(f, first):
+    """``(first line number, bytes)`` of whole lines, about 4 MB at a time."""
+    while True:
+        chunk = f.read(_CHUNK_BYTES)
+        if not chunk:
+            return
+        if not chunk.endswith(b"\n"):
+            chunk += f.readline()
+        yield first, chunk
+        first += chunk.count(b"\n")
+
+
+def _parse_chunk(chunk: bytes, first: int, ncol: int, header, path):
+    """Numbers of whole CSV lines, shape (rows, ncol): numpy's parser, else a careful one."""
+    b = np.frombuffer(chunk, dtype=np.uint8)
+    nl = np.flatnonzero(b == 10)
+    if b.size and b[-1] != 10:
+        nl = np.append(nl, b.size)
+    nlines = nl.size
+    if nlines and b.max() < 128:  # plain ASCII
+        cpos = np.flatnonzero(b == 44)
+        per_line = np.bincount(np.searchsorted(nl, cpos), minlength=nlines)
+        line_len = np.diff(nl, prepend=-1)
+        if np.all(per_line == ncol - 1) and np.all(line_len > ncol):
+            try:
+                a = np.fromstring(chunk.replace(b"\n", b","), sep=",")
+            except ValueError:
+                a = None
+            if a is not None and a.size == nlines * ncol:
+                return a.reshape(nlines, ncol)
+    try:
+        text = chunk.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = first + chunk[:e.start].count(b"\n")
+        raise DataError(f"{path} is not UTF-8 text (line {line}: {e.reason}); save it as "
+                        f"UTF-8") from e
+    return _parse_lines_slowly(text.splitlines(keepends=True), first, ncol, header, path)
+
+
+def _parse_lines_slowly(lines, first, ncol, header, path):
+    """Cell by cell: skips blank lines, names the row and column of a bad cell."""
+    rows = []
+    try:
+        for i, r in enumerate(csv.reader(lines)):
+            if not any(c.strip() for c in r):
+                continue
+            if len(r) != ncol:
+                raise DataError(f"{path}, row {first + i}: {len(r)} cells; expected {ncol}")
+            row = []
+            for j, c in enumerate(r):
+                try:
+                    row.append(float(c))
+                except ValueError:
+                    raise DataError(f"{path}, row {first + i}, column '{header[j]}': {c!r} is "
+                                    f"not a number") from None
+            rows.append(row)
+    except csv.Error as e:
+        raise DataError(f"{path} is not a readable CSV file ({e})") from e
+    return np.array(rows, dtype=float).reshape(-1, ncol)

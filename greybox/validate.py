@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ._lti import lti_states
 from ._validation import check_discrete, check_same_length, check_signal, check_vector
-from .exceptions import DataError, DimensionError
+from .exceptions import DimensionError
 from .filters import kalman_filter
 from .metrics import (
     RelativeError,
@@ -28,7 +28,57 @@ from .metrics import (
     whiteness_test,
 )
 
-__all__ = ["ModelValidation", "validate_model", "simulate_output", "estimate_initial_state"]
+__all__ = ["ModelValidation", "validate_model", "simulate_output", "estimate_initial_state",
+           "unstable_reason", "undefined_error", "UNSTABLE_TOL"]
+
+#: A discrete model whose spectral radius exceeds ``1 + UNSTABLE_TOL`` is unstable:
+#: its simulation error is undefined (the simulation diverges from any error in x0).
+UNSTABLE_TOL = 1e-6
+
+
+def unstable_reason(sys: ct.StateSpace) -> str:
+    """Why a discrete model's simulation error is undefined, or "" when it is defined.
+
+    A model with an eigenvalue outside the unit circle (spectral radius
+    above ``1 + UNSTABLE_TOL``) amplifies any initial-state or input error
+    without bound, so its simulated output says nothing about the model:
+    judge it by the one-step prediction error (PE) and the innovations.
+    Marginal modes (eigenvalues on the unit circle, e.g. integrators) keep
+    SE defined.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete model.
+
+    Returns
+    -------
+    str
+    """
+    A = np.asarray(sys.A, dtype=float)
+    if A.size == 0:
+        return ""
+    rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+    if rho <= 1.0 + UNSTABLE_TOL:
+        return ""
+    return (f"the model is unstable (spectral radius {rho:.6g} > 1): its simulation error is "
+            f"undefined; PE used")
+
+
+def undefined_error(noutputs: int) -> RelativeError:
+    """A :class:`RelativeError` that could not be computed: NaN value and per-output values.
+
+    Parameters
+    ----------
+    noutputs : int
+        Number of outputs.
+
+    Returns
+    -------
+    RelativeError
+    """
+    return RelativeError(value=float("nan"), per_output=np.full(noutputs, np.nan),
+                         squared=False)
 
 
 @dataclass(frozen=True)
@@ -42,7 +92,8 @@ class ModelValidation:
     order : int
         Number of states.
     se : RelativeError
-        Simulation error (eq. 42, relative RMS) [%].
+        Simulation error (eq. 42, relative RMS) [%]; NaN when undefined
+        (see ``se_reason``).
     pe : RelativeError
         One-step prediction error [%].
     whiteness : WhitenessTest
@@ -54,12 +105,15 @@ class ModelValidation:
     band : float
         Half-width of the 99 % band of both correlations.
     y_sim : ndarray, shape (noutputs, nsteps)
-        Simulated output.
+        Simulated output (NaN when the simulation is undefined).
     y_pred : ndarray, shape (noutputs, nsteps)
         One-step predicted output.
     residuals : ndarray, shape (noutputs, nsteps)
         One-step prediction residuals.
     output_labels : tuple of str
+    se_reason : str
+        Why ``se`` is undefined (an unstable model, a diverged simulation),
+        or "".
     """
 
     name: str
@@ -74,13 +128,24 @@ class ModelValidation:
     y_pred: NDArray[np.float64] = field(repr=False)
     residuals: NDArray[np.float64] = field(repr=False)
     output_labels: tuple[str, ...] = ()
+    se_reason: str = ""
+
+    @property
+    def se_defined(self) -> bool:
+        """The simulation error is defined (stable model, finite simulation)."""
+        return not self.se_reason
 
     def as_dict(self) -> dict:
-        """JSON-ready summary."""
-        return {"order": self.order, "se": self.se.value, "pe": self.pe.value,
-                "se_per_output": self.se.per_output.tolist(),
-                "pe_per_output": self.pe.per_output.tolist(),
-                "whiteness_pvalue": self.whiteness.pvalue.tolist()}
+        """JSON-ready summary (an undefined SE is None, with ``se_reason``)."""
+        out = {"order": self.order,
+               "se": self.se.value if self.se_defined else None,
+               "pe": self.pe.value,
+               "se_per_output": self.se.per_output.tolist() if self.se_defined else None,
+               "pe_per_output": self.pe.per_output.tolist(),
+               "whiteness_pvalue": self.whiteness.pvalue.tolist()}
+        if not self.se_defined:
+            out["se_reason"] = self.se_reason
+        return out
 
 
 def simulate_output(sys: ct.StateSpace, u: NDArray, x0: NDArray | None = None) -> NDArray:
@@ -172,6 +237,9 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
     Returns
     -------
     ModelValidation
+        For an unstable model (:func:`unstable_reason`) SE is undefined:
+        ``se`` is NaN, ``y_sim`` NaN and ``se_reason`` says why; PE and the
+        residual tests are computed as usual.
     """
     check_discrete(sys)
     y = check_signal(y, sys.noutputs, "y", min_steps=2 * lags + 2)
@@ -185,17 +253,20 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         x0v = np.zeros(sys.nstates)
     else:
         x0v = check_vector(x0, sys.nstates, "x0")
-    y_sim = simulate_output(sys, u, x0v)
-    if not np.all(np.isfinite(y_sim)):
-        raise DataError(f"the simulation of {name or 'the model'} diverged: the model is "
-                        f"unstable (if it came from a file, check that its 'time' field, "
-                        f"continuous or discrete, is right)")
+    se_reason = unstable_reason(sys)
+    if se_reason:
+        y_sim = np.full(y.shape, np.nan)
+    else:
+        y_sim = simulate_output(sys, u, x0v)
+        if not np.all(np.isfinite(y_sim)):
+            se_reason = "the simulation diverged: its simulation error is undefined; PE used"
+            y_sim = np.full(y.shape, np.nan)
     kf = kalman_filter(sys, y, u, Q=Q, R=R, x0=x0v, P0=np.zeros((sys.nstates, sys.nstates)))
     e = kf.innovations
     return ModelValidation(
         name=name or (sys.name or "model"),
         order=sys.nstates,
-        se=relative_error(y, y_sim, skip=skip),
+        se=undefined_error(y.shape[0]) if se_reason else relative_error(y, y_sim, skip=skip),
         pe=relative_error(y, kf.y_pred, skip=skip),
         whiteness=whiteness_test(e[:, skip:], lags, alpha=alpha),
         autocorr=autocorrelation(e[:, skip:], lags),
@@ -203,5 +274,5 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         np.zeros((0, y.shape[0], 2 * lags + 1)),
         band=correlation_band(y.shape[1] - skip, 0.99),
         y_sim=y_sim, y_pred=kf.y_pred, residuals=e,
-        output_labels=tuple(sys.output_labels),
+        output_labels=tuple(sys.output_labels), se_reason=se_reason,
     )

@@ -37,6 +37,7 @@ from ._validation import (
     check_statespace,
 )
 from .exceptions import DataError, GreyboxError, ModelError
+from .progress import ProgressClock
 from .filters import kalman_filter
 from .metrics import (
     WhitenessTest,
@@ -59,12 +60,66 @@ from .trace import (
 )
 from .trace.dynamic import DynamicLaw, fit_sparse_dynamic
 from .update import Subsystem, UpdatedModel, delta_update
-from .validate import ModelValidation, estimate_initial_state, simulate_output, validate_model
+from .validate import (
+    ModelValidation,
+    estimate_initial_state,
+    simulate_output,
+    undefined_error,
+    unstable_reason,
+    validate_model,
+)
 
 __all__ = ["Effect", "CandidateScore", "LoopReport", "close_the_loop"]
 
 CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
              "among candidates within {pct:.0f}% of the lowest, the fewest parameters")
+CRITERION_PE = ("lowest one-step prediction error PE (eq. 42) of the augmented model on the "
+                "estimation data (the nominal model is unstable, so SE is undefined); among "
+                "candidates within {pct:.0f}% of the lowest, the fewest parameters")
+
+
+def before_after(table: dict) -> tuple[str, float, float]:
+    """``(measure, nominal, updated)`` of a validation table: SE when both are defined, else PE.
+
+    Never builds a ratio from a diverged simulation: when the nominal or the
+    updated model is unstable (SE undefined) the one-step prediction error
+    is compared instead.
+
+    Parameters
+    ----------
+    table : dict of str -> ModelValidation
+        Rows "nominal" and "updated".
+
+    Returns
+    -------
+    tuple of (str, float, float)
+        "SE" or "PE", and the nominal and updated values [%].
+    """
+    a, b = table["nominal"], table["updated"]
+    if a.se_defined and b.se_defined:
+        return "SE", float(a.se.value), float(b.se.value)
+    return "PE", float(a.pe.value), float(b.pe.value)
+
+
+def describe_before_after(table: dict) -> str:
+    """One phrase: "validation SE 5% -> 1% (5.0x)", or with PE and why SE is n/a.
+
+    Parameters
+    ----------
+    table : dict of str -> ModelValidation
+        Rows "nominal" and "updated".
+
+    Returns
+    -------
+    str
+    """
+    what, v0, v1 = before_after(table)
+    ratio = v0 / max(v1, 1e-300)
+    txt = f"validation {what} {v0:.3g}% -> {v1:.3g}% ({ratio:.1f}x)"
+    if what == "PE":
+        which = "nominal" if not table["nominal"].se_defined else "updated"
+        txt = f"validation SE n/a (the {which} model is unstable); " + txt
+    return txt
 
 
 @dataclass(frozen=True)
@@ -195,8 +250,14 @@ class LoopReport:
     notes: tuple[str, ...] = ()
 
     def se_ratio(self) -> float:
-        """Validation SE of the nominal model divided by that of the updated model."""
-        return self.table["nominal"].se.value / self.table["updated"].se.value
+        """Validation SE of the nominal model divided by that of the updated model.
+
+        NaN when either SE is undefined (an unstable model): compare the PE then.
+        """
+        a, b = self.table["nominal"], self.table["updated"]
+        if not (a.se_defined and b.se_defined):
+            return float("nan")
+        return a.se.value / b.se.value
 
     def as_dict(self) -> dict:
         """JSON-ready summary (the ``greybox update --json`` document)."""
@@ -219,6 +280,12 @@ class LoopReport:
         }
 
 
+def _flag(value, name):
+    if not isinstance(value, (bool, np.bool_)):
+        raise DataError(f"{name} must be True or False; found {value!r}")
+    return bool(value)
+
+
 def _se(y, ysim, skip):
     if not np.all(np.isfinite(ysim)):
         return np.inf
@@ -229,21 +296,25 @@ def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, sk
     """ModelValidation of the nominal model plus a nonlinear static law (own simulation)."""
     res, law = tr.filter_result, tr.static
     x0 = estimate_initial_state(upd.sys, y, u)
-    y_sim = simulate_with_law(res.sys, res.G, law, u, x0)
+    se_reason = unstable_reason(upd.sys)
+    y_sim = np.full(y.shape, np.nan) if se_reason else simulate_with_law(res.sys, res.G, law,
+                                                                          u, x0)
     if not np.all(np.isfinite(y_sim)):
-        raise DataError(f"the simulation of {name} diverged")
+        se_reason = se_reason or "the simulation diverged: its simulation error is undefined"
+        y_sim = np.full(y.shape, np.nan)
     kf = kalman_filter(upd.sys, y, u, Q=upd.Q, R=upd.R)
     y_pred = predict_with_law(res.sys, res.G, law, y, u, kf.K, x0)
     e = y - y_pred
     return ModelValidation(
-        name=name, order=upd.order, se=relative_error(y, y_sim, skip=skip),
+        name=name, order=upd.order,
+        se=undefined_error(y.shape[0]) if se_reason else relative_error(y, y_sim, skip=skip),
         pe=relative_error(y, y_pred, skip=skip),
         whiteness=whiteness_test(e[:, skip:], lags, alpha=alpha),
         autocorr=autocorrelation(e[:, skip:], lags),
         crosscorr=cross_correlation(u[:, skip:], e[:, skip:], lags) if u.shape[0] else
         np.zeros((0, y.shape[0], 2 * lags + 1)),
         band=correlation_band(y.shape[1] - skip, 0.99), y_sim=y_sim, y_pred=y_pred,
-        residuals=e, output_labels=tuple(upd.sys.output_labels))
+        residuals=e, output_labels=tuple(upd.sys.output_labels), se_reason=se_reason)
 
 
 def _sparse_d(dl: DynamicLaw, tr: ChannelTrace, x, u, dt) -> np.ndarray:
@@ -310,7 +381,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                    channels=None, nonlinear: bool = True, max_order: int = 2,
                    alpha: float = 1e-3, lags: int = 20, delta: bool = True,
                    delta_max_order: int = 4, parsimony: float = 1.1,
-                   min_se_drop: float = 0.8, bic_factor: float = 10.0) -> LoopReport:
+                   min_se_drop: float = 0.8, bic_factor: float = 10.0,
+                   progress=None) -> LoopReport:
     """Find, trace and add the effect a nominal model lacks; report before and after.
 
     Parameters
@@ -352,6 +424,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         nominal SE.
     bic_factor : float
         The BIC gain of the law on d^ must exceed this many times its penalty.
+    progress : callable, optional
+        Called with a :class:`greybox.progress.Progress` record (stage, k of
+        K, elapsed seconds) at every stage boundary; None reports nothing.
 
     Returns
     -------
@@ -361,8 +436,17 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     ------
     ModelError, DimensionError, DataError, CovarianceError
         Bad model, shapes or data.
+
+    Notes
+    -----
+    An unstable nominal model (open-loop unstable plants measured in closed
+    loop) has no simulation error: candidates are then chosen, and the
+    update gated, by the one-step prediction error PE on the estimation data
+    and by the innovations' whiteness, and the before/after message compares
+    PE ("SE n/a").
     """
     check_statespace(sys, "sys")
+    tick = ProgressClock(progress)
     lags = check_positive(lags, "lags", integer=True)
     if ct.isdtime(sys, strict=True):
         nominal = sys
@@ -388,25 +472,45 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     chans = resolve_channel_spec(sys, channels)
     max_order = check_positive(max_order, "max_order", integer=True, allow_zero=True)
     delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
+    nonlinear, delta = _flag(nonlinear, "nonlinear"), _flag(delta, "delta")
+    parsimony = check_positive(parsimony, "parsimony")
+    alpha = check_positive(alpha, "alpha")
+    min_se_drop = check_positive(min_se_drop, "min_se_drop")
+    bic_factor = check_positive(bic_factor, "bic_factor")
     if not parsimony >= 1:
         raise DataError(f"parsimony must be >= 1 (1.1 keeps candidates within 10 % of the "
                         f"lowest SE); found {parsimony}")
     if not 0 < alpha < 1 or not 0 < min_se_drop <= 1 or not bic_factor > 0:
         raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
                         f"{alpha}, {min_se_drop}, {bic_factor}")
-    crit = CRITERION.format(pct=100 * (parsimony - 1))
+    unstable = unstable_reason(nominal)
+    crit = (CRITERION_PE if unstable else CRITERION).format(pct=100 * (parsimony - 1))
     skip = 20
 
+    def _fit_error(sys_, Q_, R_, ysim=None, ypred=None):
+        """SE (or PE, for an unstable nominal) of a model on the estimation data [%]."""
+        if not unstable:
+            return _se(y, ysim() if ysim is not None else
+                       simulate_output(sys_, u, estimate_initial_state(sys_, y, u)), skip)
+        yp = ypred() if ypred is not None else kalman_filter(sys_, y, u, Q=Q_, R=R_).y_pred
+        return _se(y, yp, skip)
+
     # 1. residual of the nominal model
+    tick("residual of the nominal model", 0, 1)
     kf = kalman_filter(nominal, y, u, Q=Q, R=R)
     k0 = max(skip, kf.period_converged or skip)
     white = whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha)
     x0n = estimate_initial_state(nominal, y, u)
-    se_nom = _se(y, simulate_output(nominal, u, x0n), skip)
+    se_nom = _se(y, kf.y_pred, skip) if unstable else \
+        _se(y, simulate_output(nominal, u, x0n), skip)
     nominal_model = UpdatedModel(sys=nominal, Q=Q, R=R, order=n, kind="nominal")
     val_nom = validate_model(nominal, y_val, u_val, Q=Q, R=R, x0="estimate", name="nominal",
                              lags=lags, alpha=alpha, skip=skip)
-    gate = {"whiteness_pvalue": white.pvalue, "alpha": alpha, "se_estimation_nominal": se_nom}
+    gate = {"whiteness_pvalue": white.pvalue, "alpha": alpha, "se_estimation_nominal": se_nom,
+            "measure": "PE" if unstable else "SE"}
+    if unstable:
+        gate["measure_reason"] = f"nominal: {unstable}"
+    tick("residual of the nominal model", 1, 1)
 
     def _no_update(msg, detected, cands=(), notes=(), effect=None, tr=None, ch=None):
         table = {"nominal": val_nom, "updated": val_nom}
@@ -437,26 +541,29 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                         "redundant", "a component of d has no term"))
         elif tr.static_model is not None and tr.static.npar > 0:
             sm = tr.static_model
-            x0 = estimate_initial_state(sm.sys, y, u)
             if tr.static.nonlinear:
                 res = tr.filter_result
-                ysim = simulate_with_law(res.sys, res.G, tr.static, u, x0)
+                x0 = estimate_initial_state(sm.sys, y, u)
+                K = kalman_filter(sm.sys, y, u, Q=sm.Q, R=sm.R).K if unstable else None
+                se = _fit_error(sm.sys, sm.Q, sm.R,
+                                ysim=lambda: simulate_with_law(res.sys, res.G, tr.static, u, x0),
+                                ypred=lambda: predict_with_law(res.sys, res.G, tr.static, y, u,
+                                                               K, x0))
             else:
-                ysim = simulate_output(sm.sys, u, x0)
-            se = _se(y, ysim, skip)
+                se = _fit_error(sm.sys, sm.Q, sm.R)
             cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
             scored.append((se, tr.static.npar, tr, "static"))
         if tr.dynamic_model is not None:
             dm, sub = tr.dynamic_model, tr.dynamic
-            ysim = simulate_output(dm.sys, u, estimate_initial_state(dm.sys, y, u))
-            se = _se(y, ysim, skip)
+            se = _fit_error(dm.sys, dm.Q, dm.R)
             nw, md = n + m, ch.md
             npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
             cands.append(CandidateScore(ch.name, "dynamic", sub.order, se, npar, "ok"))
             scored.append((se, npar, tr, "dynamic"))
 
     first_max = min(max_order, 1)
-    for ch in chans:
+    for kc, ch in enumerate(chans):
+        tick("trace candidate channels", kc, len(chans))
         try:
             tr = trace_channel(sys, ch, y, u, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
                                max_order=first_max)
@@ -467,12 +574,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", tr.reason))
             continue
         _score(tr)
+    tick("trace candidate channels", len(chans), len(chans))
     if max_order >= 2 and scored:
         ranked = []
         for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
             if tr_.channel not in ranked and np.isfinite(se_):
                 ranked.append(tr_.channel)
-        for ch in ranked[:2]:
+        for kc, ch in enumerate(ranked[:2]):
+            tick("higher-order subsystems", kc, min(2, len(ranked)))
             if ch.md > 1:
                 continue  # md = 2 already gives 2 states at order 1
             try:
@@ -484,7 +593,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             tr = replace(tr, static=None, static_model=None)
             _score(tr)
     # 2b. sparse first-order laws in continuous time for the best one-component channels
-    if max_order >= 1 and scored and not ct.isdtime(sys, strict=True):
+    if max_order >= 1 and scored and not ct.isdtime(sys, strict=True) and not unstable:
         done = set()
         for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
             ch = tr_.channel
@@ -506,8 +615,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 continue
             if dl is None:
                 continue
-            ysim = simulate_output(dl.model.sys, u, estimate_initial_state(dl.model.sys, y, u))
-            se = _se(y, ysim, skip)
+            se = _fit_error(dl.model.sys, dl.model.Q, dl.model.R)
             cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
             sparse[id(tr_)] = dl
             scored.append((se, dl.npar, tr_, "sparse"))
@@ -570,6 +678,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                           f"model unchanged", True, cands, notes, None, tr, None)
 
     # 4. before/after on validation data
+    tick("validation", 0, 2 if delta else 1)
     table = {"nominal": val_nom}
     if effect.nonlinear:
         table["updated"] = _nl_validation(tr, model, y_val, u_val, lags=lags, alpha=alpha,
@@ -584,6 +693,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                           x0="estimate", name="updated", lags=lags,
                                           alpha=alpha, skip=skip)
     if delta:
+        tick("validation", 1, 2)
         try:
             dm = delta_update(nominal, y, u, Q=Q, R=R, max_order=delta_max_order, x0=x0n)
             table["delta"] = validate_model(dm.updated.sys, y_val, u_val, Q=dm.updated.Q,
@@ -591,14 +701,16 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                             lags=lags, alpha=alpha, skip=skip)
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"parallel delta baseline failed: {e}")
-    ratio = table["nominal"].se.value / max(table["updated"].se.value, 1e-300)
+    tick("validation", 2 if delta else 1, 2 if delta else 1)
+    for name, row in table.items():
+        if not row.se_defined:
+            notes.append(f"{name}: SE n/a: {row.se_reason}")
     where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
     if ch.kind == "input":
         where = f"input {ch.input} (it enters {where})"
     msg = (f"model error found in {where}: "
            f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}; "
-           f"validation SE {table['nominal'].se.value:.3g}% -> "
-           f"{table['updated'].se.value:.3g}% ({ratio:.1f}x)")
+           f"{describe_before_after(table)}")
     return LoopReport(model_error_detected=True, updated=True, message=msg, residual=white,
                       effect=effect, channel=ch, candidates=tuple(cands), gate=gate,
                       criterion=crit, nominal=nominal, model=model, table=table, trace=tr,

@@ -17,7 +17,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "greybox"
 
 LAYER = {
-    "exceptions": 0, "_validation": 0, "_lti": 0, "_blas": 0,
+    "exceptions": 0, "_validation": 0, "_lti": 0, "_blas": 0, "progress": 0,
     "system": 1, "signals": 1, "plants": 1, "nonlinear": 1,
     "metrics": 2,
     "filters": 3,

@@ -135,3 +135,110 @@ def test_excel_bom_csv_and_name_clash(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "both as input and as output" in err
     assert not (tmp_path / "r2").exists()
+
+
+# --- issue 13: strict JSON, clean stdout, atomic reports, Ctrl-C, permissions --------------
+
+def _strict_loads(text):
+    """json.loads that refuses NaN and Infinity, as JavaScript's JSON.parse does."""
+    def bad(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+    return json.loads(text, parse_constant=bad)
+
+
+def test_json_stdout_holds_the_document_alone(tmp_path, capfd, monkeypatch):
+    """Text a numerical library prints on file descriptor 1 goes to stderr under --json."""
+    import os
+
+    import greybox.workflow as wf
+    from test_bad_inputs import Case, _unstable
+
+    real = wf.close_the_loop
+
+    def noisy(*a, **k):
+        os.write(1, b" ** On entry to DLASCL parameter number  4 had an illegal value\n")
+        return real(*a, **k)
+
+    monkeypatch.setattr(wf, "close_the_loop", noisy)
+    c = Case(tmp_path)
+    _unstable(c)
+    assert main(c.argv() + ["--json"]) == 0
+    out, err = capfd.readouterr()
+    s = _strict_loads(out)  # stdout is one strict JSON document
+    assert s["table"]["nominal"]["se"] is None and s["table"]["nominal"]["se_reason"]
+    assert "DLASCL" in err and "DLASCL" not in out
+    _strict_loads((c.out / "summary.json").read_text())
+    _strict_loads((c.out / "updated_model.json").read_text())
+
+
+def test_json_safe_nonfinite_become_null_with_reason():
+    from greybox.io import dumps_json, json_safe
+
+    d = json_safe({"se": float("inf"), "pe": 1.5, "per": np.array([1.0, np.nan]),
+                   "n": np.int64(3), "ok": np.bool_(True), "nest": [{"x": -np.inf}]})
+    assert d["se"] is None and "infinite" in d["se_reason"]
+    assert d["per"] == [1.0, None] and "1 non-finite" in d["per_reason"]
+    assert d["nest"][0]["x"] is None and d["nest"][0]["x_reason"]
+    assert d["pe"] == 1.5 and d["n"] == 3 and d["ok"] is True
+    assert "reason" not in json.dumps({k: v for k, v in d.items()
+                                       if k in ("pe", "n", "ok")})
+    with pytest.raises(ValueError, match="non-standard"):
+        _strict_loads(json.dumps({"a": float("nan")}))  # the checker itself can fail
+    _strict_loads(dumps_json({"a": float("nan"), "b": [float("inf")]}))
+
+
+def test_ctrl_c_while_plotting_keeps_the_old_report(tmp_path, capsys, monkeypatch):
+    import greybox.plotting as gp
+    from test_bad_inputs import Case
+
+    c = Case(tmp_path)
+    assert main(c.argv()[:-1]) == 0  # with plots
+    before = {p.name: p.read_bytes() for p in c.out.iterdir()}
+    capsys.readouterr()
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(gp, "plot_outputs", interrupted)
+    assert main(c.argv()[:-1] + ["--force"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["greybox: interrupted"]
+    assert {p.name: p.read_bytes() for p in c.out.iterdir()} == before  # old report, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["est.csv", "model.json", "report",
+                                                          "val.csv"]  # no temporary folder
+
+
+def test_interrupt_during_commit_is_held_back(tmp_path):
+    import os
+    import signal
+
+    from greybox.io import commit_output_dir, deferred_interrupt, stage_output_dir
+
+    with pytest.raises(KeyboardInterrupt):
+        with deferred_interrupt():
+            os.kill(os.getpid(), signal.SIGINT)
+            done = True  # reached: the interrupt waits for the end of the block
+    assert done
+    out = tmp_path / "rep"
+    st = stage_output_dir(out)
+    (st / "a.txt").write_text("new")
+    commit_output_dir(st, out, kind="report", names=["a.txt"])
+    assert (out / "a.txt").read_text() == "new" and not st.exists()
+
+
+def test_report_files_respect_the_umask(tmp_path, capsys):
+    import os
+    import stat
+
+    from test_bad_inputs import Case
+
+    old = os.umask(0o022)
+    try:
+        c = Case(tmp_path)
+        assert main(c.argv()) == 0
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(c.out.stat().st_mode) == 0o755
+    for f in c.out.iterdir():
+        assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
+    capsys.readouterr()

@@ -137,15 +137,22 @@ def prepare_data(y, u) -> tuple[list[NDArray], list[NDArray], int, int]:
 def channel_rms(arrays: Sequence[NDArray]) -> NDArray[np.float64]:
     """Root mean square of every channel over all experiments (chunked)."""
     nch = arrays[0].shape[0]
+    # scale by the largest magnitude first: squares of 1e200 (or 1e-200) would
+    # overflow (underflow) and give an infinite (zero) RMS
+    big = np.zeros(nch)
+    for a in arrays:
+        if a.shape[1]:
+            big = np.maximum(big, np.max(np.abs(a), axis=1))
+    inv = np.where(big > 0, 1.0 / np.where(big > 0, big, 1.0), 0.0)
     acc = np.zeros(nch)
     n = 0
     for a in arrays:
         step = max(1, _CHUNK_ENTRIES // max(1, nch))
         for c0 in range(0, a.shape[1], step):
-            blk = a[:, c0:c0 + step]
+            blk = a[:, c0:c0 + step] * inv[:, None]
             acc += np.einsum("ij,ij->i", blk, blk)
         n += a.shape[1]
-    return np.sqrt(acc / max(n, 1))
+    return big * np.sqrt(acc / max(n, 1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -210,6 +217,12 @@ def hankel_r(
         uses ``"gram"`` and falls back to ``"qr"`` (a second pass) when the
         Cholesky factor fails or its diagonal spans more than ``1 / _GRAM_RTOL``.
     """
+    if chunk_size is not None:
+        if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) \
+                or chunk_size < 1:
+            raise DimensionError(f"chunk_size must be a positive integer (Hankel columns per "
+                                 f"chunk) or None for the default; found {chunk_size!r}")
+        chunk_size = int(chunk_size)
     with small_blas():
         if method == "auto":
             out = _hankel_r(ys, us, sy, su, nblock, chunk_size, "gram")

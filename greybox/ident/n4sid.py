@@ -386,6 +386,11 @@ def _finish(
     )
 
 
+#: Largest (and inverse of the smallest) channel RMS accepted: the noise covariances
+#: scale with its square, and 1e150 squared is still far from float64's 1.8e308.
+_MAX_RMS = 1e150
+
+
 def _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max_order, rtol,
                   weighting_ok=True):
     ys, us, l, m = prepare_data(y, u)
@@ -407,6 +412,12 @@ def _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max
                 f"output(s) {[(lab or [f'y[{k}]' for k in range(l)])[k] for k in zero]} are "
                 f"identically zero; there is nothing to identify. Remove them"
             )
+        bad = np.flatnonzero((s > 0) & ((s > _MAX_RMS) | (s < 1.0 / _MAX_RMS)))
+        if bad.size:
+            raise DataError(
+                f"{name}[{bad[0]}] has RMS {s[bad[0]]:.3g}: outside 1e-150..1e150 its "
+                f"covariances would overflow or underflow float64; rescale the data (change "
+                f"units) before identification")
     su = np.where(su > 0, su, 1.0)
     return ys, us, l, m, dt, input_labels, output_labels, fed, order, max_order, rtol, sy, su
 

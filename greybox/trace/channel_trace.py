@@ -15,6 +15,7 @@ from ..filters import FilterResult, check_rank_condition, uikf
 from ..metrics import autocorrelation
 from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
+from ..validate import unstable_reason
 from .channels import Channel, channel_model
 from .laws import StaticLaw, _eval_terms, _fit_static, _static_subsystem
 from .oe import _refine_static_oe, _select_static_oe, zoh
@@ -142,12 +143,16 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     cont = None if ct.isdtime(sys, strict=True) else (
         np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
         np.asarray(channel.G, dtype=float), float(model.dt))
-    if excess < _LOW_SNR and not pair_mean:
+    oe_ok = not unstable_reason(model)  # output error needs a simulation that stays bounded
+    if not oe_ok:
+        notes.append("the nominal model is unstable: the static law is the least-squares fit "
+                     "on d^ (no output-error refinement)")
+    if excess < _LOW_SNR and not pair_mean and oe_ok:
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units, cont=cont, noise=(Q, R))
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
                      f"Pd): static law chosen by output error on y")
-    elif not law.nonlinear and law.npar:
+    elif not law.nonlinear and law.npar and oe_ok:
         tscale = np.sqrt(np.mean(_eval_terms(law.spec, law.eps, x, uu) ** 2, axis=1))
         law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
                                             k0, labels, channel.units, tscale, cont, (Q, R))
