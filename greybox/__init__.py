@@ -84,7 +84,7 @@ from .update import (  # noqa: E402
     identify_subsystem,
 )
 from .validate import ModelValidation, estimate_initial_state, validate_model  # noqa: E402
-from .workflow import CandidateScore, Effect, LoopReport, close_the_loop  # noqa: E402
+from .workflow import CandidateScore, Effect, EffectStep, LoopReport, close_the_loop  # noqa: E402
 
 __all__ += [
     "MerweScaledSigmaPoints",
@@ -148,6 +148,7 @@ __all__ += [
     "CandidateScore",
     "Effect",
     "LoopReport",
+    "EffectStep",
     "close_the_loop",
 ]
 

@@ -47,7 +47,7 @@ from .metrics import (
     relative_error,
     whiteness_test,
 )
-from .system import discretize
+from .system import discretize, named_ss
 from .trace import (
     Channel,
     ChannelTrace,
@@ -69,7 +69,7 @@ from .validate import (
     validate_model,
 )
 
-__all__ = ["Effect", "CandidateScore", "LoopReport", "close_the_loop"]
+__all__ = ["Effect", "EffectStep", "CandidateScore", "LoopReport", "close_the_loop"]
 
 CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
              "among candidates within {pct:.0f}% of the lowest, the fewest parameters")
@@ -200,6 +200,38 @@ class CandidateScore:
 
 
 @dataclass(frozen=True)
+class EffectStep:
+    """One effect added by :func:`close_the_loop` (one row of the several-effects loop).
+
+    Attributes
+    ----------
+    effect : Effect
+    channel : str
+        Name of the channel.
+    message : str
+        The step's one-sentence conclusion.
+    se_before, se_after : float
+        Validation SE [%] of the model before and after this step (NaN when
+        undefined: an unstable model).
+    model : UpdatedModel
+        The model after this step (it holds this and every earlier effect).
+    """
+
+    effect: Effect
+    channel: str
+    message: str
+    se_before: float
+    se_after: float
+    model: UpdatedModel = field(repr=False)
+
+    def as_dict(self) -> dict:
+        """JSON-ready row."""
+        return {"channel": self.channel, "effect": self.effect.as_dict(),
+                "message": self.message, "se_before": self.se_before,
+                "se_after": self.se_after}
+
+
+@dataclass(frozen=True)
 class LoopReport:
     """Result of :func:`close_the_loop`.
 
@@ -232,6 +264,12 @@ class LoopReport:
     trace : ChannelTrace or None
         The chosen channel's filter, laws and models (d^ for plots).
     notes : tuple of str
+    steps : tuple of EffectStep
+        One row per effect added, in order (several effects: after each
+        update the updated model's innovations are tested again, and traced
+        again while they are not white). ``effect``, ``channel``,
+        ``candidates``, ``gate`` and ``trace`` describe the first step;
+        ``model`` and ``table["updated"]`` hold every effect.
     """
 
     model_error_detected: bool
@@ -248,6 +286,7 @@ class LoopReport:
     table: dict = field(repr=False)
     trace: ChannelTrace | None = field(default=None, repr=False)
     notes: tuple[str, ...] = ()
+    steps: tuple[EffectStep, ...] = ()
 
     def se_ratio(self) -> float:
         """Validation SE of the nominal model divided by that of the updated model.
@@ -277,6 +316,7 @@ class LoopReport:
             "candidates": [c.__dict__.copy() for c in self.candidates],
             "table": {k: v.as_dict() for k, v in self.table.items()},
             "notes": list(self.notes),
+            "steps": [st.as_dict() for st in self.steps],
         }
 
 
@@ -383,7 +423,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                    alpha: float = 1e-3, lags: int = 20, delta: bool = True,
                    delta_max_order: int = 4, parsimony: float = 1.1,
                    min_se_drop: float = 0.8, bic_factor: float = 10.0,
-                   progress=None) -> LoopReport:
+                   progress=None, max_effects: int = 3) -> LoopReport:
     """Find, trace and add the effect a nominal model lacks; report before and after.
 
     Parameters
@@ -428,6 +468,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     progress : callable, optional
         Called with a :class:`greybox.progress.Progress` record (stage, k of
         K, elapsed seconds) at every stage boundary; None reports nothing.
+    max_effects : int
+        Most effects added (several effects): after each update the updated
+        model's one-step residuals are tested again and, while some output
+        rejects whiteness and the gate passes, traced again on the updated
+        model. A nonlinear law ends the loop (the next pass would need a
+        nonlinear base model).
 
     Returns
     -------
@@ -473,6 +519,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     chans = resolve_channel_spec(sys, channels)
     max_order = check_positive(max_order, "max_order", integer=True, allow_zero=True)
     delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
+    max_effects = check_positive(max_effects, "max_effects", integer=True)
     nonlinear, delta = _flag(nonlinear, "nonlinear"), _flag(delta, "delta")
     parsimony = check_positive(parsimony, "parsimony")
     alpha = check_positive(alpha, "alpha")
@@ -484,236 +531,316 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     if not 0 < alpha < 1 or not 0 < min_se_drop <= 1 or not bic_factor > 0:
         raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
                         f"{alpha}, {min_se_drop}, {bic_factor}")
-    unstable = unstable_reason(nominal)
-    crit = (CRITERION_PE if unstable else CRITERION).format(pct=100 * (parsimony - 1))
-    skip = 20
+    def _once(sys, nominal, Q, chans, delta):
+        """One pass: residual, trace, choose, gate, before/after for the model ``sys``."""
+        n, m = nominal.nstates, nominal.ninputs
+        unstable = unstable_reason(nominal)
+        crit = (CRITERION_PE if unstable else CRITERION).format(pct=100 * (parsimony - 1))
+        skip = 20
 
-    def _fit_error(sys_, Q_, R_, ysim=None, ypred=None):
-        """SE (or PE, for an unstable nominal) of a model on the estimation data [%]."""
-        if not unstable:
-            return _se(y, ysim() if ysim is not None else
-                       simulate_output(sys_, u, estimate_initial_state(sys_, y, u)), skip)
-        yp = ypred() if ypred is not None else kalman_filter(sys_, y, u, Q=Q_, R=R_).y_pred
-        return _se(y, yp, skip)
+        def _fit_error(sys_, Q_, R_, ysim=None, ypred=None):
+            """SE (or PE, for an unstable nominal) of a model on the estimation data [%]."""
+            if not unstable:
+                return _se(y, ysim() if ysim is not None else
+                           simulate_output(sys_, u, estimate_initial_state(sys_, y, u)), skip)
+            yp = ypred() if ypred is not None else kalman_filter(sys_, y, u, Q=Q_, R=R_).y_pred
+            return _se(y, yp, skip)
 
-    # 1. residual of the nominal model
-    tick("residual of the nominal model", 0, 1)
-    kf = kalman_filter(nominal, y, u, Q=Q, R=R)
-    k0 = max(skip, kf.period_converged or skip)
-    white = whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha)
-    x0n = estimate_initial_state(nominal, y, u)
-    se_nom = _se(y, kf.y_pred, skip) if unstable else \
-        _se(y, simulate_output(nominal, u, x0n), skip)
-    nominal_model = UpdatedModel(sys=nominal, Q=Q, R=R, order=n, kind="nominal")
-    val_nom = validate_model(nominal, y_val, u_val, Q=Q, R=R, x0="estimate", name="nominal",
-                             lags=lags, alpha=alpha, skip=skip)
-    gate = {"whiteness_pvalue": white.pvalue, "alpha": alpha, "se_estimation_nominal": se_nom,
-            "measure": "PE" if unstable else "SE"}
-    if unstable:
-        gate["measure_reason"] = f"nominal: {unstable}"
-    tick("residual of the nominal model", 1, 1)
+        # 1. residual of the nominal model
+        tick("residual of the nominal model", 0, 1)
+        kf = kalman_filter(nominal, y, u, Q=Q, R=R)
+        k0 = max(skip, kf.period_converged or skip)
+        white = whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha)
+        x0n = estimate_initial_state(nominal, y, u)
+        se_nom = _se(y, kf.y_pred, skip) if unstable else \
+            _se(y, simulate_output(nominal, u, x0n), skip)
+        nominal_model = UpdatedModel(sys=nominal, Q=Q, R=R, order=n, kind="nominal")
+        val_nom = validate_model(nominal, y_val, u_val, Q=Q, R=R, x0="estimate", name="nominal",
+                                 lags=lags, alpha=alpha, skip=skip)
+        gate = {"whiteness_pvalue": white.pvalue, "alpha": alpha, "se_estimation_nominal": se_nom,
+                "measure": "PE" if unstable else "SE"}
+        if unstable:
+            gate["measure_reason"] = f"nominal: {unstable}"
+        tick("residual of the nominal model", 1, 1)
 
-    def _no_update(msg, detected, cands=(), notes=(), effect=None, tr=None, ch=None):
-        table = {"nominal": val_nom, "updated": val_nom}
-        return LoopReport(model_error_detected=detected, updated=False, message=msg,
-                          residual=white, effect=effect or Effect(kind="none"), channel=ch,
-                          candidates=tuple(cands), gate=gate, criterion=crit, nominal=nominal,
-                          model=nominal_model, table=table, trace=tr, notes=tuple(notes))
+        def _no_update(msg, detected, cands=(), notes=(), effect=None, tr=None, ch=None):
+            table = {"nominal": val_nom, "updated": val_nom}
+            return LoopReport(model_error_detected=detected, updated=False, message=msg,
+                              residual=white, effect=effect or Effect(kind="none"), channel=ch,
+                              candidates=tuple(cands), gate=gate, criterion=crit, nominal=nominal,
+                              model=nominal_model, table=table, trace=tr, notes=tuple(notes))
 
-    if white.all_white:
-        gate["passed"] = {"whiteness": False}
-        return _no_update("no significant model error: the nominal one-step residuals are "
-                          f"white on every output (Ljung-Box, {lags} lags, all p >= {alpha:g})",
-                          False)
+        if white.all_white:
+            gate["passed"] = {"whiteness": False}
+            return _no_update("no significant model error: the nominal one-step residuals are "
+                              f"white on every output (Ljung-Box, {lags} lags, all p >= {alpha:g})",
+                              False)
 
-    # 2. trace every channel: static laws and order-1 dynamics for all channels, then
-    #    higher orders for the two channels that explain the data best (cost control)
-    cands, notes = [], []
-    scored = []  # (se, npar, trace, kind)
-    sparse = {}  # id(trace) -> DynamicLaw
+        # 2. trace every channel: static laws and order-1 dynamics for all channels, then
+        #    higher orders for the two channels that explain the data best (cost control)
+        cands, notes = [], []
+        scored = []  # (se, npar, trace, kind)
+        sparse = {}  # id(trace) -> DynamicLaw
 
-    def _score(tr):
-        ch = tr.channel
-        notes.extend(f"{ch.name}: {s}" for s in tr.notes)
-        dead = tr.static is not None and ch.md > 1 and bool(
-            np.any(np.all(tr.static.coef == 0, axis=1)))
-        if dead:  # a component explains nothing: the same as a smaller channel
-            cands.append(CandidateScore(ch.name, "static", 0, np.inf, tr.static.npar,
-                                        "redundant", "a component of d has no term"))
-        elif tr.static_model is not None and tr.static.npar > 0:
-            sm = tr.static_model
-            if tr.static.nonlinear:
-                res = tr.filter_result
-                x0 = estimate_initial_state(sm.sys, y, u)
-                K = kalman_filter(sm.sys, y, u, Q=sm.Q, R=sm.R).K if unstable else None
-                se = _fit_error(sm.sys, sm.Q, sm.R,
-                                ysim=lambda: simulate_with_law(res.sys, res.G, tr.static, u, x0),
-                                ypred=lambda: predict_with_law(res.sys, res.G, tr.static, y, u,
-                                                               K, x0))
-            else:
-                se = _fit_error(sm.sys, sm.Q, sm.R)
-            cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
-            scored.append((se, tr.static.npar, tr, "static"))
-        if tr.dynamic_model is not None:
-            dm, sub = tr.dynamic_model, tr.dynamic
-            se = _fit_error(dm.sys, dm.Q, dm.R)
-            nw, md = n + m, ch.md
-            npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
-            cands.append(CandidateScore(ch.name, "dynamic", sub.order, se, npar, "ok"))
-            scored.append((se, npar, tr, "dynamic"))
+        def _score(tr):
+            ch = tr.channel
+            notes.extend(f"{ch.name}: {s}" for s in tr.notes)
+            dead = tr.static is not None and ch.md > 1 and bool(
+                np.any(np.all(tr.static.coef == 0, axis=1)))
+            if dead:  # a component explains nothing: the same as a smaller channel
+                cands.append(CandidateScore(ch.name, "static", 0, np.inf, tr.static.npar,
+                                            "redundant", "a component of d has no term"))
+            elif tr.static_model is not None and tr.static.npar > 0:
+                sm = tr.static_model
+                if tr.static.nonlinear:
+                    res = tr.filter_result
+                    x0 = estimate_initial_state(sm.sys, y, u)
+                    K = kalman_filter(sm.sys, y, u, Q=sm.Q, R=sm.R).K if unstable else None
+                    se = _fit_error(sm.sys, sm.Q, sm.R,
+                                    ysim=lambda: simulate_with_law(res.sys, res.G, tr.static, u, x0),
+                                    ypred=lambda: predict_with_law(res.sys, res.G, tr.static, y, u,
+                                                                   K, x0))
+                else:
+                    se = _fit_error(sm.sys, sm.Q, sm.R)
+                cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
+                scored.append((se, tr.static.npar, tr, "static"))
+            if tr.dynamic_model is not None:
+                dm, sub = tr.dynamic_model, tr.dynamic
+                se = _fit_error(dm.sys, dm.Q, dm.R)
+                nw, md = n + m, ch.md
+                npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
+                cands.append(CandidateScore(ch.name, "dynamic", sub.order, se, npar, "ok"))
+                scored.append((se, npar, tr, "dynamic"))
 
-    first_max = min(max_order, 1)
-    for kc, ch in enumerate(chans):
-        tick("trace candidate channels", kc, len(chans))
-        try:
-            tr = trace_channel(sys, ch, y, u, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
-                               max_order=first_max)
-        except (GreyboxError, np.linalg.LinAlgError) as e:
-            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
-            continue
-        if tr.status != "ok":
-            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", tr.reason))
-            continue
-        _score(tr)
-    tick("trace candidate channels", len(chans), len(chans))
-    if max_order >= 2 and scored:
-        ranked = []
-        for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
-            if tr_.channel not in ranked and np.isfinite(se_):
-                ranked.append(tr_.channel)
-        for kc, ch in enumerate(ranked[:2]):
-            tick("higher-order subsystems", kc, min(2, len(ranked)))
-            if ch.md > 1:
-                continue  # md = 2 already gives 2 states at order 1
+        first_max = min(max_order, 1)
+        for kc, ch in enumerate(chans):
+            tick("trace candidate channels", kc, len(chans))
             try:
-                tr = trace_channel(sys, ch, y, u, Q=Q, R=R, dt=dt, nonlinear=False,
-                                   max_order=max_order, min_order=2)
+                tr = trace_channel(sys, ch, y, u, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
+                                   max_order=first_max)
             except (GreyboxError, np.linalg.LinAlgError) as e:
-                notes.append(f"{ch.name}: dynamic order >= 2 failed: {e}")
+                cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
                 continue
-            tr = replace(tr, static=None, static_model=None)
+            if tr.status != "ok":
+                cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", tr.reason))
+                continue
             _score(tr)
-    # 2b. sparse first-order laws in continuous time for the best one-component channels
-    if max_order >= 1 and scored and not ct.isdtime(sys, strict=True) and not unstable:
-        done = set()
-        for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
-            ch = tr_.channel
-            if len(done) >= 2 or ch in done or ch.md != 1 or not np.isfinite(se_):
-                continue
-            done.add(ch)
-            dyn = tr_.dynamic
-            lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
-            lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
-            res_ = tr_.filter_result
-            k0s = max(20, res_.period_converged or 20)
-            Ns = res_.d_est.shape[1] - 1
+        tick("trace candidate channels", len(chans), len(chans))
+        if max_order >= 2 and scored:
+            ranked = []
+            for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
+                if tr_.channel not in ranked and np.isfinite(se_):
+                    ranked.append(tr_.channel)
+            for kc, ch in enumerate(ranked[:2]):
+                tick("higher-order subsystems", kc, min(2, len(ranked)))
+                if ch.md > 1:
+                    continue  # md = 2 already gives 2 states at order 1
+                try:
+                    tr = trace_channel(sys, ch, y, u, Q=Q, R=R, dt=dt, nonlinear=False,
+                                       max_order=max_order, min_order=2)
+                except (GreyboxError, np.linalg.LinAlgError) as e:
+                    notes.append(f"{ch.name}: dynamic order >= 2 failed: {e}")
+                    continue
+                tr = replace(tr, static=None, static_model=None)
+                _score(tr)
+        # 2b. sparse first-order laws in continuous time for the best one-component channels
+        if max_order >= 1 and scored and not ct.isdtime(sys, strict=True) and not unstable:
+            done = set()
+            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
+                ch = tr_.channel
+                if len(done) >= 2 or ch in done or ch.md != 1 or not np.isfinite(se_):
+                    continue
+                done.add(ch)
+                dyn = tr_.dynamic
+                lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
+                lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
+                res_ = tr_.filter_result
+                k0s = max(20, res_.period_converged or 20)
+                Ns = res_.d_est.shape[1] - 1
+                try:
+                    dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
+                                            y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
+                                            pole=float(lam.max()) if lam.size else None)
+                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+                    notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
+                    continue
+                if dl is None:
+                    continue
+                se = _fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+                cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
+                sparse[id(tr_)] = dl
+                scored.append((se, dl.npar, tr_, "sparse"))
+        finite = [s for s in scored if np.isfinite(s[0])]
+        if not finite:
+            gate["passed"] = {"whiteness": True, "trace": False}
+            return _no_update("model error detected, but no candidate channel could explain it "
+                              "(see candidates)", True, cands, notes)
+        best_se = min(s[0] for s in finite)
+        near = [s for s in finite if s[0] <= parsimony * best_se]
+        se_c, npar, tr, kind = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
+        ch = tr.channel
+
+        # 3. gate on the law's BIC gain and the SE drop
+        res = tr.filter_result
+        Nf = res.d_est.shape[1] - 1
+        k0f = max(20, res.period_converged or 20)
+        d = res.d_est[:, k0f:Nf]
+        x = res.x_filt[:, k0f:Nf]
+        uu = u[:, k0f:Nf]
+        Nd = d.shape[1]
+        if kind == "static":
+            law = tr.static
+            gain = float(law.bic_gain + law.npar * np.log(Nd))  # raw gain (before penalty)
+            model = tr.static_model
+            formula = law.formula
+            pnotes = parameter_notes(sys, ch, law)
+            effect = Effect(kind="static", order=0, formula=formula, channel=ch.name,
+                            equations=ch.equations, nonlinear=law.nonlinear,
+                            linearized=law.nonlinear, parameter_notes=pnotes, law=law)
+        elif kind == "sparse":
+            dl = sparse[id(tr)]
+            r = d - _sparse_d(dl, tr, x, uu, dt)
+            _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
+            _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
+            gain = float(Nd * (ld0 - ld1))
+            model = dl.model
+            kind = "dynamic"
+            effect = Effect(kind="dynamic", order=1, formula=dl.formula, channel=ch.name,
+                            equations=ch.equations, dynamic_law=dl)
+        else:
+            sub = tr.dynamic
+            r = d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d
+            _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
+            _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
+            gain = float(Nd * (ld0 - ld1))
+            model = tr.dynamic_model
+            effect = Effect(kind="dynamic", order=sub.order,
+                            formula=_dynamic_formula(sub, ch, dt, x, uu), channel=ch.name,
+                            equations=ch.equations, subsystem=sub)
+        penalty = float(npar * np.log(Nd))
+        passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
+                  "se_drop": se_c < min_se_drop * se_nom}
+        gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
+                     "se_estimation_updated": se_c, "min_se_drop": min_se_drop, "passed": passed})
+        if not (passed["bic"] and passed["se_drop"]):
+            failed = [k for k, v in passed.items() if not v]
+            return _no_update(f"model error detected (residual not white), but the best candidate "
+                              f"({ch.name}, {kind}) failed the gate: {', '.join(failed)}; "
+                              f"model unchanged", True, cands, notes, None, tr, None)
+
+        # 4. before/after on validation data
+        tick("validation", 0, 2 if delta else 1)
+        table = {"nominal": val_nom}
+        if effect.nonlinear:
+            table["updated"] = _nl_validation(tr, model, y_val, u_val, lags=lags, alpha=alpha,
+                                              skip=skip, name="updated")
+            table["updated (linearized)"] = validate_model(
+                model.sys, y_val, u_val, Q=model.Q, R=model.R, x0="estimate",
+                name="updated (linearized)", lags=lags, alpha=alpha, skip=skip)
+            notes.append("the law is nonlinear: the updated StateSpace holds its best linear "
+                         "part; the 'updated' row simulates the full law")
+        else:
+            table["updated"] = validate_model(model.sys, y_val, u_val, Q=model.Q, R=model.R,
+                                              x0="estimate", name="updated", lags=lags,
+                                              alpha=alpha, skip=skip)
+        if delta:
+            tick("validation", 1, 2)
             try:
-                dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
-                                        y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                        pole=float(lam.max()) if lam.size else None)
-            except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-                notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
-                continue
-            if dl is None:
-                continue
-            se = _fit_error(dl.model.sys, dl.model.Q, dl.model.R)
-            cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
-            sparse[id(tr_)] = dl
-            scored.append((se, dl.npar, tr_, "sparse"))
-    finite = [s for s in scored if np.isfinite(s[0])]
-    if not finite:
-        gate["passed"] = {"whiteness": True, "trace": False}
-        return _no_update("model error detected, but no candidate channel could explain it "
-                          "(see candidates)", True, cands, notes)
-    best_se = min(s[0] for s in finite)
-    near = [s for s in finite if s[0] <= parsimony * best_se]
-    se_c, npar, tr, kind = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
-    ch = tr.channel
+                dm = delta_update(nominal, y, u, Q=Q, R=R, max_order=delta_max_order, x0=x0n)
+                table["delta"] = validate_model(dm.updated.sys, y_val, u_val, Q=dm.updated.Q,
+                                                R=dm.updated.R, x0="estimate", name="delta",
+                                                lags=lags, alpha=alpha, skip=skip)
+            except (GreyboxError, np.linalg.LinAlgError) as e:
+                notes.append(f"parallel delta baseline failed: {e}")
+        tick("validation", 2 if delta else 1, 2 if delta else 1)
+        for name, row in table.items():
+            if not row.se_defined:
+                notes.append(f"{name}: SE n/a: {row.se_reason}")
+        where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
+        if ch.kind == "input":
+            where = f"input {ch.input} (it enters {where})"
+        msg = (f"model error found in {where}: "
+               f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}; "
+               f"{describe_before_after(table)}")
+        return LoopReport(model_error_detected=True, updated=True, message=msg, residual=white,
+                          effect=effect, channel=ch, candidates=tuple(cands), gate=gate,
+                          criterion=crit, nominal=nominal, model=model, table=table, trace=tr,
+                          notes=tuple(notes))
 
-    # 3. gate on the law's BIC gain and the SE drop
-    res = tr.filter_result
-    Nf = res.d_est.shape[1] - 1
-    k0f = max(20, res.period_converged or 20)
-    d = res.d_est[:, k0f:Nf]
-    x = res.x_filt[:, k0f:Nf]
-    uu = u[:, k0f:Nf]
-    Nd = d.shape[1]
-    if kind == "static":
-        law = tr.static
-        gain = float(law.bic_gain + law.npar * np.log(Nd))  # raw gain (before penalty)
-        model = tr.static_model
-        formula = law.formula
-        pnotes = parameter_notes(sys, ch, law)
-        effect = Effect(kind="static", order=0, formula=formula, channel=ch.name,
-                        equations=ch.equations, nonlinear=law.nonlinear,
-                        linearized=law.nonlinear, parameter_notes=pnotes, law=law)
-    elif kind == "sparse":
-        dl = sparse[id(tr)]
-        r = d - _sparse_d(dl, tr, x, uu, dt)
-        _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
-        _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
-        gain = float(Nd * (ld0 - ld1))
-        model = dl.model
-        kind = "dynamic"
-        effect = Effect(kind="dynamic", order=1, formula=dl.formula, channel=ch.name,
-                        equations=ch.equations, dynamic_law=dl)
-    else:
-        sub = tr.dynamic
-        r = d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d
-        _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
-        _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
-        gain = float(Nd * (ld0 - ld1))
-        model = tr.dynamic_model
-        effect = Effect(kind="dynamic", order=sub.order,
-                        formula=_dynamic_formula(sub, ch, dt, x, uu), channel=ch.name,
-                        equations=ch.equations, subsystem=sub)
-    penalty = float(npar * np.log(Nd))
-    passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
-              "se_drop": se_c < min_se_drop * se_nom}
-    gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
-                 "se_estimation_updated": se_c, "min_se_drop": min_se_drop, "passed": passed})
-    if not (passed["bic"] and passed["se_drop"]):
-        failed = [k for k, v in passed.items() if not v]
-        return _no_update(f"model error detected (residual not white), but the best candidate "
-                          f"({ch.name}, {kind}) failed the gate: {', '.join(failed)}; "
-                          f"model unchanged", True, cands, notes, None, tr, None)
+    return _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt)
 
-    # 4. before/after on validation data
-    tick("validation", 0, 2 if delta else 1)
-    table = {"nominal": val_nom}
-    if effect.nonlinear:
-        table["updated"] = _nl_validation(tr, model, y_val, u_val, lags=lags, alpha=alpha,
-                                          skip=skip, name="updated")
-        table["updated (linearized)"] = validate_model(
-            model.sys, y_val, u_val, Q=model.Q, R=model.R, x0="estimate",
-            name="updated (linearized)", lags=lags, alpha=alpha, skip=skip)
-        notes.append("the law is nonlinear: the updated StateSpace holds its best linear "
-                     "part; the 'updated' row simulates the full law")
-    else:
-        table["updated"] = validate_model(model.sys, y_val, u_val, Q=model.Q, R=model.R,
-                                          x0="estimate", name="updated", lags=lags,
-                                          alpha=alpha, skip=skip)
-    if delta:
-        tick("validation", 1, 2)
+
+def _next_model(sys: ct.StateSpace, rep: LoopReport):
+    """The model the next pass starts from: continuous when the law was fitted so."""
+    eff = rep.effect
+    if eff.dynamic_law is not None:
+        return eff.dynamic_law.continuous
+    law = eff.law
+    if eff.kind == "static" and law is not None and law.time_base == "continuous" and \
+            not ct.isdtime(sys, strict=True):
+        G = np.asarray(rep.channel.G, dtype=float)
+        A = np.asarray(sys.A, dtype=float) + G @ law.Ddx
+        B = np.asarray(sys.B, dtype=float) + G @ law.Ddu
+        return named_ss(A, B, sys.C, sys.D, 0, states=sys.state_labels,
+                        inputs=sys.input_labels, outputs=sys.output_labels,
+                        name=f"{sys.name or 'model'}_updated")
+    return rep.model.sys
+
+
+def _channels_for(sys: ct.StateSpace, spec, physical, n0: int):
+    """Candidate channels of a later pass: the physical states' and inputs' only."""
+    if spec is not None:
+        out = []
+        for ch in resolve_channel_spec(physical, spec):
+            G = np.vstack([ch.G, np.zeros((sys.nstates - n0, ch.md))])
+            out.append(replace(ch, G=G))
+        return tuple(out)
+    keep = set(physical.state_labels)
+    return tuple(ch for ch in resolve_channel_spec(sys, None) if set(ch.equations) <= keep)
+
+
+def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt) -> LoopReport:
+    """Run ``once`` until the residual is white, the gate fails or max_effects is reached."""
+    first = once(sys, nominal, Q, chans, delta)
+    if not first.updated:
+        return first
+    steps, reps = [], [first]
+    notes = list(first.notes)
+    cur_sys, rep = sys, first
+    while True:
+        tb = rep.table
+        steps.append(EffectStep(effect=rep.effect, channel=rep.channel.name, message=rep.message,
+                                se_before=tb["nominal"].se.value, se_after=tb["updated"].se.value,
+                                model=rep.model))
+        if len(steps) >= max_effects:
+            break
+        if rep.effect.nonlinear:
+            notes.append("several effects: the loop stops after a nonlinear law (the next pass "
+                         "would need the law in its base model)")
+            break
+        nxt = _next_model(cur_sys, rep)
+        nom_next = nxt if ct.isdtime(nxt, strict=True) else discretize(nxt, dt)
         try:
-            dm = delta_update(nominal, y, u, Q=Q, R=R, max_order=delta_max_order, x0=x0n)
-            table["delta"] = validate_model(dm.updated.sys, y_val, u_val, Q=dm.updated.Q,
-                                            R=dm.updated.R, x0="estimate", name="delta",
-                                            lags=lags, alpha=alpha, skip=skip)
+            rep2 = once(nxt, nom_next, rep.model.Q,
+                        _channels_for(nxt, spec, sys, sys.nstates), False)
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            notes.append(f"parallel delta baseline failed: {e}")
-    tick("validation", 2 if delta else 1, 2 if delta else 1)
-    for name, row in table.items():
-        if not row.se_defined:
-            notes.append(f"{name}: SE n/a: {row.se_reason}")
-    where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
-    if ch.kind == "input":
-        where = f"input {ch.input} (it enters {where})"
-    msg = (f"model error found in {where}: "
-           f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}; "
-           f"{describe_before_after(table)}")
-    return LoopReport(model_error_detected=True, updated=True, message=msg, residual=white,
-                      effect=effect, channel=ch, candidates=tuple(cands), gate=gate,
-                      criterion=crit, nominal=nominal, model=model, table=table, trace=tr,
-                      notes=tuple(notes))
-
+            notes.append(f"several effects: pass {len(steps) + 1} failed: {e}")
+            break
+        notes.append(f"pass {len(steps) + 1}: {rep2.message}")
+        if not rep2.updated:
+            break
+        cur_sys, rep = nxt, rep2
+        reps.append(rep2)
+    if len(steps) == 1:
+        return replace(first, steps=tuple(steps), notes=tuple(notes))
+    last = reps[-1]
+    table = dict(first.table)
+    for k in ("updated", "updated (linearized)"):
+        table.pop(k, None)
+        if k in last.table:
+            table[k] = last.table[k]
+    msg = (f"{len(steps)} effects found: " +
+           "; then ".join(st.message.split(";")[0].replace("model error found in ", "")
+                          for st in steps) + "; " + describe_before_after(table))
+    return replace(first, message=msg, model=last.model, table=table, steps=tuple(steps),
+                   notes=tuple(notes))

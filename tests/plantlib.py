@@ -119,3 +119,31 @@ def with_actuator_lag(sys, tau):
 def with_input_gain(sys, gain):
     A, B = np.asarray(sys.A, float), np.asarray(sys.B, float)
     return lambda x, u: A @ x + gain * (B @ u)
+
+
+def chain(n_masses=2, k=20.0, c=0.5, m=1.0, k_wall=10.0, missing=(), measured=None,
+          force_on=0):
+    """Chain wall-k_wall-m1-k-m2-...-mN of masses; states p1, v1, ..., pN, vN; force F on mass
+    ``force_on``. ``missing`` lists springs (i, j) (0-based masses) left out of the model.
+    Returns the continuous StateSpace."""
+    n = 2 * n_masses
+    A = np.zeros((n, n))
+    for i in range(n_masses):
+        A[2 * i, 2 * i + 1] = 1.0
+        A[2 * i + 1, 2 * i + 1] = -c / m
+    springs = [(-1, 0, k_wall)] + [(i, i + 1, k) for i in range(n_masses - 1)]
+    for i, j, kk in springs:
+        if (i, j) in missing:
+            continue
+        for a, b in ((i, j), (j, i)):
+            if a >= 0:
+                A[2 * a + 1, 2 * a] -= kk / m
+                if b >= 0:
+                    A[2 * a + 1, 2 * b] += kk / m
+    B = np.zeros((n, 1))
+    B[2 * force_on + 1, 0] = 1.0 / m
+    states = [f"{s}{i + 1}" for i in range(n_masses) for s in ("p", "v")]
+    measured = states if measured is None else list(measured)
+    C = np.eye(n)[[states.index(s) for s in measured]]
+    return named_ss(A, B, C, np.zeros((len(measured), 1)), 0, states=states, inputs=["F"],
+                    outputs=measured, name=f"chain{n_masses}")

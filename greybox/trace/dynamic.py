@@ -61,6 +61,8 @@ class DynamicLaw:
         exactly.
     se_estimation : float
         SE [%] of the augmented model on the output-error window.
+    continuous : control.StateSpace
+        The augmented model in continuous time (states ``[x; z[0]]``).
     """
 
     pole: float
@@ -73,6 +75,7 @@ class DynamicLaw:
     formula: str
     model: UpdatedModel = field(repr=False)
     se_estimation: float
+    continuous: ct.StateSpace = field(default=None, repr=False)
 
 
 class _DynProblem:
@@ -105,6 +108,8 @@ class _DynProblem:
 
     def resid(self, theta):
         Ad, Bd = self.disc(theta)
+        if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
+            return np.full(self.y[:, self.k0:].size, 1e6)
         Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 1))])
         with np.errstate(all="ignore"):
             x = lti_states(Ad, Bd @ self.u, self.x0)
@@ -286,7 +291,11 @@ def _fit_from(sys, channel, w, d, y, u, Q, R, dt, x0, k0, pole, max_drivers):
     out = named_ss(Ad, Bd, Ca, D, dt, states=list(sys.state_labels) + ["z[0]"],
                    inputs=sys.input_labels, outputs=sys.output_labels,
                    name=f"{sys.name or 'model'}_updated")
+    Acn, Bcn = prob.cont(sol.x)
+    cont = named_ss(Acn, Bcn, Ca, D, 0, states=list(sys.state_labels) + ["z[0]"],
+                    inputs=sys.input_labels, outputs=sys.output_labels,
+                    name=f"{sys.name or 'model'}_updated")
     return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=b, e=e, ci=hw,
                       npar=1 + 2 * len(drv), formula=formula,
                       model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
-                      se_estimation=se)
+                      se_estimation=se, continuous=cont)

@@ -24,7 +24,8 @@ def zoh(A: NDArray, B: NDArray, dt: float) -> tuple[NDArray, NDArray]:
     n, m = B.shape
     M = np.zeros((n + m, n + m))
     M[:n, :n], M[:n, n:] = A * dt, B * dt
-    E = expm(M)
+    with np.errstate(all="ignore"):  # an optimizer's wild trial: non-finite, caught by callers
+        E = expm(M) if np.all(np.isfinite(M)) else np.full(M.shape, np.nan)
     return E[:n, :n], E[:n, n:]
 
 
@@ -157,6 +158,8 @@ class _OutputErrorLaw:
     def resid(self, theta, sel):
         """Scaled output error, flattened; a diverged simulation counts as 1e6."""
         Aa, Ba, _, _ = self.matrices(sel, theta)
+        if not (np.all(np.isfinite(Aa)) and np.all(np.isfinite(Ba))):
+            return np.full(self.y[:, self.k0:].size, 1e6)
         with np.errstate(all="ignore"):
             x = lti_states(Aa, Ba @ self.u, self.x0)
             r = ((self.y - self.C @ x - self.D @ self.u)[:, self.k0:]
