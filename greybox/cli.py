@@ -47,6 +47,7 @@ def _fmt_table3(t3) -> str:
         ref_s = f"{ref[0]} / {ref[1]} / {ref[2]}" if ref else "-"
         lines.append(f"  {name:<26}{v.order:>6}{v.se.value:>9.2f}{v.pe.value:>9.2f}{ref_s:>22}")
     lines.append(f"  greybox selects: {t3.selected} (orders 0..2, see identify_subsystem)")
+    lines += [f"  {note}" for note in t3.notes]
     return "\n".join(lines)
 
 
