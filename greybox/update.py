@@ -251,7 +251,9 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
                 how = "output-error"
             else:
                 ident_fn = pbsid if method == "pbsid" else n4sid
-                with warnings.catch_warnings():
+                # an unstable predictor may overflow in the initial-state fit:
+                # such a candidate fails (LinAlgError) and is skipped
+                with warnings.catch_warnings(), np.errstate(all="ignore"):
                     warnings.simplefilter("ignore", GreyboxWarning)
                     ident = ident_fn(d, w, order=nd, horizon=horizon or nd + 1,
                                      feedthrough=feedthrough, dt=float(result.sys.dt))
@@ -259,7 +261,9 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
                 Ad, Bw, Cd, Dw = (np.asarray(a, dtype=float) for a in (s_.A, s_.B, s_.C, s_.D))
                 K, Re = ident.K, ident.innovation_cov
                 how = method
-        except IdentificationError:
+        except (IdentificationError, np.linalg.LinAlgError):
+            continue
+        if not all(np.all(np.isfinite(M)) for M in (Ad, Bw, Cd, Dw)):
             continue
         if nd and np.max(np.abs(np.linalg.eigvals(Ad))) >= 1.0:
             continue  # unstable subsystem: not a physical candidate (§8.6)
@@ -411,8 +415,10 @@ class DeltaModel:
         The delta model from u to the output error (order 0, zero gain, when
         ``improved`` is False).
     order : int
-        n_delta, including the fixed unit-circle states (0 when no
-        improvement was found).
+        States the delta model adds to the combined model (0 when no
+        improvement was found); ``updated.order = n + order``. The fixed
+        unit-circle states are not among them when they could be merged
+        into the initial model's own integrators (see :func:`delta_update`).
     improved : bool
         False if no stable candidate lowered both the held-out SE and the
         estimation-record SE of the initial model: "parallel model: no
@@ -421,7 +427,8 @@ class DeltaModel:
         True if the initial model's unit-circle modes were factored out
         (chosen by the held-out SE, see :func:`delta_update`).
     nfixed : int
-        Fixed states (the initial model's unit-circle modes in series).
+        Fixed states of ``delta`` (the initial model's unit-circle modes in
+        series).
     refined : bool
         True if the output-error refinement was kept.
     se : dict of str to float
@@ -464,7 +471,7 @@ def _n4sid_fits(data: NDArray, u: NDArray, orders, dt: float, horizon: int | Non
     i = _choose_horizon(horizon, None, [ys[0].shape[1]], m, l, max(orders), lambda k: 2 * k)
     h = hankel_r(ys, us, sy, su, 2 * i, chunk_size=None)
     out = {}
-    with small_blas(), warnings.catch_warnings():
+    with small_blas(), warnings.catch_warnings(), np.errstate(all="ignore"):
         warnings.simplefilter("ignore", GreyboxWarning)
         for k in orders:
             if k > (i - 1) * l:
@@ -537,7 +544,15 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     ``[P(q) U1^T W dy; U2^T W dy]`` and ``1/P(q)`` is placed in series on the
     ``U1`` channels as ``deg P * rank(C V)`` fixed states (``nfixed``), with
     exactly the initial model's unit-circle eigenvalues (marginally stable
-    like the initial model itself, never unstable).
+    like the initial model itself, never unstable). ``DeltaModel.delta``
+    holds that series form. In the combined model, when ``P(q) = 1 - q^-1``
+    and the eigenvalue 1 of ``A`` is semisimple (integrators, as in the tape
+    drive), the fixed states are not duplicated: the identified part's
+    differenced output drives the initial model's own integrators through
+    ``V M`` (``A V = V``, ``C V M = W^-1 U1``). The input-output behaviour
+    is the same; a second set of integrators observed through the same
+    outputs would be an unobservable mode on the unit circle, and the
+    combined model could not be used for a Kalman filter or an LQ design.
 
     Scaling: every output is divided by its RMS (``W``) before
     identification, so the least-squares costs weigh the channels as eq. (42)
@@ -657,6 +672,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
             ref = refine_output_error(fA, fB, fC, u[:, sl], data[:, sl], max_iter=refine_iter)
         except IdentificationError:
             return None
+        if _spectral_radius(ref.A) > 1.0 - 1e-6:
+            return None  # driven to the parametrization's bound: not a real pole
         return (ref.A, ref.B, ref.C, np.linalg.solve(ref.T, K), Re)
 
     def tail_error(part, fac):
@@ -710,6 +727,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
         full = _n4sid_fits(data, u, [k], float(sys.dt), horizon)
         fpart = model_of(full[k]) if k in full else None
         part = fpart if fpart is not None else part
+    part = _balance(*part)
     model = _assemble(*part, fac)
     yh = y0 + _simulate(*model[:3], u) * w[:, None]
     se["delta_estimation"] = relative_error(y, yh).value
@@ -724,16 +742,32 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     Re = Re * np.outer(w, w)
     nD = dA.shape[0]
     dD = np.zeros((p, m))
-    Aa = np.block([[A, np.zeros((n, nD))], [np.zeros((nD, n)), dA]])
-    Ba = np.vstack([B, dB])
-    Ca = np.hstack([C, dC])
-    Qa = np.block([[Q, np.zeros((n, nD))], [np.zeros((nD, n)), Kd @ Re @ Kd.T]])
-    states = list(sys.state_labels) + [f"{state_prefix}[{i}]" for i in range(nD)]
+    merge = _merge_drive(A, C / w[:, None], fac) if fac is not None else None
+    if merge is None:
+        Aa = np.block([[A, np.zeros((n, nD))], [np.zeros((nD, n)), dA]])
+        Ba = np.vstack([B, dB])
+        Ca = np.hstack([C, dC])
+        Qa = np.block([[Q, np.zeros((n, nD))], [np.zeros((nD, n)), Kd @ Re @ Kd.T]])
+        nc = nD
+    else:
+        # the fixed integrators accumulate in the initial model's own integrators
+        fA, fB, fC, K, Re_r = part
+        rho = fac[2]
+        Aa = np.block([[A, merge @ fC[:rho]], [np.zeros((k, n)), fA]])
+        Ba = np.vstack([B, fB])
+        Ca = np.hstack([C, (fac[1] @ fC) * w[:, None]])
+        Kaug = np.vstack([np.hstack([merge, np.zeros((n, p - rho))]), K])
+        Qa = Kaug @ Re_r @ Kaug.T
+        Qa[:n, :n] += Q
+        nc = k
+    states = list(sys.state_labels) + [f"{state_prefix}[{i}]" for i in range(nc)]
     combined = named_ss(Aa, Ba, Ca, D + dD, sys.dt, states=states, inputs=sys.input_labels,
                         outputs=sys.output_labels, name=f"{sys.name or 'model'}_delta")
     # output noise: the delta innovation covariance, kept positive definite
     Rc = psd_part(Re) + 1e-12 * max(np.trace(R), 1e-300) * np.eye(sys.noutputs)
-    delta = named_ss(dA, dB, dC, dD, sys.dt, states=states[n:], inputs=sys.input_labels,
+    delta = named_ss(dA, dB, dC, dD, sys.dt,
+                     states=[f"{state_prefix}[{i}]" for i in range(nD)],
+                     inputs=sys.input_labels,
                      outputs=[f"d{s}" for s in sys.output_labels], name="delta")
     nfixed = nD - k
     msg = (f"parallel model: order {nD}" + (f" ({nfixed} fixed unit-circle states)"
@@ -741,9 +775,42 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
            + f", estimation SE {se['initial_estimation']:.3g} % -> "
            f"{se['delta_estimation']:.3g} %")
     return DeltaModel(updated=UpdatedModel(sys=combined, Q=0.5 * (Qa + Qa.T), R=Rc,
-                                           order=n + nD, kind="delta"),
-                      delta=delta, order=nD, improved=True, marginal=fac is not None,
+                                           order=n + nc, kind="delta"),
+                      delta=delta, order=nc, improved=True, marginal=fac is not None,
                       nfixed=nfixed, refined=use_refine, se=se, criterion=crit, message=msg)
+
+
+def _balance(fA, fB, fC, K, Re):
+    """Diagonal similarity giving every state equal input-row and output-column norms."""
+    nb = np.linalg.norm(fB, axis=1)
+    nc = np.linalg.norm(fC, axis=0)
+    sc = np.sqrt(np.where((nb > 0) & (nc > 0), nb / np.where(nc > 0, nc, 1.0), 1.0))
+    return fA * (sc[None, :] / sc[:, None]), fB / sc[:, None], fC * sc[None, :], \
+        K / sc[:, None], Re
+
+
+def _merge_drive(A: NDArray, Cs: NDArray, factor):
+    """Input matrix ``V M`` that accumulates the differenced delta output in ``A``'s own
+    integrators, or None if that realization does not apply.
+
+    Applies when ``P(q) = 1 - q^-1`` and the eigenvalue 1 of ``A`` is semisimple
+    (``A V = V`` for a basis ``V`` of its eigenspace); ``M`` solves
+    ``Cs V M = U1`` (``U1`` lies in ``range(Cs V)`` by construction).
+    """
+    import scipy.linalg as sla
+
+    a, T, rho = factor
+    if a.shape != (1,) or abs(a[0] + 1.0) > 1e-12:
+        return None
+    V = sla.null_space(A - np.eye(A.shape[0]), rcond=1e-9)
+    lam = np.linalg.eigvals(A)
+    if V.shape[1] != int(np.sum(np.abs(lam - 1.0) <= 1e-6)):
+        return None  # a Jordan block at 1: keep the fixed states
+    CV = Cs @ V
+    M = np.linalg.lstsq(CV, T[:, :rho], rcond=1e-10)[0]
+    if np.linalg.norm(CV @ M - T[:, :rho]) > 1e-8 * max(1.0, np.linalg.norm(CV)):
+        return None
+    return V @ M
 
 
 def _assemble(fA, fB, fC, K, Re, factor):

@@ -4,7 +4,8 @@ A strictly proper model ``x[k+1] = A x[k] + B u[k], y[k] = C x[k]`` is
 refined so that its *simulated* output matches the data in least squares. ``A`` is kept in real
 modal form: a pole per real eigenvalue, a rotation block per complex pair,
 each parametrized so that it stays strictly inside the unit circle
-(``lambda = tanh(theta)``; ``r = 1 / (1 + exp(-s))``). The output matrix
+(``lambda = rmax tanh(theta)``; ``r = rmax / (1 + exp(-s))``;
+``rmax = 1 - 1e-7``). The output matrix
 enters linearly and is eliminated by least squares (variable projection,
 Golub & Pereyra 1973); the poles and the input matrix are optimized by
 :func:`scipy.optimize.least_squares`. Every state is a scalar (or complex)
@@ -31,6 +32,9 @@ __all__ = ["ModalOEResult", "refine_output_error"]
 
 #: Largest condition number of the eigenvector matrix accepted for the modal form.
 _MAX_COND = 1e8
+#: Largest pole modulus reachable by the parametrization (``tanh`` and the
+#: logistic function round to exactly 1 for large arguments).
+_RMAX = 1.0 - 1e-7
 
 
 @dataclass(frozen=True)
@@ -94,12 +98,12 @@ def _pack(M: NDArray, B: NDArray, modes) -> NDArray:
     theta, i = [], 0
     for kind in modes:
         if kind == "real":
-            lam = float(np.clip(M[i, i], -1 + 1e-9, 1 - 1e-9))
+            lam = float(np.clip(M[i, i] / _RMAX, -1 + 1e-12, 1 - 1e-12))
             theta += [np.arctanh(lam), *B[i]]
             i += 1
         else:
             mu = M[i, i] - 1j * M[i, i + 1]
-            r = float(np.clip(abs(mu), 1e-9, 1 - 1e-9))
+            r = float(np.clip(abs(mu) / _RMAX, 1e-12, 1 - 1e-12))
             theta += [np.log(r / (1 - r)), np.angle(mu), *B[i], *B[i + 1]]
             i += 2
     return np.array(theta, dtype=float)
@@ -110,17 +114,17 @@ def _unpack(theta: NDArray, modes, m: int):
     poles, rows, dpole, j = [], [], [], 0
     for kind in modes:
         if kind == "real":
-            lam = np.tanh(theta[j])
+            lam = _RMAX * np.tanh(theta[j])
             poles.append(complex(lam))
             rows.append(theta[j + 1:j + 1 + m].astype(complex))
-            dpole.append((1.0 - lam**2,))
+            dpole.append((_RMAX * (1.0 - np.tanh(theta[j]) ** 2),))
             j += 1 + m
         else:
-            r = 1.0 / (1.0 + np.exp(-theta[j]))
-            mu = r * np.exp(1j * theta[j + 1])
+            s = 1.0 / (1.0 + np.exp(-np.clip(theta[j], -700, 700)))
+            mu = _RMAX * s * np.exp(1j * theta[j + 1])
             poles.append(mu)
             rows.append(theta[j + 2:j + 2 + m] + 1j * theta[j + 2 + m:j + 2 + 2 * m])
-            dpole.append(((1.0 - r) * mu, 1j * mu))
+            dpole.append(((1.0 - s) * mu, 1j * mu))
             j += 2 + 2 * m
     return poles, rows, dpole
 
