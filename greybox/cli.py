@@ -64,6 +64,7 @@ def _fmt_table3(t3) -> str:
         lines.append(f"  {name:<26}{v.order:>6}{_pct(v.se.value, '>9.2f'):>9}"
                      f"{_pct(v.pe.value, '>9.2f'):>9}{ref_s:>22}")
     lines.append(f"  greybox selects: {t3.selected} (orders 0..2, see identify_subsystem)")
+    lines += [f"  {note}" for note in t3.notes]
     return "\n".join(lines)
 
 

@@ -421,7 +421,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                    u_val: ArrayLike, *, Q: ArrayLike, R: ArrayLike, dt: float | None = None,
                    channels=None, nonlinear: bool = True, max_order: int = 2,
                    alpha: float = 1e-3, lags: int = 20, delta: bool = True,
-                   delta_max_order: int = 4, parsimony: float = 1.1,
+                   delta_max_order: int | None = None, parsimony: float = 1.1,
                    min_se_drop: float = 0.8, bic_factor: float = 10.0,
                    progress=None, max_effects: int = 3) -> LoopReport:
     """Find, trace and add the effect a nominal model lacks; report before and after.
@@ -456,7 +456,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         Lags of the whiteness test and correlations.
     delta : bool
         Also fit the parallel delta baseline (21)-(24) for the table.
-    delta_max_order : int
+    delta_max_order : int, optional
+        Highest order of the delta baseline; default that of
+        :func:`greybox.update.delta_update` (n + 6).
     parsimony : float
         Candidates with estimation SE within this factor of the best count
         as equally good; the one with fewest parameters wins.
@@ -518,7 +520,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     R = check_covariance(R, p, "R", definite=True)
     chans = resolve_channel_spec(sys, channels)
     max_order = check_positive(max_order, "max_order", integer=True, allow_zero=True)
-    delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
+    if delta_max_order is not None:
+        delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
     max_effects = check_positive(max_effects, "max_effects", integer=True)
     nonlinear, delta = _flag(nonlinear, "nonlinear"), _flag(delta, "delta")
     parsimony = check_positive(parsimony, "parsimony")
@@ -747,6 +750,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             tick("validation", 1, 2)
             try:
                 dm = delta_update(nominal, y, u, Q=Q, R=R, max_order=delta_max_order, x0=x0n)
+                notes.append(dm.message)
                 table["delta"] = validate_model(dm.updated.sys, y_val, u_val, Q=dm.updated.Q,
                                                 R=dm.updated.R, x0="estimate", name="delta",
                                                 lags=lags, alpha=alpha, skip=skip)

@@ -120,8 +120,8 @@ print(f"dynamic update: order {dynamic.order}, states {list(dynamic.sys.state_la
 with warnings.catch_warnings():
     warnings.simplefilter("ignore", gb.GreyboxWarning)
     delta = delta_update(base, est.y, est.u, Q=Q, R=R)
-print(f"delta model   : order {delta.order} (combined {delta.updated.order}), "
-      f"poles mirrored: {delta.stabilized}")
+print(f"delta model   : order {delta.order} (combined {delta.updated.order}); "
+      f"{delta.message}")
 
 # %% 7. Validate on fresh data (Table III)
 # New seed, same input statistics, no process noise in the truth (with it even

@@ -11,8 +11,13 @@ forward and wheel 2 back:
     J1 dw1/dt = +r1 T - beta w1 + Kt I1
     J2 dw2/dt = -r2 T - beta w2 + Kt I2
 
-so the tension is restoring (it reduces the stretch ``p2 - p1``), giving the
-lightly damped tape mode near 500 rad/s. As printed, eq. (38) has ``-r T`` on
+so the tension is restoring (it reduces the stretch ``p2 - p1``). The tape
+mode is heavily damped, not lightly: the true model's continuous poles are
+0, -291, -917 +- 136j and -1000 +- 134j rad/s (damping ratios ~0.99; about
+500 rad/s is only the undamped stretch frequency sqrt(K r^2 / J) of the
+tape spring, which the tape damping D and the motors' back-EMF swamp). The
+nominal model (no tension) has two integrators (0, 0) and the motor poles
+twice. As printed, eq. (38) has ``-r T`` on
 both wheels, which makes the tension cancel from ``dp`` and is not physical.
 The unknown-input matrix of the nominal model is accordingly
 ``G = [0 0 0 0 +r1/J1 -r2/J2]^T`` (continuous time, per newton of tension),

@@ -1,0 +1,262 @@
+"""Tests that pin what the reports print (issue 9).
+
+PE is a one-step *prediction* error; the augmented model carries the
+subsystem's noise; the subsystem order follows the documented rule; the
+parallel delta baseline improves on the initial model on seeded plants;
+Table I; the subspace variants of the subsystem step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import greybox as gb
+from greybox.metrics import relative_error
+from greybox.update import Subsystem, augment_model, delta_update, identify_subsystem
+from greybox.validate import validate_model
+
+DT = 0.01
+Q2 = np.diag([1e-8, 1e-6])
+R2 = np.diag([1e-6, 1e-6])
+
+
+def _ss(A, B, C, states, inputs, outputs):
+    A, B, C = (np.asarray(a, dtype=float) for a in (A, B, C))
+    return gb.discretize(gb.named_ss(A, B, C, np.zeros((C.shape[0], B.shape[1])), 0,
+                                     states=states, inputs=inputs, outputs=outputs), DT)
+
+
+def _msd(k, unknown=False):
+    """Mass-damper [x (m), v (m/s)], force F [N], spring k [N/m]; optional channel d."""
+    B = [[0.0], [1.0]] if not unknown else [[0.0, 0.0], [1.0, 1.0]]
+    return _ss([[0, 1], [-k, -0.4]], B, np.eye(2), ["x", "v"],
+               ["F"] + (["d"] if unknown else []), ["x", "v"])
+
+
+def _lag(k):
+    """Mass-spring-damper with a lagged viscous force z (not measured)."""
+    return _ss([[0, 1, 0], [-k, -0.4, 1], [0, -4.0, -2.0]], [[0], [1], [0]], np.eye(3)[:2],
+               ["x", "v", "z"], ["F"], ["x", "v"])
+
+
+def _carts(ks):
+    """Two carts (x1 v1 x2 v2), force on cart 1, coupling spring ks [N/m]."""
+    A = np.zeros((4, 4))
+    A[0, 1] = A[2, 3] = 1.0
+    A[1, 1] = A[3, 3] = -0.4
+    A[1, 0], A[1, 2], A[3, 0], A[3, 2] = -ks, ks, ks, -ks
+    return _ss(A, [[0], [1], [0], [0]], np.eye(4), ["x1", "v1", "x2", "v2"], ["F"],
+               ["x1", "v1", "x2", "v2"])
+
+
+def _record(true, rng, N=8000, process_noise=True):
+    u = gb.random_binary(N, amplitude=1.0, hold=50, rng=rng)
+    Q = 1e-8 * np.eye(true.nstates) if process_noise else None
+    return gb.simulate(true, u, Q=Q, R=1e-6 * np.eye(true.noutputs), rng=rng)
+
+
+@pytest.fixture(scope="module")
+def spring_filter():
+    rng = np.random.default_rng(10)
+    est = _record(_msd(4.0), rng)
+    nominal = _msd(0.0, unknown=True)
+    return nominal, gb.uikf(nominal, est.y, est.u, unknown="d", Q=Q2, R=R2)
+
+
+# --- PE uses x^[k|k-1] ----------------------------------------------------------
+
+
+def _predictor_and_filter(sys, y, u, Q, R):
+    """Independent time-varying Kalman recursion from x0 = 0, P0 = 0."""
+    A, B, C = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C))
+    n, N = A.shape[0], y.shape[1]
+    x, P = np.zeros(n), np.zeros((n, n))
+    pred, filt = np.empty_like(y), np.empty_like(y)
+    for k in range(N):
+        pred[:, k] = C @ x
+        S = C @ P @ C.T + R
+        K = P @ C.T @ np.linalg.inv(S)
+        x = x + K @ (y[:, k] - C @ x)
+        P = P - K @ S @ K.T
+        filt[:, k] = C @ x
+        x = A @ x + B @ u[:, k]
+        P = A @ P @ A.T + Q
+    return pred, filt
+
+
+def test_pe_is_the_one_step_prediction_error():
+    true = _msd(4.0)
+    val = _record(true, np.random.default_rng(3), N=3000)
+    v = validate_model(true, val.y, val.u, Q=Q2, R=R2)
+    pred, filt = _predictor_and_filter(true, val.y, val.u, Q2, R2)
+    pe_pred = relative_error(val.y, pred).value
+    pe_filt = relative_error(val.y, filt).value
+    # same recursion up to round-off (greybox may switch to the converged gain,
+    # which agrees with the time-varying one to ~1e-10 relative)
+    np.testing.assert_allclose(v.pe.value, pe_pred, rtol=1e-6)
+    # the filter's C x^[k|k] would give a clearly smaller number: the test can tell
+    assert pe_filt < 0.8 * pe_pred
+
+
+# --- noise of the augmented model -------------------------------------------------
+
+
+def _subsystem(order, K, noise_cov):
+    n_u, n_x = 1, 2
+    return Subsystem(
+        order=order, Ad=0.5 * np.eye(order), Bdu=np.ones((order, n_u)),
+        Bdx=np.ones((order, n_x)), Cd=np.ones((1, order)), Ddu=np.zeros((1, n_u)),
+        Ddx=np.array([[-4.0, 0.0]]), K=K, innovation_cov=noise_cov + 0.1,
+        noise_cov=noise_cov, criterion={}, method="test", feedthrough=True,
+        d_sim=np.zeros((1, 10)), input_labels=("F",), state_labels=("x", "v"),
+        unknown_labels=("d",))
+
+
+def test_augmented_q_has_g_rnu_gt_and_the_subsystem_noise_r_unchanged():
+    nominal = _msd(0.0, unknown=True)
+    G = np.asarray(nominal.B)[:, 1:]
+    K = np.array([[0.3], [-0.2]])
+    Rn = np.array([[2.0]])
+    Q = np.diag([1e-8, 1e-6])
+    R = np.diag([3e-6, 5e-6])
+    upd = augment_model(nominal, _subsystem(2, K, Rn), unknown="d", Q=Q, R=R)
+    # exact algebra: the formulas of augment_model's docstring
+    np.testing.assert_allclose(upd.Q[:2, :2], Q + G @ Rn @ G.T, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(upd.Q[:2, 2:], G @ Rn @ K.T, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(upd.Q[2:, 2:], K @ Rn @ K.T, rtol=1e-12, atol=1e-18)
+    assert np.all(np.diag(upd.Q)[:2] > np.diag(Q))  # G R_nu G^T really added
+    np.testing.assert_array_equal(upd.R, R)
+    # the output row of (31): d^ = [Ddx Cd] [x; z] + nu, its noise the residual of d^
+    upd2 = augment_model(nominal, _subsystem(2, K, Rn), unknown="d", Q=Q, R=R,
+                         output_unknown=True)
+    assert upd2.sys.output_labels == ["x", "v", "d_hat"]
+    np.testing.assert_array_equal(np.asarray(upd2.sys.C)[2], [-4.0, 0.0, 1.0, 1.0])
+    np.testing.assert_array_equal(upd2.R[:2, :2], R)
+    np.testing.assert_allclose(upd2.R[2, 2], 2.1, rtol=1e-12)
+
+
+def test_identified_subsystem_noise_reaches_q(spring_filter):
+    nominal, res = spring_filter
+    sub = identify_subsystem(res, order=1, method="n4sid")
+    assert sub.method == "n4sid" and sub.K.shape == (1, 1)
+    upd = augment_model(nominal, sub, unknown="d", Q=Q2, R=R2)
+    Rn = sub.noise_cov
+    # R_nu is the part of the innovation covariance beyond the filter's own Pd
+    excess = np.atleast_2d(sub.innovation_cov) - np.atleast_2d(res.d_cov)
+    np.testing.assert_allclose(Rn, np.maximum(excess, 0.0), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(upd.Q[2:, 2:], sub.K @ Rn @ sub.K.T, rtol=1e-12, atol=1e-300)
+    G = np.asarray(nominal.B)[:, 1:]
+    np.testing.assert_allclose(upd.Q[:2, :2], Q2 + G @ Rn @ G.T, rtol=1e-12, atol=1e-300)
+
+
+# --- order rule as documented ------------------------------------------------------
+
+
+def test_subsystem_order_rule_is_the_documented_one(spring_filter):
+    _, res = spring_filter
+    chosen = identify_subsystem(res, max_order=2)
+    N = res.d_est.shape[1] - 1
+    k0 = max(10, res.period_converged or 10)
+    d = res.d_est[:, k0:N]
+    var = {}
+    for k in range(3):
+        sub = identify_subsystem(res, order=k)
+        var[k] = float(np.trace(np.atleast_2d(np.cov(d - sub.d_sim, bias=True))))
+    floor = 1.05 * max(min(var.values()), float(np.trace(np.atleast_2d(res.d_cov))))
+    expected = min(k for k in var if var[k] <= floor)
+    assert chosen.order == expected == 0  # the missing spring is static
+    # and the recorded criterion is the BIC of every order tried
+    assert sorted(chosen.criterion) == [0, 1, 2]
+
+
+# --- identify_subsystem with the subspace methods ---------------------------------
+
+
+@pytest.mark.parametrize("method", ["n4sid", "pbsid"])
+def test_subspace_subsystem_methods(spring_filter, method):
+    nominal, res = spring_filter
+    sub = identify_subsystem(res, order=1, method=method)
+    assert sub.method == method and sub.order == 1
+    assert np.max(np.abs(np.linalg.eigvals(sub.Ad))) < 1
+    val = _record(_msd(4.0), np.random.default_rng(11), process_noise=False)
+    base = gb.split_inputs(nominal, "d").sys
+    upd = augment_model(nominal, sub, unknown="d", Q=Q2, R=R2)
+    v0 = validate_model(base, val.y, val.u, Q=Q2, R=R2)
+    v1 = validate_model(upd.sys, val.y, val.u, Q=upd.Q, R=upd.R)
+    vt = validate_model(_msd(4.0), val.y, val.u, Q=Q2, R=R2)
+    if method == "n4sid":
+        # the paper's step with feedthrough reaches the floor here (measured:
+        # SE within a few tenths of a percent of the true model's)
+        assert v1.se.value < vt.se.value + 1.0
+    else:
+        # PBSID on C = I filter data is ill-posed (documented); it must still
+        # return a stable update that is no worse than the nominal model
+        assert v1.se.value < v0.se.value
+    with pytest.raises(gb.DataError, match="method must be"):
+        identify_subsystem(res, method="arx")
+
+
+# --- the parallel baseline improves on the initial model ----------------------------
+
+PLANTS = {
+    "missing-spring": (lambda: _msd(4.0), lambda: _msd(0.0)),
+    "missing-lag": (lambda: _lag(4.0), lambda: _msd(4.0)),
+    "two-carts": (lambda: _carts(4.0), lambda: _carts(0.0)),
+}
+
+
+@pytest.mark.parametrize("plant", list(PLANTS), ids=list(PLANTS))
+def test_parallel_baseline_improves_on_the_initial_model(plant):
+    make_true, make_nominal = PLANTS[plant]
+    true, nominal = make_true(), make_nominal()
+    rng = np.random.default_rng(1)
+    est = _record(true, rng)
+    val = _record(true, rng, process_noise=False)
+    Q = 1e-8 * np.eye(nominal.nstates)
+    R = 1e-6 * np.eye(nominal.noutputs)
+    dm = delta_update(nominal, est.y, est.u, Q=Q, R=R)
+    assert dm.improved and dm.message.startswith("parallel model: order")
+    v0 = validate_model(nominal, val.y, val.u, Q=Q, R=R)
+    v1 = validate_model(dm.updated.sys, val.y, val.u, Q=dm.updated.Q, R=dm.updated.R)
+    # measured ratios 0.13 (spring), 0.04 (lag), 0.43 (carts): a baseline that
+    # merely breaks even, or diverges, fails
+    assert v1.se.value < 0.5 * v0.se.value
+    # the identified part is stable; fixed states sit exactly on the unit circle
+    lam = np.abs(np.linalg.eigvals(dm.delta.A))
+    assert np.sum(lam >= 1 - 1e-12) == dm.nfixed
+    assert np.all(lam <= 1 + 1e-12) and np.all(lam[lam < 1 - 1e-12] < 1 - 1e-8)
+
+
+def test_parallel_baseline_says_when_it_finds_nothing():
+    true = _msd(4.0)
+    rng = np.random.default_rng(0)
+    est = _record(true, rng, N=2000)
+    dm = delta_update(true, est.y, est.u, Q=1e-8 * np.eye(2), R=1e-6 * np.eye(2))
+    # the model is right: nothing to add, and the record says so (a field, not None)
+    assert not dm.improved and dm.order == 0
+    assert dm.message.startswith("parallel model: no improvement found")
+    assert dm.updated.sys is true and dm.updated.order == 2
+    with pytest.raises(gb.DataError, match="holdout must be"):
+        delta_update(true, est.y, est.u, Q=1e-8 * np.eye(2), R=1e-6 * np.eye(2), holdout=0.9)
+
+
+# --- Table I --------------------------------------------------------------------------
+
+
+def test_table_i_values_and_poles():
+    p = gb.TapeDriveParams()
+    # Table I of the paper, transcribed: L [H], R [Ohm], Ke [V s], r [m], J [kg m^2],
+    # beta [kg m^2 / s], Kt [N m / A], K [N / m], D [N s / m]
+    table1 = {"L": 1e-3, "R": 1.0, "Ke": 3e-2, "r": 25e-3, "J": 5e-5, "beta": 5e-2,
+              "Kt": 3e-2, "K": 2e4, "D": 10.0}
+    assert {k: getattr(p, k) for k in table1} == table1
+    # continuous poles of the true model (PAPER_NOTES §8.1): a heavily damped
+    # tape mode; to 0.1 rad/s (printed to that precision in the docstring)
+    true_c = gb.tape_drive_true()
+    poles = np.sort_complex(np.linalg.eigvals(np.asarray(true_c.A)))
+    expect = np.sort_complex(np.array([0, -290.86, -917.07 + 136.04j, -917.07 - 136.04j,
+                                       -1000 + 134.16j, -1000 - 134.16j]))
+    np.testing.assert_allclose(poles, expect, atol=0.1)
+    moving = poles[np.abs(poles) > 1.0]
+    assert np.all(-moving.real / np.abs(moving) > 0.98)  # damping ratios ~0.99
