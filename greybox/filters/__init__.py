@@ -1,8 +1,5 @@
 """State and unknown-input filters."""
 
-from .ensemble import ensemble_uikf
-from .sigma_points import MerweScaledSigmaPoints, robust_cholesky
-from .ukf import ui_ukf, ukf
 from .uikf import (
     FilterResult,
     SteadyStateFilter,
@@ -13,11 +10,6 @@ from .uikf import (
 )
 
 __all__ = [
-    "MerweScaledSigmaPoints",
-    "robust_cholesky",
-    "ui_ukf",
-    "ukf",
-    "ensemble_uikf",
     "FilterResult",
     "SteadyStateFilter",
     "check_rank_condition",
@@ -25,3 +17,10 @@ __all__ = [
     "steady_state_filter",
     "uikf",
 ]
+
+# nonlinear filters (section IV, issue 10)
+from .ensemble import ensemble_uikf  # noqa: E402
+from .sigma_points import MerweScaledSigmaPoints, robust_cholesky  # noqa: E402
+from .ukf import ui_ukf, ukf  # noqa: E402
+
+__all__ += ["MerweScaledSigmaPoints", "robust_cholesky", "ui_ukf", "ukf", "ensemble_uikf"]
