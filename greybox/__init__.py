@@ -27,10 +27,6 @@ __all__ = [
 ]
 
 from .filters import (  # noqa: E402
-    MerweScaledSigmaPoints,
-    ensemble_uikf,
-    ui_ukf,
-    ukf,
     FilterResult,
     SteadyStateFilter,
     check_rank_condition,
@@ -38,22 +34,10 @@ from .filters import (  # noqa: E402
     steady_state_filter,
     uikf,
 )
-from .nonlinear import (  # noqa: E402
-    discretize_nonlinear,
-    linear_output_map,
-    rk4_substeps,
-    simulate_nonlinear,
-)
 from .filters.delayed import RelativeDegree, delayed_uikf, detect_relative_degree  # noqa: E402
 from .filters.feedthrough import feedthrough_uikf, with_sensor_error  # noqa: E402
 from .filters.smoother import smooth_uikf  # noqa: E402
 from .plants import (  # noqa: E402
-    MOTOR_PUMP_DT,
-    MOTOR_PUMP_Q,
-    MOTOR_PUMP_R,
-    MotorPumpParams,
-    motor_pump_nominal,
-    motor_pump_true,
     TAPE_DRIVE_DT,
     TAPE_DRIVE_Q,
     TAPE_DRIVE_R,
@@ -87,20 +71,6 @@ from .validate import ModelValidation, estimate_initial_state, validate_model  #
 from .workflow import CandidateScore, Effect, EffectStep, LoopReport, close_the_loop  # noqa: E402
 
 __all__ += [
-    "MerweScaledSigmaPoints",
-    "ensemble_uikf",
-    "ui_ukf",
-    "ukf",
-    "discretize_nonlinear",
-    "linear_output_map",
-    "rk4_substeps",
-    "simulate_nonlinear",
-    "MOTOR_PUMP_DT",
-    "MOTOR_PUMP_Q",
-    "MOTOR_PUMP_R",
-    "MotorPumpParams",
-    "motor_pump_nominal",
-    "motor_pump_true",
     "FilterResult",
     "SteadyStateFilter",
     "check_rank_condition",
@@ -160,4 +130,38 @@ __all__ += [
     "feedthrough_uikf",
     "smooth_uikf",
     "with_sensor_error",
+]
+
+# nonlinear models and filters (section IV, issue 10)
+from .filters import MerweScaledSigmaPoints, ensemble_uikf, ui_ukf, ukf  # noqa: E402
+from .nonlinear import (  # noqa: E402
+    discretize_nonlinear,
+    linear_output_map,
+    rk4_substeps,
+    simulate_nonlinear,
+)
+from .plants import (  # noqa: E402
+    MOTOR_PUMP_DT,
+    MOTOR_PUMP_Q,
+    MOTOR_PUMP_R,
+    MotorPumpParams,
+    motor_pump_nominal,
+    motor_pump_true,
+)
+
+__all__ += [
+    "MerweScaledSigmaPoints",
+    "ensemble_uikf",
+    "ui_ukf",
+    "ukf",
+    "discretize_nonlinear",
+    "linear_output_map",
+    "rk4_substeps",
+    "simulate_nonlinear",
+    "MOTOR_PUMP_DT",
+    "MOTOR_PUMP_Q",
+    "MOTOR_PUMP_R",
+    "MotorPumpParams",
+    "motor_pump_nominal",
+    "motor_pump_true",
 ]

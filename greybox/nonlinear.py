@@ -399,9 +399,10 @@ def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None 
     if isinstance(sys, ct.StateSpace):
         y_clean = np.asarray(sys.C, float) @ x + np.asarray(sys.D, float) @ u
     else:
-        y_clean = np.column_stack([sys._out(k * dt, x[:, k], u[:, k]) for k in range(N)]) \
-            if N else np.zeros((p, 0))
-        y_clean = y_clean.reshape(p, N)
+        y_clean = np.empty((p, N))
+        for k in range(N):
+            y_clean[:, k] = np.asarray(sys.output(k * dt, x[:, k], u[:, k]),
+                                       dtype=float).reshape(-1)
     y = y_clean.copy()
     if R is not None:
         y = y + _gaussian(check_covariance(R, p, "R", definite=False), N, g)

@@ -295,6 +295,16 @@ def test_f_that_raises_is_reported_with_step():
                   R=[[1e-4]])
 
 
+@pytest.mark.parametrize("filt", ["ui_ukf", "ensemble_uikf"])
+def test_non_finite_d_estimate_raises(filt):
+    sys = ct.nlsys(lambda t, x, u, p: 0.5 * x + 1e-3 * u[1], lambda t, x, u, p: x,
+                   states=["a"], inputs=["u", "d"], outputs=["a"], dt=0.1)
+    y = np.zeros((1, 10))
+    y[0, 5] = 1e307  # finite data, but d^ = M e overflows (M ~ 1e3)
+    with pytest.raises(DataError, match="'d' is not finite at step 4"):
+        getattr(gb, filt)(sys, y, np.zeros((1, 10)), unknown="d", Q=[[1e-4]], R=[[1e-4]])
+
+
 def test_nonlinear_output_map_rejected():
     sys = ct.nlsys(lambda t, x, u, p: x + u[0], lambda t, x, u, p: x**2, states=["a"],
                    inputs=["d"], outputs=["a2"], dt=0.1, name="sq")

@@ -1,8 +1,5 @@
 """State and unknown-input filters."""
 
-from .ensemble import ensemble_uikf
-from .sigma_points import MerweScaledSigmaPoints, robust_cholesky
-from .ukf import ui_ukf, ukf
 from .uikf import (
     FilterResult,
     SteadyStateFilter,
@@ -16,11 +13,6 @@ from .feedthrough import feedthrough_uikf, with_sensor_error
 from .smoother import smooth_uikf
 
 __all__ = [
-    "MerweScaledSigmaPoints",
-    "robust_cholesky",
-    "ui_ukf",
-    "ukf",
-    "ensemble_uikf",
     "FilterResult",
     "SteadyStateFilter",
     "check_rank_condition",
@@ -38,3 +30,10 @@ __all__ += [
     "smooth_uikf",
     "with_sensor_error",
 ]
+
+# nonlinear filters (section IV, issue 10)
+from .ensemble import ensemble_uikf  # noqa: E402
+from .sigma_points import MerweScaledSigmaPoints, robust_cholesky  # noqa: E402
+from .ukf import ui_ukf, ukf  # noqa: E402
+
+__all__ += ["MerweScaledSigmaPoints", "robust_cholesky", "ui_ukf", "ukf", "ensemble_uikf"]

@@ -158,8 +158,9 @@ def ensemble_uikf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
         L = Gk @ M + K - K @ F @ M
         yk = yv[:, k] - D @ uv[:, k] if has_D else yv[:, k]
         e = yk - C @ xp
-        dd = M @ e
-        dh = dlin + dd
+        with np.errstate(over="ignore", invalid="ignore"):
+            dd = M @ e
+            dh = dlin + dd
         _check_d(dh, k, pb.labels)
         d_est[:, k - 1] = dh
         d_var[:, k - 1] = Pd.diagonal()

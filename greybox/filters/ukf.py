@@ -282,8 +282,9 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
         yk = y[:, k] - D @ u[:, k] if has_D else y[:, k]
         e = yk - C @ xp
         if md:
-            dd = M @ e
-            dh = dlin + dd
+            with np.errstate(over="ignore", invalid="ignore"):
+                dd = M @ e
+                dh = dlin + dd
             _check_d(dh, k, pb.labels)
             d_est[:, k - 1] = dh
             d_var[:, k - 1] = Pd.diagonal()

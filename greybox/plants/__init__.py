@@ -1,4 +1,4 @@
-"""Physical example plants (python-control StateSpace factories)."""
+"""Physical example plants (python-control StateSpace and NonlinearIOSystem factories)."""
 
 from .motor_pump import (
     MOTOR_PUMP_DT,
