@@ -101,8 +101,9 @@ class FilterResult:
     x_pred : ndarray, shape (nstates, nsteps)
         Predicted state ``x^[k|k-1]`` (``x_pred[:, 0]`` is the prior x0).
     d_est : ndarray, shape (md, nsteps)
-        ``d_est[:, j]`` estimates d[j]; the last column is NaN (d[N-1] needs y[N]).
-        md = 0 for the Kalman filter.
+        ``d_est[:, j]`` estimates d[j]; the last column is NaN (d[N-1] needs y[N]);
+        in general the last ``relative_degree`` columns are NaN. md = 0 for the
+        Kalman filter.
     d_var : ndarray, shape (md, nsteps)
         Variance of each entry of ``d_est`` (diagonal of Pd (16)); NaN where
         d_est is NaN. Units: those of d squared.
