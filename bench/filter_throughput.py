@@ -392,7 +392,7 @@ def _section(methods, prob, args, N, nloop):
     if any(r["extrap"] for r in rows):
         print(f"\n(*) per-sample loop timed on the first {nloop:,} of N = {N:,} samples; "
               f"samples/s extrapolated to N (constant cost per sample), memory at that length.")
-    if sm is not None:
+    if any("(**)" in r["label"] for r in rows):
         print("(**) statsmodels with set_conserve_memory(MEMORY_NO_FORECAST_COV | "
               "MEMORY_NO_PREDICTED_COV | MEMORY_NO_FILTERED_COV | MEMORY_NO_GAIN | "
               "MEMORY_NO_SMOOTHING | MEMORY_NO_STD_FORECAST); filtered_state kept.")

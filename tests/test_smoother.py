@@ -18,6 +18,7 @@ import pytest
 from scipy.stats import norm
 from test_delayed import DT, P0 as MP0, Q as MQ, R as MR, X0 as MX0, ZOH_G, _mass, _runs
 from conftest import make_random_system
+from test_feedthrough import P0 as SP0, Q as SQ, R as SR, X0 as SX0, _msd, _sensor_plant
 from test_uikf import _simulate_runs
 
 import greybox as gb
@@ -27,11 +28,12 @@ ALPHA = 1e-3
 Z_CRIT = norm.ppf(1 - ALPHA / 2)
 
 
-def _gls(A, B, C, D, G, Q, R, x0, P0, y, u):
-    """Batch GLS of theta = (x[0], d[0..N-2]); returns (theta, cov(theta))."""
+def _gls(A, B, C, D, G, Q, R, x0, P0, y, u, H=None):
+    """Batch GLS of theta = (x[0], d[0..N-2]) (d[0..N-1] with feedthrough H); (theta, cov)."""
     n, md = G.shape
     p, N = y.shape
-    nth = n + md * (N - 1)
+    nd = N if H is not None else N - 1
+    nth = n + md * nd
     Phi = np.zeros((p * N, nth))
     Cw = np.zeros((p * N, n * (N - 1)))
     off = np.zeros(p * N)
@@ -44,6 +46,8 @@ def _gls(A, B, C, D, G, Q, R, x0, P0, y, u):
             Phi[rows, n + md * j:n + md * j + md] = Mj @ G
             Cw[rows, n * j:n * j + n] = Mj
             off[rows] += Mj @ B @ u[:, j]
+        if H is not None:
+            Phi[rows, n + md * k:n + md * k + md] = H
     Sig = Cw @ np.kron(np.eye(N - 1), Q) @ Cw.T + np.kron(np.eye(N), R)
     Z = np.concatenate([y.T.ravel() - off, x0])
     Ph = np.vstack([Phi, np.hstack([np.eye(n), np.zeros((n, nth - n))])])
@@ -71,6 +75,70 @@ def test_equals_batch_generalized_least_squares(random_system, seed):
     np.testing.assert_allclose(res.d_var[0, :N - 1], np.diag(cov)[3:], rtol=1e-9)
     np.testing.assert_allclose(res.x_filt[:, 0], theta[:3], rtol=1e-9, atol=1e-10)
     assert np.isnan(res.d_est[0, -1])
+
+
+def test_feedthrough_equals_batch_generalized_least_squares(random_system):
+    """y = C x + D u + H d + v with d also in the states: smoother = batch GLS."""
+    rng = np.random.default_rng(7)
+    rs = random_system(rng, n=3, m=1, p=3, md=1)
+    H = rng.standard_normal((3, 1))
+    sys = gb.named_ss(rs.A, np.hstack([rs.B, rs.G]), rs.C, np.hstack([rs.D, H]), rs.dt,
+                      states=["a", "b", "c"], inputs=["u", "d"], outputs=["y0", "y1", "y2"])
+    Q = rs.Q + 1e-3 * np.eye(3)
+    N = 10
+    u, y = rng.standard_normal((1, N)), rng.standard_normal((3, N))
+    x0, P0 = rng.standard_normal(3), np.eye(3) * 0.5
+    res = gb.smooth_uikf(sys, y, u, unknown="d", Q=Q, R=rs.R, x0=x0, P0=P0,
+                         relative_degree="auto")
+    theta, cov = _gls(rs.A, rs.B, rs.C, rs.D, rs.G, Q, rs.R, x0, P0, y, u, H=H)
+    assert res.smoothed and res.relative_degree == 0
+    # same linear estimator; round-off of a 13x13 information solve
+    np.testing.assert_allclose(res.d_est[0], theta[3:], rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(res.d_var[0], np.diag(cov)[3:], rtol=1e-9)
+    np.testing.assert_allclose(res.x_filt[:, 0], theta[:3], rtol=1e-9, atol=1e-10)
+    f = gb.uikf(sys, y, u, unknown="d", Q=Q, R=rs.R, x0=x0, P0=P0, relative_degree="auto")
+    assert f.relative_degree == 0  # "auto" sends a feedthrough model to feedthrough_uikf
+    np.testing.assert_allclose(res.d_est[0, -1], f.d_est[0, -1], rtol=1e-10)
+
+
+def test_smoothed_sensor_error(rng):
+    """Sensor offset + gain on the position (H = e_0, G = 0): smoothing helps a lot."""
+    sys = _sensor_plant()
+    A, B = _msd()
+    nruns, N = 300, 80
+    u = np.sin(np.arange(N) * 0.07)[None, :]
+    x, y, _ = _simulate_runs(A, B, np.eye(2), np.zeros((2, 1)), np.zeros((2, 0)), SQ, SR,
+                             SX0, SP0, u, lambda k, xx: np.zeros((0, xx.shape[1])), nruns, rng)
+    d = 0.2 * x[:, 0, :] + 0.05
+    y[:, 0, :] += d
+    kchk = np.arange(2, N)
+    kw = dict(unknown="s", Q=SQ, R=SR, x0=SX0, P0=SP0)
+    ef, es, vs = [], [], []
+    for i in range(nruns):
+        ef.append(gb.feedthrough_uikf(sys, y[i], u, **kw).d_est[0, kchk] - d[i, kchk])
+        s = gb.smooth_uikf(sys, y[i], u, relative_degree=0, **kw)
+        es.append(s.d_est[0, kchk] - d[i, kchk])
+        vs.append(s.d_var[0, kchk])
+    ef, es, vs = np.array(ef), np.array(es), np.array(vs)
+    _check_unbiased_covered(es, vs)
+    ratio = ef.var(axis=0).mean() / es.var(axis=0).mean()
+    assert ratio > 1.5, ratio
+
+
+def test_feedthrough_fast_path_equals_time_varying(rng):
+    sys = _sensor_plant()
+    N = 2000
+    u, y = rng.standard_normal((1, N)), rng.standard_normal((2, N)) * 0.01
+    kw = dict(unknown="s", Q=SQ, R=SR, relative_degree=0, store_covariances=True)
+    a = gb.smooth_uikf(sys, y, u, **kw)
+    b = gb.smooth_uikf(sys, y, u, gain="time-varying", **kw)
+    assert a.period_converged is not None
+    # same recursions; round-off over N steps relative to the ~1e-2 signal scale
+    np.testing.assert_allclose(a.x_filt, b.x_filt, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(a.d_est, b.d_est, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(a.d_var, b.d_var, rtol=1e-8)
+    # covariances ~5e-7: atol 1e-15 is 2e-9 of the largest entry (off-diagonals cross zero)
+    np.testing.assert_allclose(a.P_filt_history, b.P_filt_history, rtol=1e-8, atol=1e-15)
 
 
 def test_last_sample_equals_filter(random_system, rng):

@@ -44,6 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validation import check_covariance, check_positive
 from ..exceptions import GreyboxError, ModelError, RankConditionError
+from .feedthrough import _unknown_feedthrough
 from .uikf import (
     FilterResult,
     _check_options,
@@ -214,8 +215,7 @@ def detect_relative_degree(sys: ct.StateSpace, *, unknown: int | str | Sequence[
 
 
 def _check_no_feedthrough(sys, labels):
-    H = np.asarray(sys.D, dtype=float)[:, [sys.input_labels.index(s) for s in labels]]
-    if np.any(H):
+    if np.any(_unknown_feedthrough(sys, labels)):
         raise ModelError(
             f"the unknown inputs {list(labels)} feed through to the outputs (D != 0 on those "
             f"columns); use feedthrough_uikf for y = C x + D u + H d + v"

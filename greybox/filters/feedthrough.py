@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike
 from .._lti import lti_states
 from .._validation import check_statespace, resolve_channels
 from ..exceptions import DimensionError, RankConditionError
-from ..system import named_ss
+from ..system import named_ss, split_inputs
 from .uikf import FilterResult, _check_options, _prepare
 
 __all__ = ["feedthrough_uikf", "with_sensor_error"]
@@ -109,6 +109,19 @@ def _predict_cov(A, G, Pf, Pxd, Pd, Q):
     J = np.block([[Pf, Pxd], [Pxd.T, Pd]])
     Pp = AG @ J @ AG.T + Q
     return 0.5 * (Pp + Pp.T)
+
+
+def _use_feedthrough(sys, unknown, relative_degree) -> bool:
+    """True for ``relative_degree=0``, or "auto" when the unknown inputs feed through."""
+    if isinstance(relative_degree, str):
+        return relative_degree == "auto" and bool(np.any(split_inputs(sys, unknown).H))
+    return (isinstance(relative_degree, (int, np.integer))
+            and not isinstance(relative_degree, bool) and relative_degree == 0)
+
+
+def _unknown_feedthrough(sys, labels):
+    """H: the columns of ``sys.D`` for the unknown inputs."""
+    return np.asarray(sys.D, dtype=float)[:, [sys.input_labels.index(s) for s in labels]]
 
 
 def _check_feedthrough_rank(H, labels):
@@ -218,7 +231,7 @@ def feedthrough_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = Non
     level, gain, tol = _check_options(level, gain, tol)
     model, A, B, C, D, G, labels, y, u, Q, R, x0, P0 = _prepare(
         sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown=False, check_rank=False)
-    H = np.asarray(sys.D, dtype=float)[:, [sys.input_labels.index(s) for s in labels]]
+    H = _unknown_feedthrough(sys, labels)
     _check_feedthrough_rank(H, labels)
     return _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0,
                             level=level, gain=gain, tol=tol,

@@ -37,7 +37,15 @@ from numpy.typing import ArrayLike
 from .._lti import lti_states
 from ..exceptions import CovarianceError
 from .delayed import _delayed_parts, _unshift
-from .uikf import FilterResult, _check_options, _measurement_gains, _run
+from .feedthrough import (
+    _check_feedthrough_rank,
+    _feedthrough_gains,
+    _predict_cov,
+    _run_feedthrough,
+    _unknown_feedthrough,
+    _use_feedthrough,
+)
+from .uikf import FilterResult, _check_options, _measurement_gains, _prepare, _run
 
 __all__ = ["smooth_uikf"]
 
@@ -83,6 +91,20 @@ def _backward_gains(A, G, Q, Pf):
     return J, Nk, Wi, 0.5 * (T + T.T)
 
 
+def _backward_states(J, xf, xp, kc):
+    """``x^[k|N-1]`` for k = kc..N-1 of ``x^[k|N] = x^[k|k] + J (x^[k+1|N] - x^[k+1|k])``.
+
+    Run as a forward LTI recursion in reversed time i = N-1-k (no Python loop):
+    ``s[i+1] = J s[i] + (x^[k|k] - J x^[k+1|k])`` with k = N-2-i.
+    """
+    n, N = xf.shape
+    L = N - 1 - kc
+    v = np.zeros((n, L + 1))
+    v[:, :L] = xf[:, N - 2:kc - 1 if kc > 0 else None:-1] - J @ xp[:, N - 1:kc:-1]
+    s = lti_states(J, v, xf[:, N - 1])
+    return s[:, ::-1]
+
+
 def _smooth(fwd: FilterResult, A, G, Q, R, C, P0, tol, store_covariances):
     """Backward pass over a forward :func:`_run` record; returns the smoothed record."""
     n, N = fwd.x_filt.shape
@@ -122,12 +144,7 @@ def _smooth(fwd: FilterResult, A, G, Q, R, C, P0, tol, store_covariances):
             dv[:, kc:k_settled] = (Wi + Nk @ Ps @ Nk.T).diagonal()[:, None]
             if Phist is not None:
                 Phist[:, :, kc:k_settled] = Ps[:, :, None]
-        # reversed time i = N-1-k: s[i+1] = J s[i] + (x^[k|k] - J x^[k+1|k]), k = N-2-i
-        L = N - 1 - kc
-        v = np.zeros((n, L + 1))
-        v[:, :L] = xf[:, N - 2:kc - 1 if kc > 0 else None:-1] - J @ xp[:, N - 1:kc:-1]
-        s = lti_states(J, v, xf[:, N - 1])
-        xs[:, kc:] = s[:, ::-1]
+        xs[:, kc:] = _backward_states(J, xf, xp, kc)
         ds[:, kc:N - 1] = Nk @ (xs[:, kc + 1:] - xp[:, kc + 1:])
         k = kc - 1
     for k in range(k, -1, -1):
@@ -152,6 +169,96 @@ def _smooth(fwd: FilterResult, A, G, Q, R, C, P0, tol, store_covariances):
                    P_filt_history=Phist, smoothed=True)
 
 
+def _joint_gains(A, G, Q, Jk):
+    """(L, Pp) of the RTS step for s[k] = (x[k], d[k]) of the feedthrough filter."""
+    AG = np.hstack([A, G])
+    Pp = AG @ Jk @ AG.T + Q
+    Pp = 0.5 * (Pp + Pp.T)
+    try:
+        L = np.linalg.solve(Pp, AG @ Jk).T  # J [A G]^T Pp^-1, Pp and J symmetric
+    except np.linalg.LinAlgError as e:
+        raise CovarianceError(
+            "P[k+1|k] of the feedthrough filter is singular, so the smoother gain is "
+            "undefined; give Q a (small) positive-definite part"
+        ) from e
+    return L, Pp
+
+
+def _joint_covariances(A, C, G, H, Q, R, P0, nsteps):
+    """``[[P[k|k], P^xd], [P^dx, Pd]]`` of the feedthrough filter for k < nsteps."""
+    n, md = G.shape
+    out = np.empty((n + md, n + md, nsteps))
+    Pp = P0
+    for k in range(nsteps):
+        _, _, Pd, _, Pf, Pxd = _feedthrough_gains(Pp, C, H, R)
+        out[:, :, k] = np.block([[Pf, Pxd], [Pxd.T, Pd]])
+        Pp = _predict_cov(A, G, Pf, Pxd, Pd, Q)
+    return out
+
+
+def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_covariances):
+    """RTS on s[k] = (x[k], d[k]): s^[k|N] = s^[k|k] + L (x^[k+1|N] - x^[k+1|k]).
+
+    With feedthrough, Pd of the filter is finite, so this is the plain RTS
+    smoother of the pair (x[k], d[k]) whose successor is x[k+1] = [A G] s[k] + w
+    (d[k+1], d[k+2], ... are independent of s[k]).
+    """
+    n, N = fwd.x_filt.shape
+    md = G.shape[1]
+    xf, xp, df = fwd.x_filt, fwd.x_pred, fwd.d_est
+    kc = fwd.period_converged if fwd.period_converged is not None else N
+    J_tv = _joint_covariances(A, C, G, H, Q, R, P0, min(kc, N))
+    if kc < N:
+        _, _, Pd, _, Pf, Pxd = _feedthrough_gains(fwd.P_pred, C, H, R)
+        J_c = np.block([[Pf, Pxd], [Pxd.T, Pd]])
+    xs = np.empty((n, N))
+    ds = np.empty((md, N))
+    dv = np.empty((md, N))
+    Phist = np.empty((n, n, N)) if store_covariances else None
+    Jlast = J_c if kc <= N - 1 else J_tv[:, :, N - 1]
+    xs[:, N - 1], ds[:, N - 1] = xf[:, N - 1], df[:, N - 1]
+    Ps = Jlast
+    dv[:, N - 1] = Ps[n:, n:].diagonal()
+    if Phist is not None:
+        Phist[:, :, N - 1] = Ps[:n, :n]
+    Pd_last = Ps[n:, n:]
+    k = N - 2
+    if kc <= N - 2:
+        L, Pp = _joint_gains(A, G, Q, J_c)
+        k_settled = kc
+        for k in range(N - 2, kc - 1, -1):
+            Pn = J_c + L @ (Ps[:n, :n] - Pp) @ L.T
+            Pn = 0.5 * (Pn + Pn.T)
+            settled = np.max(np.abs(Pn - Ps)) <= tol * max(np.max(np.abs(Pn)), 1e-300)
+            Ps = Pn
+            dv[:, k] = Ps[n:, n:].diagonal()
+            if Phist is not None:
+                Phist[:, :, k] = Ps[:n, :n]
+            if settled:
+                k_settled = k
+                break
+        if k_settled > kc:
+            dv[:, kc:k_settled] = Ps[n:, n:].diagonal()[:, None]
+            if Phist is not None:
+                Phist[:, :, kc:k_settled] = Ps[:n, :n, None]
+        xs[:, kc:] = _backward_states(L[:n], xf, xp, kc)
+        ds[:, kc:N - 1] = df[:, kc:N - 1] + L[n:] @ (xs[:, kc + 1:] - xp[:, kc + 1:])
+        k = kc - 1
+    for k in range(k, -1, -1):
+        Jk = J_tv[:, :, k]
+        L, Pp = _joint_gains(A, G, Q, Jk)
+        delta = xs[:, k + 1] - xp[:, k + 1]
+        xs[:, k] = xf[:, k] + L[:n] @ delta
+        ds[:, k] = df[:, k] + L[n:] @ delta
+        Ps = Jk + L @ (Ps[:n, :n] - Pp) @ L.T
+        Ps = 0.5 * (Ps + Ps.T)
+        dv[:, k] = Ps[n:, n:].diagonal()
+        if Phist is not None:
+            Phist[:, :, k] = Ps[:n, :n]
+    return replace(fwd, x_filt=xs, d_est=ds, d_var=dv, d_cov=Pd_last,
+                   P_filt_history=Phist, smoothed=True)
+
+
 def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
                 unknown: int | str | Sequence[int | str], Q: ArrayLike, R: ArrayLike,
                 relative_degree: int | str = 1, x0: ArrayLike | None = None,
@@ -160,8 +267,10 @@ def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     """Fixed-interval smoothed states and unknown inputs over the whole record.
 
     Runs :func:`~greybox.uikf` (or :func:`~greybox.delayed_uikf` for
-    ``relative_degree`` != 1) forward, then the backward recursion of the
-    module docstring, so ``d_est[:, k]`` uses all of y[0..N-1].
+    ``relative_degree`` >= 2, :func:`~greybox.feedthrough_uikf` for 0) forward,
+    then the backward recursion of the module docstring (for feedthrough: the
+    plain RTS smoother of the pair (x[k], d[k])), so ``d_est[:, k]`` uses all
+    of y[0..N-1].
 
     Parameters
     ----------
@@ -178,7 +287,11 @@ def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     R : array_like, shape (noutputs, noutputs)
         Measurement-noise covariance (PD).
     relative_degree : int or "auto"
-        As in :func:`~greybox.delayed_uikf` (1: the plain filter).
+        1: the plain filter; r >= 2 as in :func:`~greybox.delayed_uikf`; 0: the
+        filter with direct feedthrough (:func:`~greybox.feedthrough_uikf`,
+        y = C x + D u + H d + v, H = the D columns of d). "auto": 0 if the
+        unknown inputs feed through, else detected as in
+        :func:`~greybox.detect_relative_degree`.
     x0 : array_like, shape (nstates,), optional
         Prior mean of x[0].
     P0 : array_like, shape (nstates, nstates), optional
@@ -198,16 +311,15 @@ def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     FilterResult
         With ``smoothed = True``: ``x_filt[:, k] = x^[k|N-1]``,
         ``d_est[:, k] = d^[k|N-1]`` with variances ``d_var``, ``d_cov`` the
-        full covariance of ``d_est[:, N-2]`` (for r >= 2: of the shifted
-        input, see :mod:`greybox.filters.delayed`); the last r columns of
-        ``d_est`` are NaN as in the filter. ``x_pred``, ``innovations``,
+        full covariance of the last estimate (``d_est[:, N-1-r]``); the last
+        r columns of ``d_est`` are NaN as in the filter (none for r = 0). ``x_pred``, ``innovations``,
         ``K``, ``M``, ``P_pred`` and ``P_filt`` are those of the forward
         filter.
 
     Raises
     ------
     CovarianceError
-        ``A P[k|k] A^T + Q`` singular.
+        ``P[k+1|k]`` singular (Q singular and the filter certain along it).
     RankConditionError, ModelError, DimensionError, DataError
         As for the filter.
 
@@ -230,6 +342,14 @@ def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     (True, (1, 300))
     """
     level, gain, tol = _check_options(level, gain, tol)
+    if _use_feedthrough(sys, unknown, relative_degree):
+        model, A, B, C, D, G, labels, y, u, Q, R, x0, P0 = _prepare(
+            sys, y, u, unknown, Q, R, x0, P0, allow_no_unknown=False, check_rank=False)
+        H = _unknown_feedthrough(sys, labels)
+        _check_feedthrough_rank(H, labels)
+        fwd = _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0,
+                               level=level, gain=gain, tol=tol, store_covariances=False)
+        return _smooth_feedthrough(fwd, A, C, G, H, Q, R, P0, tol, store_covariances)
     parts, r, Gt, G = _delayed_parts(sys, y, u, unknown, Q, R, x0, P0, relative_degree)
     fwd = _run(*parts, level=level, gain=gain, tol=tol, store_covariances=False)
     A, C, Gr, Q, R, P0 = parts[1], parts[3], parts[5], parts[9], parts[10], parts[12]

@@ -101,8 +101,9 @@ class FilterResult:
     x_pred : ndarray, shape (nstates, nsteps)
         Predicted state ``x^[k|k-1]`` (``x_pred[:, 0]`` is the prior x0).
     d_est : ndarray, shape (md, nsteps)
-        ``d_est[:, j]`` estimates d[j]; the last column is NaN (d[N-1] needs y[N]).
-        md = 0 for the Kalman filter.
+        ``d_est[:, j]`` estimates d[j]; the last column is NaN (d[N-1] needs y[N]);
+        in general the last ``relative_degree`` columns are NaN. md = 0 for the
+        Kalman filter.
     d_var : ndarray, shape (md, nsteps)
         Variance of each entry of ``d_est`` (diagonal of Pd (16)); NaN where
         d_est is NaN. Units: those of d squared.
@@ -628,7 +629,9 @@ def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     relative_degree : int or "auto"
         1 (default): the filter of eqs. (7)-(18), d[k-1] from y[k]. An int
         r >= 2 or "auto" (detect r from the model and Q, R, and report it in
-        ``FilterResult.relative_degree``) runs :func:`~greybox.delayed_uikf`.
+        ``FilterResult.relative_degree``) runs :func:`~greybox.delayed_uikf`;
+        0, or "auto" when d feeds through to y, runs
+        :func:`~greybox.feedthrough_uikf` (d[k] from y[k]).
 
     Returns
     -------
@@ -637,7 +640,8 @@ def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     Raises
     ------
     ModelError
-        ``sys`` is continuous-time, or d feeds through to y.
+        ``sys`` is continuous-time, or d feeds through to y (unless
+        relative_degree is 0 or "auto").
     RankConditionError
         rank(C G) = rank(G) = md (17) fails (for relative_degree = 1).
     DimensionError, DataError, CovarianceError
@@ -684,6 +688,12 @@ def uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
     """
     if not (isinstance(relative_degree, (int, np.integer)) and relative_degree == 1):
         from .delayed import delayed_uikf
+        from .feedthrough import _use_feedthrough, feedthrough_uikf
+
+        if _use_feedthrough(sys, unknown, relative_degree):
+            return feedthrough_uikf(sys, y, u, unknown=unknown, Q=Q, R=R, x0=x0, P0=P0,
+                                    level=level, gain=gain, tol=tol,
+                                    store_covariances=store_covariances)
 
         return delayed_uikf(sys, y, u, unknown=unknown, Q=Q, R=R,
                             relative_degree=relative_degree, x0=x0, P0=P0, level=level,
