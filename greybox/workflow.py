@@ -59,6 +59,9 @@ from .trace import (
     trace_channel,
 )
 from .trace.dynamic import DynamicLaw, fit_sparse_dynamic
+from .trace.channels import force_channel
+from .trace.laws import _eval_terms, direction
+from .trace.screen import screen_equations
 from .update import Subsystem, UpdatedModel, delta_update
 from .validate import (
     ModelValidation,
@@ -70,6 +73,14 @@ from .validate import (
 )
 
 __all__ = ["Effect", "EffectStep", "CandidateScore", "LoopReport", "close_the_loop"]
+
+# Above this many states the equations are screened jointly first (cost ~ linear in n);
+# the SCREEN_TOP highest-scoring equations, their pairs and the inputs are traced.
+SCREEN_ABOVE = 4
+SCREEN_TOP = 4
+# A sparse first-order law is fitted for a channel only when its unstructured dynamic
+# fit beats its static law's estimation SE by this factor (evidence of dynamics).
+SPARSE_IF = 0.8
 
 CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
              "among candidates within {pct:.0f}% of the lowest, the fewest parameters")
@@ -534,6 +545,25 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     if not 0 < alpha < 1 or not 0 < min_se_drop <= 1 or not bic_factor > 0:
         raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
                         f"{alpha}, {min_se_drop}, {bic_factor}")
+    def _screened_channels(sys, nominal, Q, chans, notes):
+        """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs."""
+        scr = screen_equations(sys, y, u, Q=Q, R=R, dt=dt, skip=20)
+        if not scr.available:
+            notes.append(f"equation screen unavailable ({scr.reason}): every single "
+                         f"equation is traced (cost grows with n)")
+            return chans
+        top = scr.ranked(SCREEN_TOP)
+        notes.append("equation screen (joint unknown-input filter): " + ", ".join(
+            f"eq({s}) z = {scr.score[scr.states.index(s)]:.3g}" for s in top) +
+            f"; {len(scr.states) - len(top)} other equations below")
+        keep = [c for c in chans if c.kind == "input" or
+                (c.md == 1 and c.equations and c.equations[0] in top)]
+        if nominal.noutputs >= 2:
+            idx = [list(sys.state_labels).index(s) for s in top]
+            keep += [resolve_channel_spec(sys, [(sys.state_labels[i], sys.state_labels[j])])[0]
+                     for a, i in enumerate(sorted(idx)) for j in sorted(idx)[a + 1:]]
+        return tuple(keep)
+
     def _once(sys, nominal, Q, chans, delta):
         """One pass: residual, trace, choose, gate, before/after for the model ``sys``."""
         n, m = nominal.nstates, nominal.ninputs
@@ -616,6 +646,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 scored.append((se, npar, tr, "dynamic"))
 
         first_max = min(max_order, 1)
+        if channels is None and n > SCREEN_ABOVE:
+            chans = _screened_channels(sys, nominal, Q, chans, notes)
         for kc, ch in enumerate(chans):
             tick("trace candidate channels", kc, len(chans))
             try:
@@ -629,6 +661,28 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 continue
             _score(tr)
         tick("trace candidate channels", len(chans), len(chans))
+        # 2a. one force inside a pair of equations: md = 1 along the law's direction, with
+        #     the bodies' relative coordinates offered to the law (PAPER_NOTES §9.6)
+        for se_, _, tr_, kind_ in list(scored):
+            if kind_ != "static" or tr_.channel.md != 2 or tr_.channel.kind != "equation":
+                continue
+            res_ = tr_.filter_result
+            k0s, Ns = max(20, res_.period_converged or 20), res_.d_est.shape[1] - 1
+            law_ = tr_.static
+            tsc = np.sqrt(np.mean(_eval_terms(law_.spec, law_.eps, res_.x_filt[:, k0s:Ns],
+                                              u[:, k0s:Ns]) ** 2, axis=1))
+            g = direction(law_.coef, tsc)
+            if g is None:
+                continue
+            fch = force_channel(sys, tr_.channel, g)
+            try:
+                ftr = trace_channel(sys, fch, y, u, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
+                                    max_order=0)
+            except (GreyboxError, np.linalg.LinAlgError) as e:
+                notes.append(f"{fch.name}: {e}")
+                continue
+            if ftr.status == "ok":
+                _score(ftr)
         if max_order >= 2 and scored:
             ranked = []
             for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
@@ -654,6 +708,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 if len(done) >= 2 or ch in done or ch.md != 1 or not np.isfinite(se_):
                     continue
                 done.add(ch)
+                se_static = min((c[0] for c in scored
+                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
+                se_dyn = min((c[0] for c in scored
+                              if c[2].channel == ch and c[3] == "dynamic"), default=np.inf)
+                if not se_dyn < SPARSE_IF * se_static:
+                    continue  # no evidence of dynamics in this channel: the static law stands
                 dyn = tr_.dynamic
                 lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
                 lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
@@ -763,6 +823,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
         if ch.kind == "input":
             where = f"input {ch.input} (it enters {where})"
+        elif ch.kind == "force":
+            g = np.asarray(ch.G)[[list(nominal.state_labels).index(e) for e in ch.equations], 0]
+            where = (f"one force between {' and '.join(ch.equations)} (it enters {where} as "
+                     f"{np.array2string(g, precision=3)})")
         msg = (f"model error found in {where}: "
                f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}; "
                f"{describe_before_after(table)}")

@@ -132,7 +132,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     # frequency; the mean of two consecutive samples cancels it.
     r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
     pair_mean = r1 < _ALTERNATING
-    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units, pair_mean)
+    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units, pair_mean,
+                      channel.relative)
     if pair_mean:
         notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
                      f"is fitted on the mean of consecutive samples")

@@ -38,6 +38,9 @@ class Channel:
         a known input: ``G = B[:, j]``) or "user".
     input : str
         The input's name for an input channel ("" otherwise).
+    relative : tuple of (int, int)
+        State pairs (i, j) whose relative coordinate ``x_j - x_i`` the static
+        law may use (a force between two bodies); kind "force".
     """
 
     name: str
@@ -47,6 +50,7 @@ class Channel:
     equations: tuple[str, ...] = ()
     kind: str = "equation"
     input: str = ""
+    relative: tuple[tuple[int, int], ...] = ()
 
     @property
     def md(self) -> int:
@@ -56,7 +60,7 @@ class Channel:
     def _key(self):
         G = np.asarray(self.G, dtype=float)
         return (self.name, G.shape, G.tobytes(), tuple(self.labels), tuple(self.units),
-                tuple(self.equations), self.kind, self.input)
+                tuple(self.equations), self.kind, self.input, tuple(self.relative))
 
     def __eq__(self, other):  # G is an array: the generated __eq__ would be ambiguous
         if not isinstance(other, Channel):
@@ -214,3 +218,47 @@ def channel_model(sys: ct.StateSpace, channel: Channel, dt: float | None = None)
     if ct.isdtime(sys, strict=True):
         return full
     return discretize(full, dt)
+
+
+def kinematic_partner(A: NDArray, i: int) -> int | None:
+    """The state p with ``dp/dt = x_i`` (row p of A has its only nonzero at column i), or None."""
+    A = np.asarray(A, dtype=float)
+    for p in range(A.shape[0]):
+        row = A[p]
+        if row[i] != 0 and np.count_nonzero(row) == 1:
+            return p
+    return None
+
+
+def force_channel(sys: ct.StateSpace, pair: Channel, direction: NDArray) -> Channel:
+    """One force acting along ``direction`` inside a pair of equations (md = 1).
+
+    ``G = pair.G @ direction``; the law may use the relative coordinates of
+    the two bodies: the states whose equations the pair enters, and (for a
+    continuous model) their kinematic partners (positions whose derivative
+    they are).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Nominal model (continuous for kinematic partners).
+    pair : Channel
+        A channel with md = 2 entering single equations.
+    direction : ndarray, shape (2,)
+        Ratio of the force's effect on the two equations.
+    """
+    labels = list(sys.state_labels)
+    a, b = (labels.index(e) for e in pair.equations)
+    rel = []
+    if not ct.isdtime(sys, strict=True):
+        pa, pb = kinematic_partner(sys.A, a), kinematic_partner(sys.A, b)
+        if pa is not None and pb is not None:
+            rel.append((pa, pb))
+    rel.append((a, b))
+    g = np.asarray(direction, dtype=float).reshape(-1)
+    G = np.asarray(pair.G, dtype=float) @ g
+    name = f"force({labels[a]},{labels[b]})"
+    unit = pair.units[0] if pair.units else ""
+    return Channel(name=name, G=G[:, None], labels=(f"d_{labels[a]}{labels[b]}",),
+                   units=(unit,), equations=pair.equations, kind="force",
+                   relative=tuple(rel))

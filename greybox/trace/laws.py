@@ -19,17 +19,25 @@ from .channels import Channel
 # --------------------------------------------------------------------------- static laws
 def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
               input_labels: Sequence[str], *, nonlinear: bool = True,
-              eps: NDArray | None = None) -> tuple[NDArray, list[tuple[str, str, int]], NDArray]:
+              eps: NDArray | None = None,
+              relative: Sequence[tuple[int, int]] = ()) -> tuple[NDArray, list, NDArray]:
     """Candidate terms of a static law, evaluated on (x, u).
 
     Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
     list of ``(display name, kind, index)`` with kind in
-    {"x", "u", "x^3", "sign", "abs"}, and the eps of each state's
-    ``tanh(x/eps)`` (5 % of the state's RMS unless given).
+    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs"},
+    and the eps of each ``tanh(v/eps)`` (5 % of v's RMS unless given; one per
+    state, then one per relative coordinate). ``relative`` lists state pairs
+    (i, j): the relative coordinate ``x_j - x_i`` (a force between two
+    bodies depends on it, PAPER_NOTES §9.6) is offered like a state, with
+    index ``(i, j, k)`` where k indexes its eps. The linear terms (x, u,
+    rel) come first.
     """
     n, m = x.shape[0], u.shape[0]
+    rel = [x[j] - x[i] for i, j in relative]
     if eps is None:
-        eps = 0.05 * np.sqrt(np.mean(x**2, axis=1)) + 1e-300
+        eps = 0.05 * np.sqrt(np.mean(np.array(list(x) + rel) ** 2, axis=1)) + 1e-300 \
+            if n + len(rel) else np.zeros(0)
     rows, spec = [], []
     for i in range(n):
         rows.append(x[i])
@@ -37,6 +45,10 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
     for j in range(m):
         rows.append(u[j])
         spec.append((input_labels[j], "u", j))
+    rnames = [f"({state_labels[j]}-{state_labels[i]})" for i, j in relative]
+    for r, (i, j) in enumerate(relative):
+        rows.append(rel[r])
+        spec.append((rnames[r], "rel", (i, j, n + r)))
     if nonlinear:
         for i in range(n):
             s = state_labels[i]
@@ -46,17 +58,48 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
             spec.append((f"sign({s})", "sign", i))
             rows.append(np.abs(x[i]))
             spec.append((f"|{s}|", "abs", i))
+        for r, (i, j) in enumerate(relative):
+            v, nm = rel[r], rnames[r]
+            rows.append(v ** 3)
+            spec.append((f"{nm}^3", "rel^3", (i, j, n + r)))
+            rows.append(np.tanh(v / eps[n + r]))
+            spec.append((f"sign{nm}", "rel_sign", (i, j, n + r)))
+            rows.append(np.abs(v))
+            spec.append((f"|{nm}|", "rel_abs", (i, j, n + r)))
     N = x.shape[1]
     return (np.array(rows) if rows else np.zeros((0, N))), spec, eps
+
+
+LINEAR_KINDS = ("x", "u", "rel")
 
 
 def _eval_terms(spec, eps, x, u):
     out = np.empty((len(spec),) + x.shape[1:])
     for r, (_, kind, i) in enumerate(spec):
-        v = x[i] if kind != "u" else u[i]
+        if kind.startswith("rel"):
+            a, b, e = i
+            v, kind = x[b] - x[a], {"rel": "x", "rel^3": "x^3", "rel_sign": "sign",
+                                     "rel_abs": "abs"}[kind]
+        else:
+            v, e = (x[i] if kind != "u" else u[i]), i
         out[r] = (v if kind in ("x", "u") else v**3 if kind == "x^3" else
-                  np.tanh(v / eps[i]) if kind == "sign" else np.abs(v))
+                  np.tanh(v / eps[e]) if kind == "sign" else np.abs(v))
     return out
+
+
+def linear_part(spec, coef: NDArray, n: int, m: int) -> tuple[NDArray, NDArray]:
+    """(Ddx (md, n), Ddu (md, m)) of the linear terms (x, u, rel) of a law's coefficients."""
+    md = coef.shape[0]
+    Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
+    for j, (_, kind, i) in enumerate(spec):
+        if kind == "x":
+            Ddx[:, i] += coef[:, j]
+        elif kind == "u":
+            Ddu[:, i] += coef[:, j]
+        elif kind == "rel":
+            Ddx[:, i[1]] += coef[:, j]
+            Ddx[:, i[0]] -= coef[:, j]
+    return Ddx, Ddu
 
 
 @dataclass(frozen=True)
@@ -137,6 +180,16 @@ def _select(terms: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
     return forward_selection(terms, d, names, min_drop=_MIN_DROP, prune=True)
 
 
+def direction(coef: NDArray, tscale: NDArray) -> NDArray | None:
+    """The one direction of an md > 1 law (largest component 1), or None if it has two."""
+    if coef.shape[0] < 2 or not np.any(coef):
+        return None
+    U, sv, _ = np.linalg.svd(coef * tscale[None, :])
+    if sv[1] >= 0.05 * sv[0]:
+        return None
+    return U[:, 0] / U[np.argmax(np.abs(U[:, 0])), 0]
+
+
 def _one_direction(coef: NDArray, tscale: NDArray, labels) -> list[str]:
     """A line if the md > 1 law acts along one direction of d (PAPER_NOTES §9.6)."""
     if coef.shape[0] < 2 or not np.any(coef):
@@ -149,8 +202,10 @@ def _one_direction(coef: NDArray, tscale: NDArray, labels) -> list[str]:
             f"x (one force)"]
 
 
-def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False) -> StaticLaw:
-    terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear)
+def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
+                relative=()) -> StaticLaw:
+    terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear,
+                                 relative=relative)
     if pair_mean:  # regress (d[j] + d[j+1]) / 2 on (terms[j] + terms[j+1]) / 2
         terms = 0.5 * (terms[:, 1:] + terms[:, :-1])
         d = 0.5 * (d[:, 1:] + d[:, :-1])
@@ -161,7 +216,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False) -> Stat
     rv = np.zeros(md)
     gain, npar, any_nl = 0.0, 0, False
     lines = []
-    nlin = n + m
+    nlin = n + m + len(relative)
     names = [s[0] for s in spec]
     for c in range(md):
         sel = _select(terms, d[c], names)
@@ -178,7 +233,8 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False) -> Stat
             lc[list(lin.index)] = lin.coef
         else:
             lc = coef[c, :nlin]
-        Ddx[c], Ddu[c] = lc[:n], lc[n:nlin]
+        dx_, du_ = linear_part(spec[:nlin], lc[None, :], n, m)
+        Ddx[c], Ddu[c] = dx_[0], du_[0]
         lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
                                units[c] if c < len(units) else ""))
     tscale = np.sqrt(np.mean(terms**2, axis=1))
@@ -274,6 +330,13 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
         rows = ", ".join(sys.state_labels[i] for i in S)
         for j, (name, kind, idx) in enumerate(law.spec):
             c = law.coef[k, j]
+            if c != 0 and kind == "rel":
+                h = law.ci[k, j] if law.ci is not None else np.nan
+                pm = f" ± {h:.2g}" if np.isfinite(h) else ""
+                out.append(f"[{rows}] lacks a term in the relative coordinate {name}: the "
+                           f"data want {c:.4g}{pm} (a force between "
+                           f"{sys.state_labels[idx[0]]} and {sys.state_labels[idx[1]]})")
+                continue
             if c == 0 or kind not in ("x", "u"):
                 continue
             col = A[:, idx] if kind == "x" else B[:, idx]

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
 from .._lti import lti_states
-from .laws import StaticLaw, _law_line, _one_direction
+from .laws import LINEAR_KINDS, StaticLaw, _law_line, _one_direction, linear_part
 
 # Output-error refinements of static laws run on at most this many samples
 # (their cost is then independent of the record length).
@@ -144,11 +144,10 @@ class _OutputErrorLaw:
 
         Ddx, Ddu are in the law's time base (continuous when ``cont`` is given).
         """
-        Ddx = np.zeros((self.md, self.A.shape[0]))
-        Ddu = np.zeros((self.md, self.B.shape[1]))
+        coef = np.zeros((self.md, len(self.law.spec)))
         for (c, j), t in zip(sel, theta):
-            _, kind, i = self.law.spec[j]
-            (Ddx if kind == "x" else Ddu)[c, i] = t
+            coef[c, j] = t
+        Ddx, Ddu = linear_part(self.law.spec, coef, self.A.shape[0], self.B.shape[1])
         if self.cont is None:
             return self.A + self.G @ Ddx, self.B + self.G @ Ddu, Ddx, Ddu
         Ac, Bc, Gc, dt = self.cont
@@ -294,7 +293,7 @@ def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     contains 0 are dropped.
     """
     prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
-    lin = [j for j, (_, kind, _) in enumerate(law.spec) if kind in ("x", "u")]
+    lin = [j for j, (_, kind, _) in enumerate(law.spec) if kind in LINEAR_KINDS]
     cands = [(c, j) for c in range(md) for j in lin]
     Ny = prob.y[:, k0:].size
 
