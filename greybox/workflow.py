@@ -559,9 +559,16 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         keep = [c for c in chans if c.kind == "input" or
                 (c.md == 1 and c.equations and c.equations[0] in top)]
         if nominal.noutputs >= 2:
-            idx = [list(sys.state_labels).index(s) for s in top]
-            keep += [resolve_channel_spec(sys, [(sys.state_labels[i], sys.state_labels[j])])[0]
-                     for a, i in enumerate(sorted(idx)) for j in sorted(idx)[a + 1:]]
+            idx = sorted(list(sys.state_labels).index(s) for s in top)
+            for a, i in enumerate(idx):
+                for j in idx[a + 1:]:
+                    pair = resolve_channel_spec(sys, [(sys.state_labels[i],
+                                                       sys.state_labels[j])])[0]
+                    keep.append(pair)
+                    rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
+                    g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
+                    if g is not None:  # one force shared by the two equations
+                        keep.append(force_channel(sys, pair, g))
         return tuple(keep)
 
     def _once(sys, nominal, Q, chans, delta):

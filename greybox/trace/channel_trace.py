@@ -17,7 +17,7 @@ from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 from ..validate import unstable_reason
 from .channels import Channel, channel_model
-from .laws import StaticLaw, _eval_terms, _fit_static, _static_subsystem
+from .laws import LINEAR_KINDS, StaticLaw, _eval_terms, _fit_static, _static_subsystem
 from .oe import _refine_static_oe, _select_static_oe, zoh
 
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
@@ -25,6 +25,8 @@ from .oe import _refine_static_oe, _select_static_oe, zoh
 _LOW_SNR = 0.1
 # Below this lag-1 autocorrelation d^ is taken to alternate sign (see trace_channel).
 _ALTERNATING = -0.5
+# Terms offered to an output-error selection of a force law (ranked by correlation with d^).
+_OE_CANDIDATES = 6
 
 
 @dataclass(frozen=True)
@@ -153,6 +155,21 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                                 channel.units, cont=cont, noise=(Q, R))
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
                      f"Pd): static law chosen by output error on y")
+    elif pair_mean and channel.relative and channel.md == 1 and oe_ok:
+        # one force seen through positions only: d^ is noise-dominated; choose the law
+        # by output error among the linear terms d^'s pair means correlate with most
+        terms = _eval_terms(law.spec, law.eps, x, uu)
+        lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
+        tm = 0.5 * (terms[lin, 1:] + terms[lin, :-1])
+        dm = 0.5 * (d[0, 1:] + d[0, :-1])
+        tm = tm - tm.mean(axis=1, keepdims=True)
+        corr = np.abs(tm @ (dm - dm.mean())) / (np.linalg.norm(tm, axis=1) *
+                                                np.linalg.norm(dm - dm.mean()) + 1e-300)
+        only = [lin[q] for q in np.argsort(-corr)[:_OE_CANDIDATES]]
+        law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
+                                channel.units, cont=cont, noise=(Q, R), only=only)
+        notes.append("one force seen through alternating d^: static law chosen by output "
+                     "error on y among the terms d^ correlates with most")
     elif not law.nonlinear and law.npar and oe_ok:
         tscale = np.sqrt(np.mean(_eval_terms(law.spec, law.eps, x, uu) ** 2, axis=1))
         law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0],

@@ -281,7 +281,7 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
 
 def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
                       u: NDArray, x0: NDArray, k0: int, labels, units, max_terms: int = 4,
-                      cont=None, noise=None):
+                      cont=None, noise=None, only=None):
     """Choose a linear static law by output error on y (forward selection, BIC).
 
     Used when d^ is mostly estimation noise (its variance barely exceeds the
@@ -290,10 +290,13 @@ def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     fitted by Levenberg-Marquardt on the simulation error of the augmented
     model (continuous-time law when ``cont`` is given); terms are added while
     the BIC of the output error drops, then terms whose 95 % interval
-    contains 0 are dropped.
+    contains 0 are dropped. ``only`` restricts the candidates to these term
+    indices.
     """
     prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
     lin = [j for j, (_, kind, _) in enumerate(law.spec) if kind in LINEAR_KINDS]
+    if only is not None:  # a pre-ranked subset of the terms
+        lin = [j for j in lin if j in set(only)]
     cands = [(c, j) for c in range(md) for j in lin]
     Ny = prob.y[:, k0:].size
 

@@ -19,10 +19,14 @@ import control as ct
 import numpy as np
 from numpy.typing import NDArray
 
-from ..filters import uikf
+from ..exceptions import GreyboxError
+from ..filters import delayed_uikf, uikf
 from .channels import Channel, channel_model
 
 __all__ = ["EquationScreen", "screen_equations"]
+
+# Samples per block mean in the screen's regression.
+BLOCK = 10
 
 
 @dataclass(frozen=True)
@@ -32,16 +36,24 @@ class EquationScreen:
     Attributes
     ----------
     available : bool
-        False when rank C < n (the joint filter's rank condition fails).
+        False when the outputs cannot determine every (non-kinematic)
+        equation's error.
     reason : str
         Why the screen is unavailable ("" otherwise).
     states : tuple of str
-        State names, one per equation.
+        Names of the screened equations' states (all states when rank C = n;
+        the non-kinematic ones, screened with delayed estimation, when only
+        positions are measured).
     excess : ndarray, shape (nstates,)
         ``mean(d_i^2) / Pd_ii - 1``: 0 for an equation the model gets right.
     score : ndarray, shape (nstates,)
-        ``excess`` in units of its standard error under "no error",
-        ``sqrt(2 / N)`` (a chi-square z-score).
+        z-score of the Lagrange-multiplier statistic ``N_b R^2`` of the
+        regression of d^_i on (x^, u, 1), on block means of ``BLOCK`` samples
+        (N_b blocks): ``(N_b R^2 - k) / sqrt(2 k)``, about N(0, 1) when the
+        equation is right.
+    coef : ndarray, shape (len(states), nstates + ninputs + 1)
+        That regression's coefficients on the scaled block means (for the
+        direction of one force shared by two equations).
     """
 
     available: bool
@@ -49,6 +61,7 @@ class EquationScreen:
     states: tuple[str, ...] = ()
     excess: NDArray[np.float64] | None = None
     score: NDArray[np.float64] | None = None
+    coef: NDArray[np.float64] | None = None
 
     def ranked(self, k: int, min_score: float = 5.0) -> list[str]:
         """The (at most k) states whose equations score highest, above ``min_score``."""
@@ -80,18 +93,52 @@ def screen_equations(sys: ct.StateSpace, y: NDArray, u: NDArray, *, Q: NDArray, 
     """
     n = sys.nstates
     C = np.asarray(sys.C, dtype=float)
-    if np.linalg.matrix_rank(C) < n:
-        return EquationScreen(False, f"rank C = {np.linalg.matrix_rank(C)} < n = {n}: the "
-                                     f"outputs do not determine every equation's error")
     names = tuple(sys.state_labels)
-    ch = Channel(name="all equations", G=np.eye(n), labels=tuple(f"d_{s}" for s in names),
-                 equations=names)
+    rank = np.linalg.matrix_rank(C)
+    if rank == n:
+        eqs = list(range(n))
+        filt = uikf
+    else:
+        # positions only: screen the equations that are not kinematic (dp/dt = v rows are
+        # exact), with delayed estimation (the error shows in y two samples later)
+        A = np.asarray(sys.A, dtype=float)
+        eqs = [i for i in range(n) if np.count_nonzero(A[i]) != 1] \
+            if not ct.isdtime(sys, strict=True) else []
+        if not eqs or len(eqs) > rank:
+            return EquationScreen(False, f"rank C = {rank} < n = {n} and {len(eqs)} "
+                                         f"non-kinematic equations: the outputs do not "
+                                         f"determine every equation's error")
+        filt = delayed_uikf
+    G = np.eye(n)[:, eqs]
+    ch = Channel(name="all equations", G=G, labels=tuple(f"d_{names[i]}" for i in eqs),
+                 equations=tuple(names[i] for i in eqs))
     model = channel_model(sys, ch, dt)
-    res = uikf(model, y, u, unknown=list(ch.labels), Q=Q, R=R)
-    N = y.shape[1] - 1
+    try:
+        res = filt(model, y, u, unknown=list(ch.labels), Q=Q, R=R)
+    except GreyboxError as e:
+        return EquationScreen(False, f"the joint filter failed: {e}")
+    N = y.shape[1] - res.relative_degree
     k0 = max(skip, res.period_converged or skip)
     d = res.d_est[:, k0:N]
+    if not np.all(np.isfinite(d)):
+        return EquationScreen(False, "the joint filter's estimates are not finite")
     pd = np.maximum(np.diag(np.atleast_2d(res.d_cov)), 1e-300)
     excess = np.mean(d**2, axis=1) / pd - 1.0
-    score = excess / np.sqrt(2.0 / max(d.shape[1], 1))
-    return EquationScreen(True, "", names, excess, score)
+    # a law in the states and inputs shows as correlation of d^_i with (x^, u): the
+    # Lagrange-multiplier statistic N R^2 of that regression, on block means of BLOCK
+    # samples (d^ is noisy but white-ish, a law is slow: averaging keeps the law)
+    w = np.vstack([res.x_filt[:, k0:N], u[:, k0:N]])
+    nb = d.shape[1] // BLOCK
+    if nb <= 2 * w.shape[0]:
+        return EquationScreen(False, f"{d.shape[1]} samples are too few to screen "
+                                     f"{len(eqs)} equations")
+    db = d[:, :nb * BLOCK].reshape(len(eqs), nb, BLOCK).mean(axis=2)
+    wb = w[:, :nb * BLOCK].reshape(w.shape[0], nb, BLOCK).mean(axis=2)
+    wb = np.vstack([wb, np.ones(nb)])
+    wb /= np.sqrt(np.mean(wb**2, axis=1, keepdims=True)) + 1e-300
+    coef = np.linalg.lstsq(wb.T, db.T, rcond=None)[0]
+    r2 = 1.0 - np.sum((db - coef.T @ wb) ** 2, axis=1) / np.maximum(np.sum(db**2, axis=1),
+                                                                       1e-300)
+    k = wb.shape[0]
+    score = (nb * r2 - k) / np.sqrt(2.0 * k)
+    return EquationScreen(True, "", ch.equations, excess, score, coef.T)
