@@ -564,11 +564,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 for j in idx[a + 1:]:
                     pair = resolve_channel_spec(sys, [(sys.state_labels[i],
                                                        sys.state_labels[j])])[0]
-                    keep.append(pair)
                     rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
                     g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
-                    if g is not None:  # one force shared by the two equations
-                        keep.append(force_channel(sys, pair, g))
+                    # one force shared by the two equations, or two independent errors
+                    keep.append(force_channel(sys, pair, g) if g is not None else pair)
         return tuple(keep)
 
     def _once(sys, nominal, Q, chans, delta):
@@ -653,8 +652,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 scored.append((se, npar, tr, "dynamic"))
 
         first_max = min(max_order, 1)
-        if channels is None and n > SCREEN_ABOVE:
+        big = channels is None and n > SCREEN_ABOVE
+        if big:
             chans = _screened_channels(sys, nominal, Q, chans, notes)
+            # unstructured subsystems (driven by all n + m signals) cost O(n) each and read
+            # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
+            first_max = 0
         for kc, ch in enumerate(chans):
             tick("trace candidate channels", kc, len(chans))
             try:
@@ -690,7 +693,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 continue
             if ftr.status == "ok":
                 _score(ftr)
-        if max_order >= 2 and scored:
+        if max_order >= 2 and scored and not big:
             ranked = []
             for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
                 if tr_.channel not in ranked and np.isfinite(se_):
@@ -712,14 +715,15 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             done = set()
             for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
                 ch = tr_.channel
-                if len(done) >= 2 or ch in done or ch.md != 1 or not np.isfinite(se_):
+                if len(done) >= (1 if big else 2) or ch in done or ch.md != 1 or \
+                        not np.isfinite(se_):
                     continue
                 done.add(ch)
                 se_static = min((c[0] for c in scored
                                  if c[2].channel == ch and c[3] == "static"), default=np.inf)
                 se_dyn = min((c[0] for c in scored
                               if c[2].channel == ch and c[3] == "dynamic"), default=np.inf)
-                if not se_dyn < SPARSE_IF * se_static:
+                if not big and not se_dyn < SPARSE_IF * se_static:
                     continue  # no evidence of dynamics in this channel: the static law stands
                 dyn = tr_.dynamic
                 lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)

@@ -227,17 +227,20 @@ class _OutputErrorLaw:
 
 
 def _prune(prob: _OutputErrorLaw, sel, sol):
-    """Drop, one at a time, the term whose 95 % interval contains 0; refit after each drop."""
+    """Drop terms whose 95 % interval contains 0 (the weakest, or the weaker half of many); refit."""
     hw = prob.halfwidths(sol)
     while sel:
         t = np.abs(sol.x) / np.where(np.isfinite(hw) & (hw > 0), hw, np.inf)
-        q = int(np.argmin(t))
-        if t[q] >= 1.0:
+        weak = np.flatnonzero(t < 1.0)
+        if not weak.size:
             break
-        sel = sel[:q] + sel[q + 1:]
+        # drop the weakest; with many weak terms (a proxy-laden law) the weaker half at once
+        drop = np.argsort(t)[:max(1, weak.size // 2)]
+        keep = [q for q in range(len(sel)) if q not in set(drop.tolist())]
+        sel = [sel[q] for q in keep]
         if not sel:
             return [], None, np.zeros(0)
-        sol = prob.fit(sel, np.delete(sol.x, q))
+        sol = prob.fit(sel, sol.x[keep])
         hw = prob.halfwidths(sol)
     return sel, sol, hw
 
