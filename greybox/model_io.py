@@ -46,7 +46,7 @@ from pathlib import Path
 import control as ct
 import numpy as np
 
-from ._validation import check_covariance, check_matrix
+from ._validation import MAX_MAGNITUDE, check_covariance, check_matrix
 from .exceptions import CovarianceError, DataError, DimensionError, GreyboxWarning, ModelError
 from .system import named_ss
 
@@ -56,9 +56,6 @@ _TIME_COLUMNS = ("time", "t")
 _KEYS = ("time", "Ts", "states", "inputs", "outputs", "A", "B", "C", "D", "Q", "R",
          "channels", "name")
 _REQUIRED = ("time", "Ts", "states", "inputs", "outputs", "A", "C", "Q", "R")
-#: Largest magnitude accepted in data and model files: its square (in sums of
-#: squares, covariances) must stay far below float64's 1.8e308.
-MAX_MAGNITUDE = 1e150
 #: |eigenvalue| * Ts bounds of a continuous model outside which Ts cannot be
 #: the sampling period of data that show its dynamics (refused).
 _TS_TOO_FAST, _TS_TOO_SLOW = 1e-9, 1e3

@@ -15,7 +15,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._lti import lti_states
-from ._validation import check_discrete, check_same_length, check_signal, check_vector
+from ._validation import (
+    check_discrete,
+    check_positive,
+    check_same_length,
+    check_signal,
+    check_vector,
+)
 from .exceptions import DimensionError
 from .filters import kalman_filter
 from .metrics import (
@@ -189,6 +195,8 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
     n = A.shape[0]
     if n == 0:
         return np.zeros(0)
+    if nsamples is not None:
+        nsamples = check_positive(nsamples, "nsamples", integer=True)
     Nw = min(y.shape[1], nsamples or max(10 * n, 50))
     if np.max(np.abs(np.linalg.eigvals(A))) > 1.0 + 1e-6 and Nw > 0:
         # an unstable model: keep the window short enough not to overflow
@@ -242,6 +250,8 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         residual tests are computed as usual.
     """
     check_discrete(sys)
+    lags = check_positive(lags, "lags", integer=True)
+    skip = check_positive(skip, "skip", integer=True, allow_zero=True)
     y = check_signal(y, sys.noutputs, "y", min_steps=2 * lags + 2)
     u = check_signal(u, sys.ninputs, "u")
     check_same_length(("y", y), ("u", u))

@@ -439,6 +439,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     chans = resolve_channel_spec(sys, channels)
     max_order = check_positive(max_order, "max_order", integer=True, allow_zero=True)
     delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
+    if max_order > 10 or delta_max_order > 20:
+        raise DataError(f"max_order = {max_order} (at most 10) and delta_max_order = "
+                        f"{delta_max_order} (at most 20): higher orders cannot be identified "
+                        f"reliably from one record")
     nonlinear, delta = _flag(nonlinear, "nonlinear"), _flag(delta, "delta")
     parsimony = check_positive(parsimony, "parsimony")
     alpha = check_positive(alpha, "alpha")
