@@ -196,10 +196,11 @@ def _check_time_scale(A, Ts, time, path):
                          f"constant ({1 / lam.min():.3g} s): every mode settles (or explodes) "
                          f"within one sample. Check Ts (in seconds) and the units of A")
     if fast < 1e-6 or slow > 20:
+        what = ("heavily oversampled" if fast < 1e-6 else
+                "every mode settles within a few samples")
         warnings.warn(f"{path}: Ts = {Ts:g} s vs the model's time constants "
-                      f"{1 / lam.max():.3g}..{1 / lam.min():.3g} s: "
-                      f"{'heavily oversampled' if fast < 1e-6 else 'every mode settles within a few samples'}"
-                      f"; check Ts and the units of A", GreyboxWarning, stacklevel=3)
+                      f"{1 / lam.max():.3g}..{1 / lam.min():.3g} s: {what}; check Ts and the "
+                      f"units of A", GreyboxWarning, stacklevel=3)
 
 
 def read_model(path) -> ModelSpec:
