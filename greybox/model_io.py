@@ -362,9 +362,7 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
                             + (f"; missing {missing}" if missing else "")
                             + (f"; unexpected {extra}" if extra else ""))
         ncol = len(header)
-        parts = []
-        for first, chunk in _chunks(f, line_no + 1):
-            parts.append(_parse_chunk(chunk, first, ncol, header, path))
+        parts = _read_numbers(f, line_no + 1, ncol, header, path)
     nrows = sum(a.shape[0] for a in parts)
     if nrows < min_steps:
         raise DataError(f"{path}: {nrows} samples; at least {min_steps} are needed")
@@ -378,6 +376,7 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
         for v, c in dest:
             v[k:k + a.shape[0]] = a[:, header.index(c)]
         k += a.shape[0]
+        del a  # the numbers now live in y, u (and t) only: peak about twice the numbers
     for v, c in dest:
         bad = np.flatnonzero(~np.isfinite(v))
         if bad.size:
@@ -397,6 +396,31 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
 
 
 _CHUNK_BYTES = 1 << 22
+
+
+def _read_numbers(f, first: int, ncol: int, header, path) -> list:
+    """The data rows as arrays (rows, ncol): numpy's compiled reader, else chunk by chunk.
+
+    ``numpy.loadtxt`` reads a clean file in one pass (peak about 1.1x the
+    numbers); on any irregularity (a bad cell, a ragged row, blank cells,
+    bytes that are not UTF-8) the file is re-read by :func:`_parse_chunk`,
+    which accepts what greybox accepts and names the row and column at fault.
+    """
+    import io
+
+    start = f.tell()
+    try:
+        text = io.TextIOWrapper(f, encoding="utf-8", newline=None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # e.g. "input contained no data"
+            arr = np.loadtxt(text, delimiter=",", comments=None, ndmin=2, dtype=float)
+        text.detach()
+        if arr.shape[1] == ncol or arr.size == 0:
+            return [arr.reshape(-1, ncol)]
+    except (ValueError, UnicodeDecodeError):
+        text.detach()
+    f.seek(start)
+    return [_parse_chunk(chunk, line, ncol, header, path) for line, chunk in _chunks(f, first)]
 
 
 def _read_header(f, path):
