@@ -35,7 +35,8 @@ from .metrics import (
 )
 
 __all__ = ["ModelValidation", "validate_model", "simulate_output", "estimate_initial_state",
-           "unstable_reason", "undefined_error", "UNSTABLE_TOL"]
+           "unstable_reason", "undefined_error", "UNSTABLE_TOL", "before_after",
+           "describe_before_after"]
 
 #: A discrete model whose spectral radius exceeds ``1 + UNSTABLE_TOL`` is unstable:
 #: its simulation error is undefined (the simulation diverges from any error in x0).
@@ -286,3 +287,47 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         y_sim=y_sim, y_pred=kf.y_pred, residuals=e,
         output_labels=tuple(sys.output_labels), se_reason=se_reason,
     )
+
+
+def before_after(table: dict) -> tuple[str, float, float]:
+    """``(measure, nominal, updated)`` of a validation table: SE when both are defined, else PE.
+
+    Never builds a ratio from a diverged simulation: when the nominal or the
+    updated model is unstable (SE undefined) the one-step prediction error
+    is compared instead.
+
+    Parameters
+    ----------
+    table : dict of str -> ModelValidation
+        Rows "nominal" and "updated".
+
+    Returns
+    -------
+    tuple of (str, float, float)
+        "SE" or "PE", and the nominal and updated values [%].
+    """
+    a, b = table["nominal"], table["updated"]
+    if a.se_defined and b.se_defined:
+        return "SE", float(a.se.value), float(b.se.value)
+    return "PE", float(a.pe.value), float(b.pe.value)
+
+
+def describe_before_after(table: dict) -> str:
+    """One phrase: "validation SE 5% -> 1% (5.0x)", or with PE and why SE is n/a.
+
+    Parameters
+    ----------
+    table : dict of str -> ModelValidation
+        Rows "nominal" and "updated".
+
+    Returns
+    -------
+    str
+    """
+    what, v0, v1 = before_after(table)
+    ratio = v0 / max(v1, 1e-300)
+    txt = f"validation {what} {v0:.3g}% -> {v1:.3g}% ({ratio:.1f}x)"
+    if what == "PE":
+        which = "nominal" if not table["nominal"].se_defined else "updated"
+        txt = f"validation SE n/a (the {which} model is unstable); " + txt
+    return txt
