@@ -665,7 +665,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     # d^ barely above its own estimation noise: choose the law by output error
     excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
         max(float(np.trace(np.atleast_2d(res.d_cov))), 1e-300) - 1.0
-    oe_ok = not unstable_reason(model)  # output error needs a simulation that stays bounded
+    # output error needs a simulation that stays bounded over the record
+    oe_ok = not unstable_reason(model, y.shape[1])
     if not oe_ok:
         notes.append("the nominal model is unstable: the static law is the least-squares fit "
                      "on d^ (no output-error refinement)")

@@ -52,7 +52,8 @@ __all__ = [
 def psd_part(S: NDArray) -> NDArray:
     """Positive semidefinite part of a symmetric matrix (negative eigenvalues set to 0)."""
     w, V = np.linalg.eigh(0.5 * (S + S.T))
-    return (V * np.clip(w, 0, None)) @ V.T
+    P = (V * np.clip(w, 0, None)) @ V.T
+    return 0.5 * (P + P.T)  # exactly symmetric (the product is only to round-off)
 
 
 @dataclass(frozen=True)

@@ -248,7 +248,7 @@ def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, sk
     """ModelValidation of the nominal model plus a nonlinear static law (own simulation)."""
     res, law = tr.filter_result, tr.static
     x0 = estimate_initial_state(upd.sys, y, u)
-    se_reason = unstable_reason(upd.sys)
+    se_reason = unstable_reason(res.sys, y.shape[1])  # the nonlinear model's linear part
     y_sim = np.full(y.shape, np.nan) if se_reason else simulate_with_law(res.sys, res.G, law,
                                                                           u, x0)
     if not np.all(np.isfinite(y_sim)):
@@ -411,7 +411,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     if not 0 < alpha < 1 or not 0 < min_se_drop <= 1 or not bic_factor > 0:
         raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
                         f"{alpha}, {min_se_drop}, {bic_factor}")
-    unstable = unstable_reason(nominal)
+    unstable = unstable_reason(nominal, y.shape[1])
     crit = (CRITERION_PE if unstable else CRITERION).format(pct=100 * (parsimony - 1))
     skip = 20
 
