@@ -71,3 +71,13 @@ def test_demo_refuses_a_file_as_folder(tmp_path, capsys):
     f.write_text("x")
     assert main(["demo", "tape-drive", "--out", str(f)]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_demo_json_is_strict(demo):
+    """summary.json passes a strict parser (no NaN or Infinity; issue 13)."""
+    _, _, out = demo
+
+    def refuse(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    json.loads((out / "summary.json").read_text(), parse_constant=refuse)
