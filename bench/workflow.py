@@ -1,5 +1,8 @@
 """Time close_the_loop on 1e5 samples of a 6-state model (issue 5 goal: < 10 s).
 
+``python bench/workflow.py csv [nsteps]``: the whole ``greybox update`` on a 1e6-row
+CSV of a 2-state model and the CSV readers side by side (issue 13).
+
 Three-mass chain (states p1 v1 p2 v2 p3 v3, force on mass 1, dt = 0.01 s),
 the nominal model misses a 15 N/m spring from mass 3 to the wall. Run:
 ``python bench/workflow.py [nsteps ...]`` (default 1e4 and 1e5).
@@ -8,6 +11,7 @@ the nominal model misses a 15 N/m spring from mass 3 to the wall. Run:
 import sys
 import time
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 
@@ -75,5 +79,138 @@ def main(sizes=(10_000, 100_000)):
     print("(time: one untraced run; peak: tracemalloc peak of a second, traced run)")
 
 
+
+
+# --------------------------------------------------------------------------- 1e6-sample CSV
+# ``python bench/workflow.py csv [nsteps]``: the whole ``greybox update`` run on CSV files
+# of a 2-state model (issue 13 goal at 1e6 samples: <= 10 s and <= 500 MB), and the CSV
+# reader alone against numpy.loadtxt, the csv module and pandas (if installed), side by side
+# in one process (goal: >= 5e6 values/s, peak <= 2x the numbers).
+
+def _osc(k=4.0):
+    A = np.array([[0.0, 1.0], [-k, -0.8]])
+    return named_ss(A, [[0.0], [1.0]], np.eye(2), np.zeros((2, 1)), 0, states=["x", "v"],
+                    inputs=["F"], outputs=["x", "v"], name="osc")
+
+
+def write_csv_case(folder, N, seed=0):
+    """MODEL.json (spring 4 N/m; the truth has 6 N/m) and est/val CSVs with time column."""
+    import json
+    from pathlib import Path
+
+    from greybox.model_io import model_to_dict
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    dt = 0.01
+    rng = np.random.default_rng(seed)
+    truth = gb.discretize(_osc(6.0), dt)
+    Q, R = np.diag([0.0, 1e-8]), 1e-6 * np.eye(2)
+    (folder / "model.json").write_text(json.dumps(model_to_dict(_osc(), Q + 1e-12 * np.eye(2),
+                                                                R, Ts=dt)))
+    for name, n in (("est.csv", N), ("val.csv", max(N // 4, 2000))):
+        u = gb.lowpass_noise(n, dt=dt, bandwidth=1.0, amplitude=2.0, rng=rng)
+        y = gb.simulate(truth, u, Q=Q if name == "est.csv" else None, R=R, rng=rng).y
+        data = np.vstack([np.arange(n) * dt, u, y]).T
+        np.savetxt(folder / name, data, delimiter=",", header="time,F,x,v", comments="",
+                   fmt="%.10g")
+    return folder
+
+
+def _peak_of(fn):
+    tracemalloc.start()
+    fn()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak
+
+
+def bench_readers(path, repeat=3):
+    """Rows: reader, best time, values/s, peak / numbers, ratio to greybox."""
+    import csv
+
+    from greybox.model_io import read_csv
+
+    def greybox_reader():
+        return read_csv(path, inputs=["F"], outputs=["x", "v"], Ts=0.01)
+
+    def numpy_loadtxt():
+        return np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+
+    def csv_module():  # the reader greybox had before issue 13
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))[1:]
+        return np.array([[float(c) for c in r] for r in rows])
+
+    readers = [("greybox.read_csv", greybox_reader), ("numpy.loadtxt", numpy_loadtxt),
+               ("csv module + float()", csv_module)]
+    try:
+        import pandas as pd
+
+        readers.append(("pandas.read_csv (C engine)",
+                        lambda: pd.read_csv(path).to_numpy(dtype=float)))
+    except ImportError:
+        pass
+    arr = numpy_loadtxt()
+    nvalues, nbytes = arr.size, arr.nbytes
+    rows = []
+    for name, fn in readers:
+        best = np.inf
+        for _ in range(repeat):
+            t = time.perf_counter()
+            fn()
+            best = min(best, time.perf_counter() - t)
+        rows.append((name, best, nvalues / best, _peak_of(fn) / nbytes))
+    return rows, nvalues, nbytes
+
+
+def bench_cli(folder):
+    """The whole ``greybox update`` in a child process: wall time, peak RSS, result."""
+    import json
+    import os
+    import resource
+    import subprocess
+
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    t = time.perf_counter()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    p = subprocess.run([sys.executable, "-m", "greybox", "update", f"{folder}/model.json",
+                        f"{folder}/est.csv", "--validate", f"{folder}/val.csv", "--out",
+                        f"{folder}/report", "--force", "--no-plots", "--json", "--quiet"],
+                       capture_output=True, text=True, env=env)
+    el = time.perf_counter() - t
+    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024  # kB -> MB
+    if p.returncode:
+        raise SystemExit(f"greybox update failed ({p.returncode}): {p.stderr}")
+    s = json.loads(p.stdout)
+    return el, rss if rss > before / 1024 else float("nan"), s
+
+
+def main_csv(N=1_000_000):
+    import os
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
+        folder = write_csv_case(tmp, N)
+        size = os.path.getsize(f"{folder}/est.csv") / 2**20
+        rows, nvalues, nbytes = bench_readers(f"{folder}/est.csv")
+        el, rss, s = bench_cli(folder)
+    print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} (2 cores shared)")
+    print(f"CSV reader on {N} rows x 4 columns ({size:.1f} MB of text, {nbytes / 2**20:.1f} MB "
+          f"of numbers); best of 3, same process")
+    print(f"{'reader':<28}{'time [s]':>9}{'values/s':>12}{'peak/numbers':>14}{'time ratio':>12}")
+    t0 = rows[0][1]
+    for name, t, rate, peak in rows:
+        print(f"{name:<28}{t:>9.3f}{rate:>12.3g}{peak:>14.2f}{t / t0:>11.2f}x")
+    print(f"\nwhole `greybox update --no-plots` at N = {N} (2-state model, spring missing): "
+          f"{el:.2f} s wall, peak RSS {rss:.0f} MB (goal <= 10 s, <= 500 MB)")
+    t = s["table"]
+    print(f"  found {s['channel']} {s['effect']['kind']}: {s['effect']['formula']}; "
+          f"validation SE {t['nominal']['se']:.3g}% -> {t['updated']['se']:.3g}%")
+
+
 if __name__ == "__main__":
-    main(tuple(int(a) for a in sys.argv[1:]) or (10_000, 100_000))
+    if sys.argv[1:2] == ["csv"]:
+        main_csv(*(int(a) for a in sys.argv[2:3]))
+    else:
+        main(tuple(int(a) for a in sys.argv[1:]) or (10_000, 100_000))

@@ -14,7 +14,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from .exceptions import CovarianceError, DataError, DimensionError, ModelError
 
+#: Largest magnitude accepted in any signal or matrix: sums of squares and
+#: covariances of values up to 1e150 stay far below float64's 1.8e308.
+MAX_MAGNITUDE = 1e150
+
 __all__ = [
+    "MAX_MAGNITUDE",
     "check_matrix",
     "check_vector",
     "as_signal",
@@ -25,7 +30,21 @@ __all__ = [
     "check_statespace",
     "resolve_channels",
     "check_positive",
+    "check_real",
 ]
+
+
+def check_real(value, name: str) -> float:
+    """Return ``value`` as a float if it is a finite real number (not a string or bool)."""
+    if isinstance(value, (str, bytes, bool, np.bool_)) or value is None:
+        raise DimensionError(f"{name} must be a number; found {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a number; found {value!r}") from e
+    if not np.isfinite(v) or abs(v) > MAX_MAGNITUDE:
+        raise DataError(f"{name} must be finite (|{name}| <= {MAX_MAGNITUDE:g}); found {value!r}")
+    return v
 
 
 def check_positive(value, name: str, *, integer: bool = False, allow_zero: bool = False):
@@ -50,13 +69,30 @@ def check_positive(value, name: str, *, integer: bool = False, allow_zero: bool 
     return v
 
 
+def _float_array(x) -> NDArray[np.float64]:
+    """``np.array(x, dtype=float)`` that refuses complex values instead of dropping them.
+
+    Raises TypeError or ValueError (callers turn them into greybox errors).
+    """
+    if isinstance(x, (str, bytes)):
+        raise ValueError(f"a string ({x!r}) is not a number")
+    a = np.asarray(x)
+    if a.dtype.kind == "c":
+        if np.any(a.imag != 0):
+            raise ValueError("complex values; expected real numbers")
+        a = a.real
+    if a.dtype.kind in "USO":
+        a = np.array(a.tolist() if a.dtype.kind == "O" else a, dtype=float)
+    return np.array(a, dtype=float)
+
+
 def as_signal(y, name: str) -> NDArray[np.float64]:
     """Convert to a float array with time as the last axis (1-D -> one row).
 
     Only converts; shapes and finiteness are checked by :func:`check_signal`.
     """
     try:
-        return np.atleast_2d(np.array(y, dtype=float))
+        return np.atleast_2d(_float_array(y))
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
 
@@ -64,7 +100,7 @@ def as_signal(y, name: str) -> NDArray[np.float64]:
 def check_vector(v, n: int, name: str, *, what: str = "") -> NDArray[np.float64]:
     """Convert ``v`` to a finite float vector of length n (e.g. an initial state)."""
     try:
-        a = np.array(v, dtype=float).reshape(-1)
+        a = _float_array(v).reshape(-1)
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric vector of length {n}; could not "
                              f"convert it ({e})") from e
@@ -72,7 +108,17 @@ def check_vector(v, n: int, name: str, *, what: str = "") -> NDArray[np.float64]
         raise DimensionError(f"{name} has {a.size} entries; expected {what}{n}")
     if not np.all(np.isfinite(a)):
         raise DataError(f"{name} contains NaN or inf; give finite values")
+    _check_magnitude(a, name)
     return a
+
+
+def _check_magnitude(a, name: str) -> None:
+    """Refuse finite values so large that their squares would overflow."""
+    if a.size:
+        big = float(np.nanmax(np.abs(a)))
+        if big > MAX_MAGNITUDE:
+            raise DataError(f"{name} has values up to {big:.3g} in magnitude; above "
+                            f"{MAX_MAGNITUDE:g} sums of squares overflow: rescale (change units)")
 
 
 def check_matrix(M: ArrayLike, shape: tuple[int, int], name: str) -> NDArray[np.float64]:
@@ -82,7 +128,7 @@ def check_matrix(M: ArrayLike, shape: tuple[int, int], name: str) -> NDArray[np.
     accepted for shape (n, 1) or (1, n) when unambiguous.
     """
     try:
-        A = np.array(M, dtype=float)
+        A = _float_array(M)
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
     if A.ndim == 0 and shape == (1, 1):
@@ -96,6 +142,7 @@ def check_matrix(M: ArrayLike, shape: tuple[int, int], name: str) -> NDArray[np.
         raise DimensionError(f"{name} has shape {A.shape}; expected {tuple(shape)}")
     if not np.all(np.isfinite(A)):
         raise DataError(f"{name} contains NaN or inf; all entries must be finite")
+    _check_magnitude(A, name)
     return A
 
 
@@ -113,7 +160,7 @@ def check_covariance(
         semidefinite.
     """
     try:
-        A = np.array(M, dtype=float) if not np.isscalar(M) else np.array([[float(M)]])
+        A = _float_array(M) if not np.isscalar(M) else _float_array([[M]])
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric ({n}, {n}) matrix or a length-{n} "
                              f"diagonal; could not convert it ({e})") from e
@@ -177,7 +224,7 @@ def check_signal(
         nrows = a.shape[0]
     else:
         try:
-            a = np.array(y, dtype=float)
+            a = _float_array(y)
         except (TypeError, ValueError) as e:
             raise DimensionError(f"{name} must be a numeric array; could not convert it "
                                  f"({e})") from e
@@ -202,6 +249,8 @@ def check_signal(
         )
     if allow_nan and np.any(np.isinf(a)):
         raise DataError(f"{name} contains inf; measurements must be finite or NaN (missing)")
+    if a.size and not (allow_nan and np.all(np.isnan(a))):
+        _check_magnitude(a, name)
     return a
 
 
@@ -252,6 +301,11 @@ def resolve_channels(
         return []
     if isinstance(channels, (int, np.integer, str)):
         channels = [channels]
+    if isinstance(channels, np.ndarray):
+        channels = channels.reshape(-1).tolist()
+    if not isinstance(channels, (list, tuple, range)):
+        raise DimensionError(f"{name}: expected a label, an index or a list of them; found "
+                             f"{channels!r}")
     out: list[int] = []
     for c in channels:
         if isinstance(c, str):

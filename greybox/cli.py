@@ -307,7 +307,8 @@ def _update(args, run: _Run) -> int:
             figs = [("autocorrelation", plot_residual_autocorrelation(rows)["figure"]),
                     ("outputs", plot_outputs(yv, list(rep.table.values()), dt=spec.Ts)["figure"])]
             if rep.trace is not None and rep.trace.filter_result is not None:
-                figs.append(("d_estimate", plot_unknown_input(rep.trace.filter_result, 0)["figure"]))
+                arts = plot_unknown_input(rep.trace.filter_result, 0)
+                figs.append(("d_estimate", arts["figure"]))
             _save(figs, figures, stage, args.out)
         summary = rep.as_dict()
         summary["figures"] = figures
@@ -379,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     show = warnings.showwarning
 
     def _show(message, category, filename, lineno, file=None, line=None):
-        _warn(_one_line(message) if isinstance(message, Warning) else " ".join(str(message).split()))
+        _warn(_one_line(message))
 
     try:
         warnings.showwarning = _show

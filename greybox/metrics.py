@@ -218,6 +218,7 @@ def whiteness_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> Whit
     """
     e = as_signal(e, "e")
     N = e.shape[-1]
+    alpha = check_positive(alpha, "alpha")
     if not 0 < alpha < 1:
         raise DataError(f"alpha must be in (0, 1); found {alpha}")
     lags = check_positive(lags, "lags", integer=True)

@@ -18,6 +18,7 @@ from ._validation import (
     check_covariance,
     check_discrete,
     check_positive,
+    check_real,
     check_signal,
     check_vector,
 )
@@ -30,6 +31,17 @@ __all__ = [
     "simulate",
     "SimulationResult",
 ]
+
+
+#: Most samples (nsignals * nsteps) a generator returns: 8 GB of float64.
+_MAX_VALUES = 10 ** 9
+
+
+def _check_size(nsignals: int, nsteps: int) -> None:
+    if nsignals * nsteps > _MAX_VALUES:
+        raise DataError(f"nsignals * nsteps = {nsignals * nsteps:.3g} values would need "
+                        f"{8 * nsignals * nsteps / 1e9:.3g} GB; at most {_MAX_VALUES:.0e} are "
+                        f"generated at once")
 
 
 def _rng(rng) -> np.random.Generator:
@@ -65,7 +77,9 @@ def random_binary(nsteps: int, *, nsignals: int = 1, amplitude: float = 1.0,
     """
     nsteps = check_positive(nsteps, "nsteps", integer=True)
     nsignals = check_positive(nsignals, "nsignals", integer=True)
-    hold = check_positive(hold, "hold", integer=True)
+    _check_size(nsignals, nsteps)
+    hold = min(check_positive(hold, "hold", integer=True), nsteps)
+    amplitude = check_real(amplitude, "amplitude")
     g = _rng(rng)
     nclk = -(-nsteps // hold)
     lv = g.choice([-1.0, 1.0], size=(nsignals, nclk))
@@ -100,11 +114,16 @@ def multisine(nsteps: int, *, dt: float, nsignals: int = 1, amplitude: float = 1
     """
     nsteps = check_positive(nsteps, "nsteps", integer=True)
     nsignals = check_positive(nsignals, "nsignals", integer=True)
+    _check_size(nsignals, nsteps)
     nfreq = check_positive(nfreq, "nfreq", integer=True)
     dt = check_positive(dt, "dt")
+    amplitude = check_real(amplitude, "amplitude")
+    if nfreq > nsteps:
+        raise DataError(f"nfreq = {nfreq} lines need at least as many samples; found nsteps = "
+                        f"{nsteps}")
     fs = 1.0 / dt
-    fmin = fmin if fmin is not None else 1.0 / (nsteps * dt)
-    fmax = fmax if fmax is not None else fs / 4
+    fmin = check_real(fmin, "fmin") if fmin is not None else 1.0 / (nsteps * dt)
+    fmax = check_real(fmax, "fmax") if fmax is not None else fs / 4
     if not 0 < fmin < fmax <= fs / 2:
         raise DataError(f"need 0 < fmin < fmax <= fs/2 = {fs / 2:g} Hz; found fmin={fmin:g}, "
                         f"fmax={fmax:g}")
@@ -144,7 +163,12 @@ def lowpass_noise(nsteps: int, *, dt: float, bandwidth: float, nsignals: int = 1
     nsteps = check_positive(nsteps, "nsteps", integer=True)
     dt = check_positive(dt, "dt")
     nsignals = check_positive(nsignals, "nsignals", integer=True)
+    _check_size(nsignals, nsteps)
     order = check_positive(order, "order", integer=True)
+    if order > 20:
+        raise DataError(f"order = {order}: a Butterworth filter above order 20 is numerically "
+                        f"meaningless; use 1..20")
+    amplitude = check_real(amplitude, "amplitude")
     bandwidth = check_positive(bandwidth, "bandwidth")
     if bandwidth >= 0.5 / dt:
         raise DataError(f"bandwidth {bandwidth:g} Hz must be below the Nyquist frequency "
@@ -205,7 +229,8 @@ def simulate(sys: ct.StateSpace, u: ArrayLike | None = None, *, x0: ArrayLike | 
     R : array_like, shape (noutputs, noutputs), optional
         Measurement-noise covariance; None for noise-free measurements.
     nsteps : int, optional
-        Number of samples when ``u`` is None.
+        Number of samples; required when ``u`` is None, else it must equal
+        ``u.shape[1]``.
     rng : numpy.random.Generator or int, optional
         Source of the noise.
 
@@ -222,6 +247,9 @@ def simulate(sys: ct.StateSpace, u: ArrayLike | None = None, *, x0: ArrayLike | 
         u = np.zeros((0, nsteps))
     u = check_signal(u, m, "u")
     N = u.shape[1]
+    if nsteps is not None and check_positive(nsteps, "nsteps", integer=True) != N:
+        raise DimensionError(f"nsteps = {nsteps} but u has {N} samples; give u alone (its "
+                             f"length sets nsteps) or u[:, :nsteps]")
     x0 = np.zeros(n) if x0 is None else check_vector(x0, n, "x0")
     g = _rng(rng)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))

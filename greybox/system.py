@@ -14,10 +14,39 @@ import control as ct
 import numpy as np
 from numpy.typing import NDArray
 
-from ._validation import check_discrete, check_positive, check_statespace, resolve_channels
+from ._validation import (
+    _float_array,
+    check_discrete,
+    check_matrix,
+    check_positive,
+    check_statespace,
+    resolve_channels,
+)
 from .exceptions import DimensionError, ModelError
 
 __all__ = ["discretize", "split_inputs", "SplitModel", "named_ss"]
+
+
+def _names(names, what):
+    try:
+        out = None if isinstance(names, str) else list(names)
+    except TypeError:
+        out = None
+    if out is None or not all(isinstance(v, str) for v in out):
+        raise DimensionError(f"{what} must be a sequence of names; found {names!r}")
+    return out
+
+
+def _matrix(M, shape, name):
+    """A real matrix of the given shape (any array with as many entries is reshaped)."""
+    try:
+        a = _float_array(M)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"{name} must be a real numeric array; could not convert it "
+                             f"({e})") from e
+    if a.size == shape[0] * shape[1]:
+        a = a.reshape(shape)
+    return check_matrix(a, shape, name)
 
 
 def named_ss(A, B, C, D, dt, *, states, inputs, outputs, name=None) -> ct.StateSpace:
@@ -44,11 +73,15 @@ def named_ss(A, B, C, D, dt, *, states, inputs, outputs, name=None) -> ct.StateS
         For a model without inputs and with one state or one output, which
         python-control 0.10 cannot represent.
     """
-    A = np.atleast_2d(np.asarray(A, dtype=float))
-    n = A.shape[0]
-    B = np.asarray(B, dtype=float).reshape(n, len(inputs))
-    C = np.asarray(C, dtype=float).reshape(len(outputs), n)
-    D = np.asarray(D, dtype=float).reshape(len(outputs), len(inputs))
+    states, inputs, outputs = (_names(v, k) for v, k in ((states, "states"), (inputs, "inputs"),
+                                                          (outputs, "outputs")))
+    n, m, p = len(states), len(inputs), len(outputs)
+    A, B, C, D = (_matrix(M, s, k) for M, s, k in
+                  ((A, (n, n), "A"), (B, (n, m), "B"), (C, (p, n), "C"), (D, (p, m), "D")))
+    if not (dt is True or (not isinstance(dt, (bool, str)) and dt is not None and
+                           np.isscalar(dt) and np.isfinite(dt) and dt >= 0)):
+        raise DimensionError(f"dt must be a sampling period >= 0 [s] (0: continuous) or True; "
+                             f"found {dt!r}")
     if len(inputs) == 0 and (n == 1 or len(outputs) == 1):
         raise ModelError(
             "python-control cannot represent a model with no inputs when it has one state or "

@@ -15,7 +15,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ._lti import lti_states
-from ._validation import check_discrete, check_same_length, check_signal, check_vector
+from ._validation import (
+    check_discrete,
+    check_positive,
+    check_same_length,
+    check_signal,
+    check_vector,
+)
 from .exceptions import DimensionError
 from .filters import kalman_filter
 from .metrics import (
@@ -29,18 +35,24 @@ from .metrics import (
 )
 
 __all__ = ["ModelValidation", "validate_model", "simulate_output", "estimate_initial_state",
-           "unstable_reason", "undefined_error", "UNSTABLE_TOL"]
+           "unstable_reason", "undefined_error", "UNSTABLE_TOL", "before_after",
+           "describe_before_after"]
 
 #: A discrete model whose spectral radius exceeds ``1 + UNSTABLE_TOL`` is unstable:
 #: its simulation error is undefined (the simulation diverges from any error in x0).
 UNSTABLE_TOL = 1e-6
+#: Over a record of N samples, an unstable mode counts only if it grows by more
+#: than this factor (rho**N): a radius of 1 + 1e-5 over 8000 samples (+8 %) is as
+#: harmless as an integrator.
+UNSTABLE_GROWTH = 10.0
 
 
-def unstable_reason(sys: ct.StateSpace) -> str:
+def unstable_reason(sys: ct.StateSpace, nsteps: int | None = None) -> str:
     """Why a discrete model's simulation error is undefined, or "" when it is defined.
 
     A model with an eigenvalue outside the unit circle (spectral radius
-    above ``1 + UNSTABLE_TOL``) amplifies any initial-state or input error
+    above ``1 + UNSTABLE_TOL``, growing by more than ``UNSTABLE_GROWTH``
+    over ``nsteps`` samples) amplifies any initial-state or input error
     without bound, so its simulated output says nothing about the model:
     judge it by the one-step prediction error (PE) and the innovations.
     Marginal modes (eigenvalues on the unit circle, e.g. integrators) keep
@@ -50,6 +62,8 @@ def unstable_reason(sys: ct.StateSpace) -> str:
     ----------
     sys : control.StateSpace
         Discrete model.
+    nsteps : int, optional
+        Length of the record the model is simulated over.
 
     Returns
     -------
@@ -59,7 +73,8 @@ def unstable_reason(sys: ct.StateSpace) -> str:
     if A.size == 0:
         return ""
     rho = float(np.max(np.abs(np.linalg.eigvals(A))))
-    if rho <= 1.0 + UNSTABLE_TOL:
+    if rho <= 1.0 + UNSTABLE_TOL or (
+            nsteps is not None and nsteps * np.log(rho) <= np.log(UNSTABLE_GROWTH)):
         return ""
     return (f"the model is unstable (spectral radius {rho:.6g} > 1): its simulation error is "
             f"undefined; PE used")
@@ -189,6 +204,8 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
     n = A.shape[0]
     if n == 0:
         return np.zeros(0)
+    if nsamples is not None:
+        nsamples = check_positive(nsamples, "nsamples", integer=True)
     Nw = min(y.shape[1], nsamples or max(10 * n, 50))
     if np.max(np.abs(np.linalg.eigvals(A))) > 1.0 + 1e-6 and Nw > 0:
         # an unstable model: keep the window short enough not to overflow
@@ -242,6 +259,8 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         residual tests are computed as usual.
     """
     check_discrete(sys)
+    lags = check_positive(lags, "lags", integer=True)
+    skip = check_positive(skip, "skip", integer=True, allow_zero=True)
     y = check_signal(y, sys.noutputs, "y", min_steps=2 * lags + 2)
     u = check_signal(u, sys.ninputs, "u")
     check_same_length(("y", y), ("u", u))
@@ -253,7 +272,7 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         x0v = np.zeros(sys.nstates)
     else:
         x0v = check_vector(x0, sys.nstates, "x0")
-    se_reason = unstable_reason(sys)
+    se_reason = unstable_reason(sys, y.shape[1])
     if se_reason:
         y_sim = np.full(y.shape, np.nan)
     else:
@@ -276,3 +295,47 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         y_sim=y_sim, y_pred=kf.y_pred, residuals=e,
         output_labels=tuple(sys.output_labels), se_reason=se_reason,
     )
+
+
+def before_after(table: dict) -> tuple[str, float, float]:
+    """``(measure, nominal, updated)`` of a validation table: SE when both are defined, else PE.
+
+    Never builds a ratio from a diverged simulation: when the nominal or the
+    updated model is unstable (SE undefined) the one-step prediction error
+    is compared instead.
+
+    Parameters
+    ----------
+    table : dict of str -> ModelValidation
+        Rows "nominal" and "updated".
+
+    Returns
+    -------
+    tuple of (str, float, float)
+        "SE" or "PE", and the nominal and updated values [%].
+    """
+    a, b = table["nominal"], table["updated"]
+    if a.se_defined and b.se_defined:
+        return "SE", float(a.se.value), float(b.se.value)
+    return "PE", float(a.pe.value), float(b.pe.value)
+
+
+def describe_before_after(table: dict) -> str:
+    """One phrase: "validation SE 5% -> 1% (5.0x)", or with PE and why SE is n/a.
+
+    Parameters
+    ----------
+    table : dict of str -> ModelValidation
+        Rows "nominal" and "updated".
+
+    Returns
+    -------
+    str
+    """
+    what, v0, v1 = before_after(table)
+    ratio = v0 / max(v1, 1e-300)
+    txt = f"validation {what} {v0:.3g}% -> {v1:.3g}% ({ratio:.1f}x)"
+    if what == "PE":
+        which = "nominal" if not table["nominal"].se_defined else "updated"
+        txt = f"validation SE n/a (the {which} model is unstable); " + txt
+    return txt

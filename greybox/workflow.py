@@ -65,6 +65,7 @@ from .trace.screen import screen_equations
 from .update import Subsystem, UpdatedModel, delta_update
 from .validate import (
     ModelValidation,
+    describe_before_after,
     estimate_initial_state,
     simulate_output,
     undefined_error,
@@ -87,50 +88,6 @@ CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the est
 CRITERION_PE = ("lowest one-step prediction error PE (eq. 42) of the augmented model on the "
                 "estimation data (the nominal model is unstable, so SE is undefined); among "
                 "candidates within {pct:.0f}% of the lowest, the fewest parameters")
-
-
-def before_after(table: dict) -> tuple[str, float, float]:
-    """``(measure, nominal, updated)`` of a validation table: SE when both are defined, else PE.
-
-    Never builds a ratio from a diverged simulation: when the nominal or the
-    updated model is unstable (SE undefined) the one-step prediction error
-    is compared instead.
-
-    Parameters
-    ----------
-    table : dict of str -> ModelValidation
-        Rows "nominal" and "updated".
-
-    Returns
-    -------
-    tuple of (str, float, float)
-        "SE" or "PE", and the nominal and updated values [%].
-    """
-    a, b = table["nominal"], table["updated"]
-    if a.se_defined and b.se_defined:
-        return "SE", float(a.se.value), float(b.se.value)
-    return "PE", float(a.pe.value), float(b.pe.value)
-
-
-def describe_before_after(table: dict) -> str:
-    """One phrase: "validation SE 5% -> 1% (5.0x)", or with PE and why SE is n/a.
-
-    Parameters
-    ----------
-    table : dict of str -> ModelValidation
-        Rows "nominal" and "updated".
-
-    Returns
-    -------
-    str
-    """
-    what, v0, v1 = before_after(table)
-    ratio = v0 / max(v1, 1e-300)
-    txt = f"validation {what} {v0:.3g}% -> {v1:.3g}% ({ratio:.1f}x)"
-    if what == "PE":
-        which = "nominal" if not table["nominal"].se_defined else "updated"
-        txt = f"validation SE n/a (the {which} model is unstable); " + txt
-    return txt
 
 
 @dataclass(frozen=True)
@@ -534,6 +491,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     if delta_max_order is not None:
         delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
     max_effects = check_positive(max_effects, "max_effects", integer=True)
+    if max_order > 10 or (delta_max_order is not None and delta_max_order > 20):
+        raise DataError(f"max_order = {max_order} (at most 10) and delta_max_order = "
+                        f"{delta_max_order} (at most 20): higher orders cannot be identified "
+                        f"reliably from one record")
     nonlinear, delta = _flag(nonlinear, "nonlinear"), _flag(delta, "delta")
     parsimony = check_positive(parsimony, "parsimony")
     alpha = check_positive(alpha, "alpha")
@@ -573,7 +534,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     def _once(sys, nominal, Q, chans, delta):
         """One pass: residual, trace, choose, gate, before/after for the model ``sys``."""
         n, m = nominal.nstates, nominal.ninputs
-        unstable = unstable_reason(nominal)
+        unstable = unstable_reason(nominal, y.shape[1])
         crit = (CRITERION_PE if unstable else CRITERION).format(pct=100 * (parsimony - 1))
         skip = 20
 

@@ -71,3 +71,42 @@ def test_demo_refuses_a_file_as_folder(tmp_path, capsys):
     f.write_text("x")
     assert main(["demo", "tape-drive", "--out", str(f)]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_demo_json_is_strict(demo):
+    """summary.json passes a strict parser (no NaN or Infinity; issue 13)."""
+    _, _, out = demo
+
+    def refuse(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    json.loads((out / "summary.json").read_text(), parse_constant=refuse)
+
+
+README_ROWS = {  # README row label -> key of the demo's table3 JSON
+    "initial": "initial",
+    "dynamic (order chosen from data, feedthrough)": "dynamic",
+    "dynamic, paper structure (no feedthrough)": "dynamic_paper_structure",
+    "parallel delta baseline": "parallel",
+    "parallel, initial model's integrators factored out (`marginal=True`)": "parallel_marginal",
+    "static update (order 0)": "static",
+    "true model (the floor)": "true_model",
+}
+
+
+def test_readme_quotes_what_the_demo_prints(demo):
+    """The README's Tables II and III are the numbers the demo computes today (issue 13)."""
+    from pathlib import Path
+
+    _, js, _ = demo
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    t2 = js["table2"]
+    for label, key in (("Kalman filter (ignores tension)", "kalman_filter_ee"),
+                       ("unknown-input filter", "unknown_input_filter_ee")):
+        assert f"| {label} | {t2[key]:.2f} |" in text, (label, t2[key])
+    assert f"covers the truth in {100 * t2['tension_ci95_coverage']:.1f} %" in text
+    t3 = js["table3"]
+    for label, key in README_ROWS.items():
+        row = t3[key]
+        assert f"| {label} | {row['order']} | {row['se']:.2f} | {row['pe']:.2f} |" in text, \
+            (label, row["order"], row["se"], row["pe"])

@@ -56,10 +56,10 @@ for name, v in rep.table.items():
 import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
-out_root = os.environ.get("GREYBOX_TUTORIAL_OUT")
-with tempfile.TemporaryDirectory() as tmp:
+out_root = os.environ.get("GREYBOX_TUTORIAL_OUT", ".")
+with tempfile.TemporaryDirectory() as tmp:  # the input files; the report outlives it
     tmp = Path(tmp)
-    report = Path(out_root) / "tutorial03_report" if out_root else tmp / "report"
+    report = Path(out_root) / "tutorial03_report"
     (tmp / "model.json").write_text(json.dumps(model_to_dict(nominal, Q + 1e-12 * np.eye(4),
                                                              R, Ts=dt)))
     for name, yy, uu in (("est.csv", y, u), ("val.csv", yv, uv)):

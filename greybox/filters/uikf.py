@@ -29,6 +29,7 @@ from scipy.stats import norm
 
 from .._lti import _CHUNK, LTIRecursion, single_thread_blas
 from .._validation import (
+    _float_array,
     check_covariance,
     check_discrete,
     check_positive,
@@ -224,8 +225,11 @@ def check_rank_condition(C: NDArray, G: NDArray, labels: Sequence[str] = ()) -> 
     RankConditionError
         Naming the condition and the offending channels.
     """
-    C = np.atleast_2d(np.asarray(C, dtype=float)) if not isinstance(C, np.ndarray) else C
-    G = np.asarray(G, dtype=float)
+    try:
+        C, G = np.atleast_2d(_float_array(C)), _float_array(G)
+    except (TypeError, ValueError) as e:
+        raise DimensionError(f"C and G must be real numeric arrays; could not convert them "
+                             f"({e})") from e
     if G.ndim == 1:
         G = G[:, None]
     if C.ndim != 2 or G.ndim != 2 or C.shape[1] != G.shape[0]:
@@ -266,7 +270,8 @@ def check_rank_condition(C: NDArray, G: NDArray, labels: Sequence[str] = ()) -> 
 def _split(sys, unknown, allow_no_unknown, check_rank=True):
     """Split ``sys`` into the known-input model and G; check (17)."""
     check_discrete(sys)
-    if unknown is None or (isinstance(unknown, (list, tuple, np.ndarray)) and len(unknown) == 0):
+    if unknown is None or (isinstance(unknown, (list, tuple)) and len(unknown) == 0) or (
+            isinstance(unknown, np.ndarray) and unknown.size == 0):
         if not allow_no_unknown:
             raise DimensionError("unknown: name at least one unknown-input channel of sys "
                                  f"(its inputs are {sys.input_labels})")

@@ -233,7 +233,7 @@ def _choose_horizon(horizon, order, lengths, m, l, max_order, fixed_min_block, d
         i = check_positive(horizon, "horizon", integer=True)
         nb = fixed_min_block(i)
         if not ok(i):
-            imax = max((k for k in range(1, i) if ok(k)), default=0)
+            imax = max((k for k in range(1, min(i, min(lengths) + 1)) if ok(k)), default=0)
             hint = (f"reduce horizon to at most {imax}" if imax >= need_i
                     else "collect more data")
             raise DataError(

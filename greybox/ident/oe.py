@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize, minimize_scalar
 from scipy.signal import lfilter
 
+from .._blas import single_thread_blas
 from .._validation import check_positive, check_same_length, check_signal
 from ..exceptions import DataError
 from ..system import named_ss
@@ -199,28 +200,31 @@ def output_error(d: ArrayLike, w: ArrayLike, order: int, *, feedthrough: bool = 
     ns = min(N, int(search_samples))
     taus = np.geomspace(1.5, max(ns / 5.0, 10.0), 24)
     blocksA, blocksB, blocksC, Ds, sims, allpoles = [], [], [], [], [], []
-    for i in range(nout):
-        di = ds[i:i + 1]
-        a = _search_denominator(order, ws[:, :ns], di[:, :ns], feedthrough, taus, starts,
-                                maxiter)
-        coef, r = _fit_fixed_den(a, ws, di, feedthrough)
-        # unscale: d_i = sd_i * (Dn ws + sum_k bk filt(ws) delayed)
-        off = nin if feedthrough else 0
-        Dn = coef[:off, 0] * sd[i] / sw if feedthrough else np.zeros(nin)
-        bks = [coef[off + k * nin: off + (k + 1) * nin, 0] * sd[i] / sw for k in range(order)]
-        # observer canonical form of sum_k b_k q^-k / A(q^-1)
-        Ai = np.zeros((order, order))
-        Ai[:, 0] = -a[1:]
-        Ai[:-1, 1:] = np.eye(order - 1)
-        Bi = np.vstack(bks)
-        Ci = np.zeros((1, order))
-        Ci[0, 0] = 1.0
-        blocksA.append(Ai)
-        blocksB.append(Bi)
-        blocksC.append(Ci)
-        Ds.append(Dn)
-        sims.append((di - r)[0] * sd[i])
-        allpoles.append(np.roots(a))
+    # small Gram products called hundreds of times: one BLAS thread (see greybox._blas)
+    with single_thread_blas():
+        for i in range(nout):
+            di = ds[i:i + 1]
+            a = _search_denominator(order, ws[:, :ns], di[:, :ns], feedthrough, taus, starts,
+                                    maxiter)
+            coef, r = _fit_fixed_den(a, ws, di, feedthrough)
+            # unscale: d_i = sd_i * (Dn ws + sum_k bk filt(ws) delayed)
+            off = nin if feedthrough else 0
+            Dn = coef[:off, 0] * sd[i] / sw if feedthrough else np.zeros(nin)
+            bks = [coef[off + k * nin: off + (k + 1) * nin, 0] * sd[i] / sw
+                   for k in range(order)]
+            # observer canonical form of sum_k b_k q^-k / A(q^-1)
+            Ai = np.zeros((order, order))
+            Ai[:, 0] = -a[1:]
+            Ai[:-1, 1:] = np.eye(order - 1)
+            Bi = np.vstack(bks)
+            Ci = np.zeros((1, order))
+            Ci[0, 0] = 1.0
+            blocksA.append(Ai)
+            blocksB.append(Bi)
+            blocksC.append(Ci)
+            Ds.append(Dn)
+            sims.append((di - r)[0] * sd[i])
+            allpoles.append(np.roots(a))
     from scipy.linalg import block_diag
 
     A = block_diag(*blocksA)

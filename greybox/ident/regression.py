@@ -186,6 +186,13 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
     d = check_signal(d, 1, "d")[0]  # one channel: (nsteps,) or (1, nsteps)
     N = check_same_length(("terms", X), ("d", d[None, :]))
     nterms = X.shape[0]
+    try:
+        names = None if isinstance(names, str) else list(names)
+    except TypeError:
+        names = None
+    if names is None or not all(isinstance(v, str) for v in names):
+        raise DimensionError("names must be a sequence of term names (strings), one per row "
+                             "of terms")
     if len(names) != nterms:
         raise DimensionError(f"names has {len(names)} entries; expected nterms = {nterms} "
                              f"(one name per row of terms)")

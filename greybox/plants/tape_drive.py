@@ -32,6 +32,7 @@ import control as ct
 import numpy as np
 
 from .._validation import check_positive
+from ..exceptions import DimensionError
 from ..system import discretize, named_ss
 
 __all__ = [
@@ -194,6 +195,9 @@ def tape_drive_nominal(params: TapeDriveParams | None = None, *, dt: float | Non
         :func:`tape_drive_true`.
     """
     p = params or TapeDriveParams()
+    if not isinstance(with_tension_input, (bool, np.bool_)):
+        raise DimensionError(f"with_tension_input must be True or False; found "
+                             f"{with_tension_input!r}")
     A, B = _motor_matrices(p)
     inputs = list(TAPE_DRIVE_INPUTS)
     if with_tension_input:

@@ -146,7 +146,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     cont = None if ct.isdtime(sys, strict=True) else (
         np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
         np.asarray(channel.G, dtype=float), float(model.dt))
-    oe_ok = not unstable_reason(model)  # output error needs a simulation that stays bounded
+    # output error needs a simulation that stays bounded over the record
+    oe_ok = not unstable_reason(model, y.shape[1])
     if not oe_ok:
         notes.append("the nominal model is unstable: the static law is the least-squares fit "
                      "on d^ (no output-error refinement)")
