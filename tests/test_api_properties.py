@@ -23,7 +23,7 @@ from hypothesis.extra import numpy as hnp
 import greybox as gb
 from greybox.filters import FilterResult
 
-N = 120
+N = 240  # delta_update needs at least 200 samples
 _RNG = np.random.default_rng(7)
 A = np.array([[0.9, 0.1], [0.0, 0.7]])
 B = np.array([[0.0], [1.0]])
@@ -191,6 +191,6 @@ def test_issue_13_edges():
     with pytest.raises(gb.DimensionError, match="min_se_drop"):
         gb.close_the_loop(SYS, np.tile(Y, 2), np.tile(U, 2), Y, U, Q=Q, R=R,
                           min_se_drop="0.8")
-    with pytest.raises(gb.DimensionError, match="nsteps = 50 but u has 120"):
+    with pytest.raises(gb.DimensionError, match="nsteps = 50 but u has 240"):
         gb.simulate(SYS, U, nsteps=50)
     assert gb.simulate(SYS, U, nsteps=N).y.shape == (2, N)
