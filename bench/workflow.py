@@ -3,6 +3,13 @@
 ``python bench/workflow.py csv [nsteps]``: the whole ``greybox update`` on a 1e6-row
 CSV of a 2-state model and the CSV readers side by side (issue 13).
 
+``python bench/workflow.py chains [nsteps] [n ...]``: chains of n/2 masses with
+the coupling spring between the two middle masses missing from the model, all
+states measured and positions only (issue 8): time, peak memory (RSS of a
+fresh process per case), whether the right pair and a one-term law in the
+relative coordinate were found, and the validation SE against the true
+model's (the floor).
+
 Three-mass chain (states p1 v1 p2 v2 p3 v3, force on mass 1, dt = 0.01 s),
 the nominal model misses a 15 N/m spring from mass 3 to the wall. Run:
 ``python bench/workflow.py [nsteps ...]`` (default 1e4 and 1e5).
@@ -209,8 +216,62 @@ def main_csv(N=1_000_000):
           f"validation SE {t['nominal']['se']:.3g}% -> {t['updated']['se']:.3g}%")
 
 
+def _chain_case(n_masses, measured, N, seed=1):
+    """One chain case in this process; prints one table row."""
+    import resource
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from plantlib import chain, draw
+
+    i = n_masses // 2 - 1
+    meas = None if measured == "all" else [f"p{j + 1}" for j in range(n_masses)]
+    true = chain(n_masses, k=20.0)
+    nom = chain(n_masses, k=20.0, missing=[(i, i + 1)], measured=meas)
+    A, B = np.asarray(true.A), np.asarray(true.B)
+    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=2 * n_masses, dt=0.01,
+             rng=np.random.default_rng(seed), q_std=np.array([0.0, 1e-4] * n_masses),
+             r_std=1e-3, n_est=N, n_val=3000, sub=2)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t = time.perf_counter()
+    rep = close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt, delta=False)
+    el = time.perf_counter() - t
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    floor = gb.validate_model(gb.discretize(chain(n_masses, k=20.0, measured=meas), d.dt),
+                              d.y_val, d.u_val, Q=d.Q, R=d.R).se.value
+    eqs = {f"v{i + 1}", f"v{i + 2}"}
+    law = rep.effect.law
+    names = [] if law is None else [law.spec[j][0] for j in np.flatnonzero(law.coef[0])]
+    rel = f"(p{i + 2}-p{i + 1})"
+    found = ("right pair" if rep.updated and set(rep.effect.equations) == eqs else "wrong")
+    found += (", one term in " + rel if names == [rel] else
+              f", {len(names)} terms" + (f" incl. {rel}" if rel in names else ""))
+    se1 = rep.table["updated"].se.value
+    print(f"| {2 * n_masses} | {measured} | {N:.0e} | {el:.1f} | {rss:.0f} ({rss - rss0:+.0f}) "
+          f"| {found} | {rep.table['nominal'].se.value:.3g} -> {se1:.3g} | {floor:.3g} "
+          f"| {se1 / floor:.2f} |", flush=True)
+
+
+def main_chains(N=100_000, sizes=(8, 16, 32, 64)):
+    import os
+    import subprocess
+
+    print(f"load average {os.getloadavg()[0]:.1f} (2 cores)")
+    print("| n | measured | N | time [s] | peak RSS [MB] (+ in close_the_loop) | found | "
+          "SE before -> after [%] | true model SE [%] | after / true |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for n in sizes:
+        for meas in ("all", "positions"):
+            subprocess.run([sys.executable, __file__, "_chain", str(n // 2), meas, str(N)],
+                           check=False)
+
+
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["csv"]:
+    if sys.argv[1:2] == ["_chain"]:
+        _chain_case(int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))
+    elif sys.argv[1:2] == ["chains"]:
+        args = [int(a) for a in sys.argv[2:]]
+        main_chains(*(args[:1] or [100_000]), *([tuple(args[1:])] if args[1:] else []))
+    elif sys.argv[1:2] == ["csv"]:
         main_csv(*(int(a) for a in sys.argv[2:3]))
     else:
         main(tuple(int(a) for a in sys.argv[1:]) or (10_000, 100_000))

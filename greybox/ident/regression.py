@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .._blas import single_thread_blas
 from .._validation import check_positive, check_same_length, check_signal
 from ..exceptions import DataError, DimensionError
 
@@ -207,8 +208,9 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
     s = np.sqrt(np.mean(X**2, axis=1))
     usable = s > 0
     Xs = X / np.where(usable, s, 1.0)[:, None]
-    Gm = Xs @ Xs.T
-    b = Xs @ d
+    with single_thread_blas():  # thin products: threads only cost (and stall under load)
+        Gm = Xs @ Xs.T
+        b = Xs @ d
     dd = float(d @ d)
     floor = 1e-10 * dd
 

@@ -35,6 +35,9 @@ from .oe import _OE_WINDOW, hac_covariance, noise_covariance, zoh
 
 __all__ = ["DynamicLaw", "fit_sparse_dynamic"]
 
+# Samples (block means) on which the drivers of a sparse law are chosen.
+_SELECT_SAMPLES = 4000
+
 
 @dataclass(frozen=True)
 class DynamicLaw:
@@ -210,7 +213,12 @@ def _drivers_and_start(sys, w, d, dt, pole, max_drivers):
     f = lfilter([0.0, 1.0 - pole], [1.0, -pole], w, axis=1)
     terms = np.vstack([w, f])
     tnames = [f"{s}" for s in names] + [f"lag({s})" for s in names]
-    sel = forward_selection(terms, d[0], tnames, max_terms=2 * max_drivers, min_drop=1e-3,
+    # the driver choice on at most _SELECT_SAMPLES samples (block means of d^ and terms)
+    b = max(1, terms.shape[1] // _SELECT_SAMPLES)
+    nb = terms.shape[1] // b
+    tb = terms[:, :nb * b].reshape(terms.shape[0], nb, b).mean(axis=2)
+    dbm = d[0, :nb * b].reshape(nb, b).mean(axis=1)
+    sel = forward_selection(tb, dbm, tnames, max_terms=2 * max_drivers, min_drop=1e-3,
                             prune=True)
     idx = sorted({j % (n + m) for j in sel.index})[:max_drivers]
     if not idx:
