@@ -770,10 +770,12 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                      inputs=sys.input_labels,
                      outputs=[f"d{s}" for s in sys.output_labels], name="delta")
     nfixed = nD - k
-    msg = (f"parallel model: order {nD}" + (f" ({nfixed} fixed unit-circle states)"
-                                            if nfixed else "")
-           + f", estimation SE {se['initial_estimation']:.3g} % -> "
-           f"{se['delta_estimation']:.3g} %")
+    fixed = ""
+    if nfixed:
+        fixed = (f", with {nfixed} fixed unit-circle states"
+                 + (" merged into the initial model's integrators" if merge is not None else ""))
+    msg = (f"parallel model: order {n + nc} (delta order {nD}{fixed}), estimation SE "
+           f"{se['initial_estimation']:.3g} % -> {se['delta_estimation']:.3g} %")
     return DeltaModel(updated=UpdatedModel(sys=combined, Q=0.5 * (Qa + Qa.T), R=Rc,
                                            order=n + nc, kind="delta"),
                       delta=delta, order=nc, improved=True, marginal=fac is not None,
