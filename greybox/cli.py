@@ -107,6 +107,7 @@ def _fmt_update(rep) -> str:
     for name, v in rep.table.items():
         lines.append(f"  {name:<24}{v.order:>6}{v.se.value:>10.3g}{v.pe.value:>10.3g}"
                      f"{'yes' if v.whiteness.all_white else 'no':>7}")
+    lines += [f"  {s}" for s in rep.notes if s.startswith("parallel model")]
     return "\n".join(lines)
 
 
