@@ -435,8 +435,8 @@ class DeltaModel:
     se : dict of str to float
         Errors (eq. 42, relative RMS) [%]: ``"initial_holdout"`` and
         ``"delta_holdout"`` (held-out score in the selection coordinates of
-        :func:`delta_update`), ``"initial_estimation"`` and
-        ``"delta_estimation"`` (plain SE on the whole estimation record).
+        :func:`delta_update`), ``"initial_estimation"`` and ``"delta_estimation"`` (plain SE on the
+        whole estimation record); keys are missing for steps not reached.
     criterion : dict of (str, int) to float
         Held-out score [%] of every candidate ``(variant, order)``, variant
         "plain", "marginal", or with "+oe" the refined winner; NaN for
@@ -518,7 +518,11 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
        Differencing the channels that see those modes removes the random
        walk that process noise drives through them, which otherwise swamps
        any simulation error on estimation data (PAPER_NOTES §8.6). The
-       lowest score wins: this one rule chooses the order *and* the variant.
+       candidate with the lowest score wins: this one rule chooses the order
+       *and* the variant. (A second condition, a lower plain SE on the tail
+       with both models restarted from a least-squares state, was tried and
+       made the choice worse on every test plant: that state is poorly
+       determined from a short window.)
     4. **Refinement.** The winner is refined by output error on its own
        identification data (``dy``, or its differenced form)
        (:func:`greybox.ident.modal_oe.refine_output_error`: poles kept
@@ -526,9 +530,10 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
        first part of the record, and kept if that lowers the held-out score.
        An unrefined winner is refitted by N4SID on the whole record (kept if
        stable).
-    5. **No improvement.** If the winner's held-out score is not below the
-       initial model's, or the final model's score over the whole estimation
-       record (same coordinates) is not below the initial model's, the
+    5. **No improvement.** If there is no stable candidate, or the winner's
+       held-out score is not below the initial model's, or the final model
+       does not lower the initial model's score over the whole estimation
+       record (same coordinates) *and* its plain SE there, the
        initial model is returned with ``improved=False``, order 0 and
        ``message`` starting "parallel model: no improvement found". The
        returned model therefore never diverges in simulation.
@@ -711,7 +716,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
 
     if not cands:
         return no_improvement("no stable candidate")
-    se_best, name, k, _, part = min(cands, key=lambda c: (c[0], c[2]))
+    best = min(cands, key=lambda c: (c[0], c[2]))
+    se_best, name, k, _, part = best
     data, fac = variants[name]
     rpart = refined(part, data, head) if refine else None
     se_ref = tail_error(rpart, fac)
@@ -736,6 +742,9 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     e0_est = relative_error(ys_sel, _difference(y0 / w[:, None], factor)).value
     if not e_est < e0_est:
         return no_improvement(f"estimation error {e_est:.3g} % >= initial {e0_est:.3g} %")
+    if not se["delta_estimation"] < se["initial_estimation"]:
+        return no_improvement(f"estimation SE {se['delta_estimation']:.3g} % >= initial "
+                              f"{se['initial_estimation']:.3g} %")
     dA, dB, dC, Kd, Re = model
     # unscale the outputs: dy = W dys
     dC = dC * w[:, None]
@@ -771,10 +780,12 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                      inputs=sys.input_labels,
                      outputs=[f"d{s}" for s in sys.output_labels], name="delta")
     nfixed = nD - k
-    msg = (f"parallel model: order {nD}" + (f" ({nfixed} fixed unit-circle states)"
-                                            if nfixed else "")
-           + f", estimation SE {se['initial_estimation']:.3g} % -> "
-           f"{se['delta_estimation']:.3g} %")
+    fixed = ""
+    if nfixed:
+        fixed = (f", with {nfixed} fixed unit-circle states"
+                 + (" merged into the initial model's integrators" if merge is not None else ""))
+    msg = (f"parallel model: order {n + nc} (delta order {nD}{fixed}), estimation SE "
+           f"{se['initial_estimation']:.3g} % -> {se['delta_estimation']:.3g} %")
     return DeltaModel(updated=UpdatedModel(sys=combined, Q=0.5 * (Qa + Qa.T), R=Rc,
                                            order=n + nc, kind="delta"),
                       delta=delta, order=nc, improved=True, marginal=fac is not None,

@@ -219,7 +219,7 @@ def test_parallel_baseline_improves_on_the_initial_model(plant):
     assert dm.improved and dm.message.startswith("parallel model: order")
     v0 = validate_model(nominal, val.y, val.u, Q=Q, R=R)
     v1 = validate_model(dm.updated.sys, val.y, val.u, Q=dm.updated.Q, R=dm.updated.R)
-    # measured ratios 0.13 (spring), 0.04 (lag), 0.43 (carts): a baseline that
+    # measured ratios 0.13 (spring), 0.29 (lag), 0.43 (carts): a baseline that
     # merely breaks even, or diverges, fails
     assert v1.se.value < 0.5 * v0.se.value
     # the identified part is stable; fixed states sit exactly on the unit circle
@@ -260,3 +260,28 @@ def test_table_i_values_and_poles():
     np.testing.assert_allclose(poles, expect, atol=0.1)
     moving = poles[np.abs(poles) > 1.0]
     assert np.all(-moving.real / np.abs(moving) > 0.98)  # damping ratios ~0.99
+
+
+# --- what close_the_loop's report says about the parallel model -------------------
+
+
+def test_close_the_loop_reports_the_parallel_model():
+    import re
+
+    true = _msd(4.0)
+    rng = np.random.default_rng(2)
+    est, val = _record(true, rng, N=4000), _record(true, rng, N=4000, process_noise=False)
+    nominal_c = gb.named_ss([[0, 1], [0, -0.4]], [[0], [1]], np.eye(2), np.zeros((2, 1)), 0,
+                            states=["x", "v"], inputs=["F"], outputs=["x", "v"])
+    rep = gb.close_the_loop(nominal_c, est.y, est.u, val.y, val.u, Q=Q2, R=R2, dt=DT,
+                            max_order=0, delta=True)
+    lines = [s for s in rep.notes if s.startswith("parallel model:")]
+    assert len(lines) == 1, rep.notes
+    row = rep.table["delta"]
+    if "no improvement found" in lines[0]:
+        assert row.order == 2 and row.se.value == rep.table["nominal"].se.value
+    else:
+        # the order in the note is the order of the model in the table (whether
+        # that row beats the nominal one is tested on fixed plants above; here,
+        # with x0="estimate" for a 10-state model, it need not)
+        assert int(re.match(r"parallel model: order (\d+)", lines[0]).group(1)) == row.order
