@@ -528,7 +528,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
                     g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
                     # one force shared by the two equations, or two independent errors
-                    keep.append(force_channel(sys, pair, g) if g is not None else pair)
+                    fch = force_channel(sys, pair, g) if g is not None else None
+                    keep.append(pair if fch is None or _along_an_input(sys, fch) else fch)
         return tuple(keep)
 
     def _once(sys, nominal, Q, chans, delta):
@@ -646,6 +647,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             if g is None:
                 continue
             fch = force_channel(sys, tr_.channel, g)
+            if _along_an_input(sys, fch):
+                continue  # the input's own channel says the same, and names the input
             try:
                 ftr = trace_channel(sys, fch, y, u, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
                                     max_order=0)
@@ -807,7 +810,21 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                           criterion=crit, nominal=nominal, model=model, table=table, trace=tr,
                           notes=tuple(notes))
 
-    return _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt)
+    rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt)
+    tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
+    return rep
+
+
+def _along_an_input(sys: ct.StateSpace, ch: Channel, tol: float = 0.02) -> bool:
+    """True if a one-column channel is parallel to an input's B column (the same channel)."""
+    g = np.asarray(ch.G, dtype=float)[:, 0]
+    B = np.asarray(sys.B, dtype=float)
+    for j in range(B.shape[1]):
+        b = B[:, j]
+        nb, ng = np.linalg.norm(b), np.linalg.norm(g)
+        if nb > 0 and ng > 0 and 1.0 - abs(b @ g) / (nb * ng) < tol:
+            return True
+    return False
 
 
 def _next_model(sys: ct.StateSpace, rep: LoopReport):

@@ -295,14 +295,18 @@ def test_f_that_raises_is_reported_with_step():
                   R=[[1e-4]])
 
 
-@pytest.mark.parametrize("filt", ["ui_ukf", "ensemble_uikf"])
-def test_non_finite_d_estimate_raises(filt):
-    sys = ct.nlsys(lambda t, x, u, p: 0.5 * x + 1e-3 * u[1], lambda t, x, u, p: x,
-                   states=["a"], inputs=["u", "d"], outputs=["a"], dt=0.1)
-    y = np.zeros((1, 10))
-    y[0, 5] = 1e307  # finite data, but d^ = M e overflows (M ~ 1e3)
+def test_non_finite_d_estimate_raises():
+    """The guard both filters call after every d^ update (greybox.filters.ukf._check_d).
+
+    Since inputs above 1e150 are refused at the boundary (issue 13), finite
+    data can no longer drive d^ to overflow through the public calls; the
+    guard stays for a model whose own scale does, and is tested directly.
+    """
+    from greybox.filters.ukf import _check_d
+
+    _check_d(np.array([1.0]), 5, ["d"])  # finite: no error
     with pytest.raises(DataError, match="'d' is not finite at step 4"):
-        getattr(gb, filt)(sys, y, np.zeros((1, 10)), unknown="d", Q=[[1e-4]], R=[[1e-4]])
+        _check_d(np.array([np.inf]), 5, ["d"])
 
 
 def test_nonlinear_output_map_rejected():

@@ -195,8 +195,18 @@ def test_partial_measurement_still_finds_the_equation():
 
 
 def test_two_equation_law_is_one_internal_force():
+    """The missing coupling spring k12 = 20 N/m: one force in the relative coordinate."""
     rep, _ = run_case("two_equations")
-    assert "one direction" in rep.effect.formula
+    assert rep.channel.kind == "force" and "one force between v1 and v2" in rep.message
+    law = rep.effect.law
+    names = [law.spec[j][0] for j in np.flatnonzero(law.coef[0])]
+    assert names == ["(p2-p1)"], rep.effect.formula
+    g = np.asarray(rep.channel.G)[[1, 3], 0]            # its weights in eq(v1), eq(v2)
+    np.testing.assert_allclose(g / g[0], [1.0, -1.0], atol=0.02)   # equal masses
+    j = [s[0] for s in law.spec].index("(p2-p1)")
+    # force on mass 1: +k12 (p2 - p1); interval ~0.01 %, direction ~0.5 %: 1 %
+    np.testing.assert_allclose(law.coef[0, j] * g[0], 20.0, rtol=0.01)
+    assert any("relative coordinate (p2-p1)" in n for n in rep.effect.parameter_notes)
 
 
 def test_report_as_dict_has_summary_fields():
