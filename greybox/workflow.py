@@ -79,6 +79,8 @@ __all__ = ["Effect", "EffectStep", "CandidateScore", "LoopReport", "close_the_lo
 # the SCREEN_TOP highest-scoring equations, their pairs and the inputs are traced.
 SCREEN_ABOVE = 4
 SCREEN_TOP = 4
+# ... and only those scoring at least this fraction of the best equation's score.
+SCREEN_REL = 0.05
 # A sparse first-order law is fitted for a channel only when its unstructured dynamic
 # fit beats its static law's estimation SE by this factor (evidence of dynamics).
 SPARSE_IF = 0.8
@@ -514,6 +516,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                          f"equation is traced (cost grows with n)")
             return chans
         top = scr.ranked(SCREEN_TOP)
+        best = max((scr.score[scr.states.index(t)] for t in top), default=0.0)
+        top = [t for t in top if scr.score[scr.states.index(t)] >= SCREEN_REL * best]
         notes.append("equation screen (joint unknown-input filter): " + ", ".join(
             f"eq({s}) z = {scr.score[scr.states.index(s)]:.3g}" for s in top) +
             f"; {len(scr.states) - len(top)} other equations below")
@@ -529,6 +533,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
                     # one force shared by the two equations, or two independent errors
                     fch = force_channel(sys, pair, g) if g is not None else None
+                    if fch is not None and nominal.noutputs < n and \
+                            not _along_an_input(sys, fch):
+                        # positions only: the screen's direction is too rough to fix;
+                        # the pair with relative coordinates fits both weights
+                        keep.append(replace(pair, relative=fch.relative))
                     keep.append(pair if fch is None or _along_an_input(sys, fch) else fch)
         return tuple(keep)
 

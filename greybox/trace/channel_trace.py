@@ -156,20 +156,23 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                                 channel.units, cont=cont, noise=(Q, R))
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
                      f"Pd): static law chosen by output error on y")
-    elif pair_mean and channel.relative and channel.md == 1 and oe_ok:
-        # one force seen through positions only: d^ is noise-dominated; choose the law
-        # by output error among the linear terms d^'s pair means correlate with most
+    elif pair_mean and channel.relative and oe_ok:
+        # a force between bodies seen through positions only: d^ is noise-dominated;
+        # choose the law by output error among the linear terms d^'s pair means
+        # correlate with most (per component of d)
         terms = _eval_terms(law.spec, law.eps, x, uu)
         lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
         tm = 0.5 * (terms[lin, 1:] + terms[lin, :-1])
-        dm = 0.5 * (d[0, 1:] + d[0, :-1])
         tm = tm - tm.mean(axis=1, keepdims=True)
-        corr = np.abs(tm @ (dm - dm.mean())) / (np.linalg.norm(tm, axis=1) *
-                                                np.linalg.norm(dm - dm.mean()) + 1e-300)
-        only = [lin[q] for q in np.argsort(-corr)[:_OE_CANDIDATES]]
+        only = set()
+        for c in range(channel.md):
+            dm = 0.5 * (d[c, 1:] + d[c, :-1])
+            dm = dm - dm.mean()
+            corr = np.abs(tm @ dm) / (np.linalg.norm(tm, axis=1) * np.linalg.norm(dm) + 1e-300)
+            only |= {lin[q] for q in np.argsort(-corr)[:_OE_CANDIDATES]}
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
-                                channel.units, cont=cont, noise=(Q, R), only=only)
-        notes.append("one force seen through alternating d^: static law chosen by output "
+                                channel.units, cont=cont, noise=(Q, R), only=sorted(only))
+        notes.append("a force seen through alternating d^: static law chosen by output "
                      "error on y among the terms d^ correlates with most")
     elif not law.nonlinear and law.npar and oe_ok:
         tscale = np.sqrt(np.mean(_eval_terms(law.spec, law.eps, x, uu) ** 2, axis=1))
