@@ -529,16 +529,17 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 for j in idx[a + 1:]:
                     pair = resolve_channel_spec(sys, [(sys.state_labels[i],
                                                        sys.state_labels[j])])[0]
+                    # the pair, with the bodies' relative coordinates offered to its law
+                    # (a force between them); step 2a then traces one force along the
+                    # pair law's direction (the screen's own direction is too rough)
+                    rel = force_channel(sys, pair, np.array([1.0, -1.0])).relative
+                    keep.append(replace(pair, relative=rel))
+                    # and one force along the screen's direction, when it sees one
                     rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
                     g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
-                    # one force shared by the two equations, or two independent errors
                     fch = force_channel(sys, pair, g) if g is not None else None
-                    if fch is not None and nominal.noutputs < n and \
-                            not _along_an_input(sys, fch):
-                        # positions only: the screen's direction is too rough to fix;
-                        # the pair with relative coordinates fits both weights
-                        keep.append(replace(pair, relative=fch.relative))
-                    keep.append(pair if fch is None or _along_an_input(sys, fch) else fch)
+                    if fch is not None and not _along_an_input(sys, fch):
+                        keep.append(fch)
         return tuple(keep)
 
     def _once(sys, nominal, Q, chans, delta):

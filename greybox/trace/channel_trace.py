@@ -156,10 +156,10 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                                 channel.units, cont=cont, noise=(Q, R))
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
                      f"Pd): static law chosen by output error on y")
-    elif pair_mean and channel.relative and oe_ok:
-        # a force between bodies seen through positions only: d^ is noise-dominated;
-        # choose the law by output error among the linear terms d^'s pair means
-        # correlate with most (per component of d)
+    elif channel.relative and oe_ok and (pair_mean or law.npar > 2 * channel.md):
+        # a force between bodies whose d^ fit is not sparse (d^ alternating or
+        # noise-dominated, e.g. positions only): choose the law by output error among the
+        # linear terms d^'s pair means correlate with most (per component of d)
         terms = _eval_terms(law.spec, law.eps, x, uu)
         lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
         tm = 0.5 * (terms[lin, 1:] + terms[lin, :-1])
