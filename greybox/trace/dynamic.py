@@ -31,7 +31,7 @@ from ..ident.regression import forward_selection
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
-from .oe import _OE_WINDOW, hac_covariance, noise_covariance, zoh
+from .oe import hac_covariance, noise_covariance, oe_window, zoh
 
 __all__ = ["DynamicLaw", "fit_sparse_dynamic"]
 
@@ -86,7 +86,8 @@ class _DynProblem:
 
     def __init__(self, Ac, Bc, Gc, C, D, dt, y, u, x0, k0, drv):
         self.Ac, self.Bc, self.Gc, self.C, self.D, self.dt = Ac, Bc, Gc[:, 0], C, D, dt
-        self.y, self.u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
+        win = oe_window(y.shape[0])
+        self.y, self.u = y[:, :k0 + win], u[:, :k0 + win]
         self.x0, self.k0, self.drv = np.r_[x0, 0.0], k0, drv
         self.n = Ac.shape[0]
         self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300

@@ -17,6 +17,14 @@ from .laws import LINEAR_KINDS, StaticLaw, _law_line, _one_direction, linear_par
 # Output-error refinements of static laws run on at most this many samples
 # (their cost is then independent of the record length).
 _OE_WINDOW = 10_000
+# ... and at most this many residuals (outputs x samples, but >= 2000 samples): with many
+# outputs every evaluation simulates a large model and the Jacobian grows with p.
+_OE_RESIDUALS = 200_000
+
+
+def oe_window(noutputs: int) -> int:
+    """Samples in an output-error window for ``noutputs`` outputs."""
+    return int(max(2000, min(_OE_WINDOW, _OE_RESIDUALS // max(noutputs, 1))))
 
 
 def zoh(A: NDArray, B: NDArray, dt: float) -> tuple[NDArray, NDArray]:
@@ -114,7 +122,7 @@ class _OutputErrorLaw:
 
     The law's selected terms ``sel`` (pairs (component of d, term index))
     with coefficients ``theta`` are folded into A and B; the residual is the
-    output error over at most ``_OE_WINDOW`` samples after ``k0``, scaled per
+    output error over at most ``oe_window(noutputs)`` samples after ``k0``, scaled per
     output by its RMS (PAPER_NOTES §9.3: output-error fits are unbiased on a
     noisy d^).
 
@@ -129,7 +137,8 @@ class _OutputErrorLaw:
                  u: NDArray, x0: NDArray, k0: int, cont=None, noise=None):
         self.law, self.md, self.k0, self.x0 = law, md, k0, x0
         self.noise = noise  # (Q, R) of the discrete model, for the intervals
-        self.y, self.u = y[:, :k0 + _OE_WINDOW], u[:, :k0 + _OE_WINDOW]
+        win = oe_window(y.shape[0])
+        self.y, self.u = y[:, :k0 + win], u[:, :k0 + win]
         m = model.ninputs - md
         Bf = np.asarray(model.B, dtype=float)
         self.A = np.asarray(model.A, dtype=float)
