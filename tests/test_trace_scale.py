@@ -72,3 +72,32 @@ def test_correct_large_model_is_left_unchanged():
     rep = gb.close_the_loop(true, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
                             delta=False)
     assert not rep.updated, rep.message
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1])
+def test_two_effects_in_two_equations_named_with_their_coefficients(seed):
+    """6-state chain, all measured: the damping of mass 1 is 1.3 N s/m (model 0.5) and a
+    15 N/m spring ties mass 3 to the wall (model lacks it). The joint screen finds both
+    equations; the pair law names each effect with its coefficient."""
+    nom = chain(3, k=20.0)
+    A, B = np.asarray(nom.A).copy(), np.asarray(nom.B)
+    A[1, 1] -= 0.8
+    A[5, 4] -= 15.0
+    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=6, dt=0.01,
+             rng=np.random.default_rng(seed), q_std=np.array([0.0, 1e-4] * 3), r_std=1e-3)
+    rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    assert rep.updated and set(rep.effect.equations) == {"v1", "v3"}, rep.message
+    names = [s[0] for s in rep.effect.law.spec]
+    law = rep.effect.law
+    c = {(k, names[j]): law.coef[k, j] for k in range(2) for j in np.flatnonzero(law.coef[k])}
+    # one term each: -0.8*v1 in eq(v1), -15*p3 in eq(v3), within their 95 % intervals or 1 %
+    assert set(c) == {(0, "v1"), (1, "p3")}, rep.effect.formula
+    np.testing.assert_allclose([c[0, "v1"], c[1, "p3"]], [-0.8, -15.0], rtol=0.01)
+    import re
+
+    pct = [float(re.search(r"\(([+-][0-9.]+)", n).group(1)) for n in rep.effect.parameter_notes
+           if n.startswith("A[v1; v1]")]
+    assert pct and abs(pct[0] - 160.0) < 1.6, rep.effect.parameter_notes  # damping 0.5 -> 1.3
+    assert any(n.startswith("A[v3; p3]") for n in rep.effect.parameter_notes)
