@@ -31,7 +31,8 @@ from ..ident.regression import forward_selection
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
-from .oe import hac_covariance, noise_covariance, oe_window, zoh
+from .intervals import hac_covariance
+from .oe import noise_covariance, oe_window, zoh
 
 __all__ = ["DynamicLaw", "fit_sparse_dynamic"]
 

@@ -13,6 +13,7 @@ from ..filters import FilterResult
 from ..ident.regression import SparseLaw, forward_selection
 from ..update import Subsystem, psd_part
 from .channels import Channel
+from .intervals import hac_covariance
 
 
 
@@ -132,7 +133,7 @@ class StaticLaw:
     ci : ndarray, shape (md, nterms)
         95 % half-widths of the coefficients (NaN where unknown or not
         selected): from the output-error Jacobian with a covariance robust to
-        the residual's autocorrelation (:func:`greybox.trace.oe.hac_covariance`).
+        the residual's autocorrelation (:func:`greybox.trace.intervals.hac_covariance`).
     time_base : str
         "continuous": ``dx/dt = A x + B u + G d`` with the nominal model's
         continuous G, d in the channel's physical units (the augmented model is
@@ -218,10 +219,15 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
     lines = []
     nlin = n + m + len(relative)
     names = [s[0] for s in spec]
+    half = np.full((md, len(spec)), np.nan)
     for c in range(md):
         sel = _select(terms, d[c], names)
         idx, cf = list(sel.index), sel.coef
         coef[c, idx] = cf
+        if idx:  # 95 % half-widths of the regression on d^, robust to its autocorrelation
+            X = terms[idx]
+            cov = hac_covariance(X.T, d[c] - cf @ X, 1)
+            half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
         rv[c] = sel.residual_var
         gain += sel.bic_gain
         npar += len(idx)
@@ -236,11 +242,12 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
         dx_, du_ = linear_part(spec[:nlin], lc[None, :], n, m)
         Ddx[c], Ddu[c] = dx_[0], du_[0]
         lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
-                               units[c] if c < len(units) else ""))
+                               units[c] if c < len(units) else "", half[c, idx]))
     tscale = np.sqrt(np.mean(terms**2, axis=1))
     lines += _one_direction(coef, tscale, labels)
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
-                     residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines))
+                     residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines),
+                     ci=half)
 
 
 def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Subsystem:
