@@ -27,7 +27,6 @@ from dataclasses import dataclass, field, replace
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.signal import lfilter
 
 from ._validation import (
     check_covariance,
@@ -59,8 +58,8 @@ from .trace import (
     trace_channel,
 )
 from .trace.dynamic import DynamicLaw, fit_sparse_dynamic
-from .trace.channels import force_channel
-from .trace.laws import _eval_terms, direction
+from .trace.channels import force_channel, relative_coordinates
+from .trace.laws import direction
 from .trace.screen import screen_equations
 from .update import Subsystem, UpdatedModel, delta_update
 from .validate import (
@@ -328,18 +327,6 @@ def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, sk
         residuals=e, output_labels=tuple(upd.sys.output_labels), se_reason=se_reason)
 
 
-def _sparse_d(dl: DynamicLaw, tr: ChannelTrace, x, u, dt) -> np.ndarray:
-    """The sparse law's d on the filter's states (ZOH-equivalent first-order filter)."""
-    names = list(tr.filter_result.sys.state_labels) + list(tr.filter_result.sys.input_labels)
-    w = np.vstack([x, u])
-    phi = np.exp(dl.pole * dt)
-    out = np.zeros((1, w.shape[1]))
-    for nm, b, e in zip(dl.drivers, dl.b, dl.e):
-        wi = w[names.index(nm)]
-        out[0] += e * wi + lfilter([0.0, b * (phi - 1.0) / dl.pole], [1.0, -phi], wi)
-    return out
-
-
 def _dynamic_formula(sub: Subsystem, ch: Channel, dt: float, x, u) -> str:
     nd = sub.order
     Ad = sub.Ad
@@ -532,8 +519,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     # the pair, with the bodies' relative coordinates offered to its law
                     # (a force between them); step 2a then traces one force along the
                     # pair law's direction (the screen's own direction is too rough)
-                    rel = force_channel(sys, pair, np.array([1.0, -1.0])).relative
-                    keep.append(replace(pair, relative=rel))
+                    keep.append(replace(pair, relative=relative_coordinates(sys, pair)))
                     # and one force along the screen's direction, when it sees one
                     rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
                     g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
@@ -650,10 +636,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 continue
             res_ = tr_.filter_result
             k0s, Ns = max(20, res_.period_converged or 20), res_.d_est.shape[1] - 1
-            law_ = tr_.static
-            tsc = np.sqrt(np.mean(_eval_terms(law_.spec, law_.eps, res_.x_filt[:, k0s:Ns],
-                                              u[:, k0s:Ns]) ** 2, axis=1))
-            g = direction(law_.coef, tsc)
+            g = tr_.static.direction(res_.x_filt[:, k0s:Ns], u[:, k0s:Ns])
             if g is None:
                 continue
             fch = force_channel(sys, tr_.channel, g)
@@ -747,7 +730,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                             linearized=law.nonlinear, parameter_notes=pnotes, law=law)
         elif kind == "sparse":
             dl = sparse[id(tr)]
-            r = d - _sparse_d(dl, tr, x, uu, dt)
+            r = d - dl.evaluate(x, uu)
             _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
             _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
             gain = float(Nd * (ld0 - ld1))

@@ -175,7 +175,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         notes.append("a force seen through alternating d^: static law chosen by output "
                      "error on y among the terms d^ correlates with most")
     elif not law.nonlinear and law.npar and oe_ok:
-        tscale = np.sqrt(np.mean(_eval_terms(law.spec, law.eps, x, uu) ** 2, axis=1))
+        tscale = law.term_scale(x, uu)
         law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
                                             k0, labels, channel.units, tscale, cont, (Q, R))
         if se_y < se_d:

@@ -230,6 +230,23 @@ def kinematic_partner(A: NDArray, i: int) -> int | None:
     return None
 
 
+def relative_coordinates(sys: ct.StateSpace, pair: Channel) -> tuple[tuple[int, int], ...]:
+    """State pairs (i, j) whose difference ``x_j - x_i`` a force inside ``pair`` may depend on.
+
+    The two states whose equations the pair enters and, for a continuous
+    model, their kinematic partners (the positions whose derivatives they are).
+    """
+    labels = list(sys.state_labels)
+    a, b = (labels.index(e) for e in pair.equations)
+    rel = []
+    if not ct.isdtime(sys, strict=True):
+        pa, pb = kinematic_partner(sys.A, a), kinematic_partner(sys.A, b)
+        if pa is not None and pb is not None:
+            rel.append((pa, pb))
+    rel.append((a, b))
+    return tuple(rel)
+
+
 def force_channel(sys: ct.StateSpace, pair: Channel, direction: NDArray) -> Channel:
     """One force acting along ``direction`` inside a pair of equations (md = 1).
 
@@ -249,16 +266,10 @@ def force_channel(sys: ct.StateSpace, pair: Channel, direction: NDArray) -> Chan
     """
     labels = list(sys.state_labels)
     a, b = (labels.index(e) for e in pair.equations)
-    rel = []
-    if not ct.isdtime(sys, strict=True):
-        pa, pb = kinematic_partner(sys.A, a), kinematic_partner(sys.A, b)
-        if pa is not None and pb is not None:
-            rel.append((pa, pb))
-    rel.append((a, b))
+    rel = relative_coordinates(sys, pair)
     g = np.asarray(direction, dtype=float).reshape(-1)
     G = np.asarray(pair.G, dtype=float) @ g
     name = f"force({labels[a]},{labels[b]})"
     unit = pair.units[0] if pair.units else ""
     return Channel(name=name, G=G[:, None], labels=(f"d_{labels[a]}{labels[b]}",),
-                   units=(unit,), equations=pair.equations, kind="force",
-                   relative=tuple(rel))
+                   units=(unit,), equations=pair.equations, kind="force", relative=rel)

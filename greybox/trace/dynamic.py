@@ -67,6 +67,10 @@ class DynamicLaw:
         SE [%] of the augmented model on the output-error window.
     continuous : control.StateSpace
         The augmented model in continuous time (states ``[x; z[0]]``).
+    rows : tuple of int
+        Rows of the drivers in ``[x; u]``.
+    dt : float
+        Sampling period [s] of the discrete model.
     """
 
     pole: float
@@ -80,6 +84,20 @@ class DynamicLaw:
     model: UpdatedModel = field(repr=False)
     se_estimation: float
     continuous: ct.StateSpace = field(default=None, repr=False)
+    rows: tuple[int, ...] = ()
+    dt: float = float("nan")
+
+    def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
+        """The law's d, shape (1, K), on x (nstates, K) and u (ninputs, K).
+
+        ``z`` starts at 0 and follows the ZOH-equivalent first-order filter.
+        """
+        w = np.vstack([x, u])
+        phi = np.exp(self.pole * self.dt)
+        out = np.zeros((1, w.shape[1]))
+        for r, b, e in zip(self.rows, self.b, self.e):
+            out[0] += e * w[r] + lfilter([0.0, b * (phi - 1.0) / self.pole], [1.0, -phi], w[r])
+        return out
 
 
 class _DynProblem:
@@ -201,8 +219,8 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     starts = [_start(sys, channel, w, d, y, u, dt, x0, k0, p0, max_drivers) for p0 in grid]
     starts = sorted((st for st in starts if st is not None), key=lambda st: st[0])
     best = None
-    for _, p0 in starts[:2]:
-        dl = _fit_from(sys, channel, w, d, y, u, Q, R, dt, x0, k0, p0, max_drivers)
+    for _, drv, theta0 in starts[:2]:
+        dl = _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
         if dl is not None and (best is None or dl.se_estimation < best.se_estimation):
             best = dl
     return best
@@ -239,21 +257,18 @@ def _problem(sys, channel, y, u, dt, x0, k0, drv):
 
 
 def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers):
-    """(output-error RSS at the least-squares start, pole), or None."""
+    """(output-error RSS at the least-squares start, drivers, start), or None."""
     drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers)
     if drv is None:
         return None
     with single_thread_blas():
         r = _problem(sys, channel, y, u, dt, x0, k0, drv).resid(theta0)
-    return float(np.sum(r**2)), pole
+    return float(np.sum(r**2)), drv, theta0
 
 
-def _fit_from(sys, channel, w, d, y, u, Q, R, dt, x0, k0, pole, max_drivers):
-    """One start pole: drivers by forward selection on d^, then output error on y."""
+def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0):
+    """Output error on y from one start (drivers and least-squares values from _start)."""
     n = sys.nstates
-    drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers)
-    if drv is None:
-        return None
     C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     while True:
         prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
@@ -308,4 +323,5 @@ def _fit_from(sys, channel, w, d, y, u, Q, R, dt, x0, k0, pole, max_drivers):
     return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=b, e=e, ci=hw,
                       npar=1 + 2 * len(drv), formula=formula,
                       model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
-                      se_estimation=se, continuous=cont)
+                      se_estimation=se, continuous=cont,
+                      rows=tuple(i if kind == "x" else n + i for kind, i in drv), dt=dt)

@@ -158,6 +158,14 @@ class StaticLaw:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
         return self.coef @ _eval_terms(self.spec, self.eps, x, u)
 
+    def term_scale(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
+        """RMS of every candidate term on (x (nstates, K), u (ninputs, K)), shape (nterms,)."""
+        return np.sqrt(np.mean(_eval_terms(self.spec, self.eps, x, u) ** 2, axis=1))
+
+    def direction(self, x: NDArray, u: NDArray) -> NDArray[np.float64] | None:
+        """The one direction of an md > 1 law on (x, u) (see :func:`direction`), or None."""
+        return direction(self.coef, self.term_scale(x, u))
+
 
 def _fmt_sum(coefs, names, half=None) -> str:
     parts = []

@@ -147,12 +147,11 @@ class _OutputErrorLaw:
         """Levenberg-Marquardt from ``start``; returns the optimizer result."""
         from scipy.optimize import least_squares
 
-        self._sel = sel
         with single_thread_blas():  # thin products: threads only cost (150x for a 6x6 expm)
             return least_squares(self.resid, start, args=(sel,), method="lm", x_scale="jac",
                                  max_nfev=max_nfev)
 
-    def halfwidths(self, sol) -> NDArray[np.float64]:
+    def halfwidths(self, sol, sel) -> NDArray[np.float64]:
         """95 % half-widths of the coefficients of the last fit.
 
         The larger of two variances per coefficient: the sandwich covariance
@@ -164,15 +163,15 @@ class _OutputErrorLaw:
         if sol.jac is None or not np.all(np.isfinite(sol.jac)) or np.max(np.abs(sol.fun)) >= 1e6:
             return np.full(sol.x.size, np.nan)
         with single_thread_blas():
-            return self._halfwidths(sol)
+            return self._halfwidths(sol, sel)
 
-    def _halfwidths(self, sol):
+    def _halfwidths(self, sol, sel):
         jac = np.asarray(sol.jac)
         var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
         if self.noise is not None:  # the noise model's covariance; keep the larger
             Q, R = self.noise
             Ji = np.linalg.pinv(jac.T @ jac)
-            A = self.matrices(self._sel, sol.x)[0]
+            A = self.matrices(sel, sol.x)[0]
             vm = np.diag(Ji @ noise_covariance(A, self.C, jac, self.scale, self.k0, Q, R) @ Ji)
             var = np.maximum(var, vm)
         return 1.96 * np.sqrt(np.clip(var, 0, None))
@@ -201,7 +200,7 @@ class _OutputErrorLaw:
 
 def _prune(prob: _OutputErrorLaw, sel, sol):
     """Drop terms whose 95 % interval contains 0 (the weakest, or the weaker half of many); refit."""
-    hw = prob.halfwidths(sol)
+    hw = prob.halfwidths(sol, sel)
     while sel:
         t = np.abs(sol.x) / np.where(np.isfinite(hw) & (hw > 0), hw, np.inf)
         weak = np.flatnonzero(t < 1.0)
@@ -214,7 +213,7 @@ def _prune(prob: _OutputErrorLaw, sel, sol):
         if not sel:
             return [], None, np.zeros(0)
         sol = prob.fit(sel, sol.x[keep])
-        hw = prob.halfwidths(sol)
+        hw = prob.halfwidths(sol, sel)
     return sel, sol, hw
 
 
