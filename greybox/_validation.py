@@ -20,6 +20,7 @@ MAX_MAGNITUDE = 1e150
 
 __all__ = [
     "MAX_MAGNITUDE",
+    "check_input_record",
     "check_matrix",
     "check_vector",
     "as_signal",
@@ -325,3 +326,22 @@ def resolve_channels(
     if len(set(out)) != len(out):
         raise DimensionError(f"{name}: channels repeated in {list(channels)}")
     return out
+
+
+def check_input_record(u, ninputs: int, nsteps=None) -> np.ndarray:
+    """The known-input record of a simulation, shape (ninputs, nsteps).
+
+    ``u`` may be None only for a model without inputs (then ``nsteps`` sets
+    the length); when both are given, ``nsteps`` must equal u's length.
+    """
+    if u is None:
+        if ninputs:
+            raise DataError(f"sys has {ninputs} inputs; pass u with shape ({ninputs}, nsteps)")
+        nsteps = check_positive(nsteps, "nsteps", integer=True)
+        return np.zeros((0, nsteps))
+    u = check_signal(u, ninputs, "u")
+    N = u.shape[1]
+    if nsteps is not None and check_positive(nsteps, "nsteps", integer=True) != N:
+        raise DimensionError(f"nsteps = {nsteps} but u has {N} samples; give u alone (its "
+                             f"length sets nsteps) or u[:, :nsteps]")
+    return u

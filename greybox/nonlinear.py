@@ -36,7 +36,8 @@ import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._validation import check_covariance, check_positive, check_signal, check_vector
+from ._validation import (check_covariance, check_input_record, check_positive,
+                          check_vector)
 from .exceptions import DataError, DimensionError, ModelError
 from .signals import SimulationResult, _gaussian, _rng
 
@@ -373,12 +374,7 @@ def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None 
     """
     smap = state_map(sys)
     n, m, p = sys.nstates, sys.ninputs, sys.noutputs
-    if u is None:
-        if m:
-            raise DataError(f"sys has {m} inputs; pass u with shape ({m}, nsteps)")
-        nsteps = check_positive(nsteps, "nsteps", integer=True)
-        u = np.zeros((0, nsteps))
-    u = check_signal(u, m, "u")
+    u = check_input_record(u, m, nsteps)
     N = u.shape[1]
     x = np.empty((n, N))
     x[:, 0] = np.zeros(n) if x0 is None else check_vector(x0, n, "x0")

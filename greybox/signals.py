@@ -15,11 +15,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from ._lti import lti_states
 from ._validation import (
+    check_input_record,
     check_covariance,
     check_discrete,
     check_positive,
     check_real,
-    check_signal,
     check_vector,
 )
 from .exceptions import DataError, DimensionError
@@ -240,16 +240,8 @@ def simulate(sys: ct.StateSpace, u: ArrayLike | None = None, *, x0: ArrayLike | 
     """
     check_discrete(sys)
     n, m, p = sys.nstates, sys.ninputs, sys.noutputs
-    if u is None:
-        if m:
-            raise DataError(f"sys has {m} inputs; pass u with shape ({m}, nsteps)")
-        nsteps = check_positive(nsteps, "nsteps", integer=True)
-        u = np.zeros((0, nsteps))
-    u = check_signal(u, m, "u")
+    u = check_input_record(u, m, nsteps)
     N = u.shape[1]
-    if nsteps is not None and check_positive(nsteps, "nsteps", integer=True) != N:
-        raise DimensionError(f"nsteps = {nsteps} but u has {N} samples; give u alone (its "
-                             f"length sets nsteps) or u[:, :nsteps]")
     x0 = np.zeros(n) if x0 is None else check_vector(x0, n, "x0")
     g = _rng(rng)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
