@@ -58,6 +58,7 @@ from .trace import (
     trace_channel,
 )
 from .trace.dynamic import DynamicLaw, fit_sparse_dynamic
+from .trace.joint import joint_effect, refine_jointly
 from .trace.channels import force_channel, relative_coordinates
 from .trace.laws import direction
 from .trace.screen import screen_equations
@@ -803,7 +804,23 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                           criterion=crit, nominal=nominal, model=model, table=table, trace=tr,
                           notes=tuple(notes))
 
-    rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt)
+    def _joint(passes, final):
+        """Refit all effects at once (greybox.trace.joint); None if some cannot be."""
+        effs = [joint_effect(base, r.channel, r.effect.dynamic_law or r.effect.law)
+                for base, r in passes]
+        if any(e is None for e in effs) or ct.isdtime(final, strict=True):
+            return None
+        Qf = passes[-1][1].model.Q
+        x0 = estimate_initial_state(discretize(final, dt), y, u)
+        jr = refine_jointly(effs, final, y, u, Q=Qf, R=R, dt=dt, x0=x0, k0=20)
+        if not (jr.se_after < jr.se_before or
+                (jr.npar_after < jr.npar_before and jr.se_after <= 1.01 * jr.se_before)):
+            return jr, None
+        row = validate_model(jr.model.sys, y_val, u_val, Q=jr.model.Q, R=jr.model.R,
+                             x0="estimate", name="updated", lags=lags, alpha=alpha, skip=20)
+        return jr, row
+
+    rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
     tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
     return rep
 
@@ -849,12 +866,16 @@ def _channels_for(sys: ct.StateSpace, spec, physical, n0: int):
     return tuple(ch for ch in resolve_channel_spec(sys, None) if set(ch.equations) <= keep)
 
 
-def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt) -> LoopReport:
-    """Run ``once`` until the residual is white, the gate fails or max_effects is reached."""
+def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt, joint) -> LoopReport:
+    """Run ``once`` until the residual is white, the gate fails or max_effects is reached.
+
+    With two effects or more, ``joint(passes, final)`` refits them all at once
+    (see :func:`_refit_jointly`).
+    """
     first = once(sys, nominal, Q, chans, delta)
     if not first.updated:
         return first
-    steps, reps = [], [first]
+    steps, reps, bases = [], [first], [sys]
     notes = list(first.notes)
     cur_sys, rep = sys, first
     while True:
@@ -881,6 +902,7 @@ def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt) -> LoopRep
             break
         cur_sys, rep = nxt, rep2
         reps.append(rep2)
+        bases.append(nxt)
     if len(steps) == 1:
         return replace(first, steps=tuple(steps), notes=tuple(notes))
     last = reps[-1]
@@ -889,8 +911,51 @@ def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt) -> LoopRep
         table.pop(k, None)
         if k in last.table:
             table[k] = last.table[k]
+    model = last.model
+    if not rep.effect.nonlinear:
+        steps, jmodel, row = _refit_jointly(joint, bases, reps, steps,
+                                            _next_model(cur_sys, rep), notes)
+        if row is not None:
+            table["updated"], model = row, jmodel
+    first = replace(first, effect=steps[0].effect)
     msg = (f"{len(steps)} effects found: " +
            "; then ".join(st.message.split(";")[0].replace("model error found in ", "")
                           for st in steps) + "; " + describe_before_after(table))
-    return replace(first, message=msg, model=last.model, table=table, steps=tuple(steps),
+    return replace(first, message=msg, model=model, table=table, steps=tuple(steps),
                    notes=tuple(notes))
+
+
+def _refit_jointly(joint, bases, reps, steps, final, notes):
+    """Refit every effect at once by output error; returns (steps, model, validation row).
+
+    The row is None (and the steps unchanged) when the joint refit does not
+    lower the estimation output error (or keep it within 1 % with fewer
+    coefficients), or when an effect cannot be refitted (a discrete-time or
+    nonlinear law).
+    """
+    try:
+        out = joint(list(zip(bases, reps)), final)
+    except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+        notes.append(f"joint refinement failed: {e}")
+        return steps, None, None
+    if out is None:
+        return steps, None, None
+    jr, row = out
+    drop = f"; dropped {', '.join(jr.dropped)}" if jr.dropped else ""
+    notes.append(f"joint refinement of the {len(steps)} effects by output error: estimation "
+                 f"SE {jr.se_before:.3g}% -> {jr.se_after:.3g}%, {jr.npar_before} -> "
+                 f"{jr.npar_after} coefficients{drop}" +
+                 ("" if row is not None else " (not kept: no better)"))
+    if row is None:
+        return steps, None, None
+    new = []
+    for st, base, rp, law in zip(steps, bases, reps, jr.laws):
+        eff = st.effect
+        if isinstance(law, DynamicLaw):
+            eff = replace(eff, formula=law.formula, dynamic_law=law)
+        else:
+            eff = replace(eff, formula=law.formula, law=law,
+                          parameter_notes=parameter_notes(base, rp.channel, law))
+        new.append(replace(st, effect=eff))
+    new[-1] = replace(new[-1], se_after=row.se.value, model=jr.model)
+    return new, jr.model, row

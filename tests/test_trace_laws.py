@@ -54,3 +54,22 @@ def test_law_named_over_seeds(case):
     assert named >= 9, named
     # 95 % intervals: P(<= 7 of 10 covered) ~ 1.2 % if calibrated
     assert covered >= 8, covered
+
+
+def test_joint_refit_merges_a_term_two_effects_hold():
+    """A static law's p and a dynamic law's feedthrough of p add to the same entry of A: the
+    joint refit keeps one coefficient (the earlier effect's) holding their sum, so the model
+    is the same and the parameters stay identifiable."""
+    from greybox.trace.joint import _Param, _independent
+
+    dA = np.zeros((3, 3))
+    dA[1, 0] = 1.0
+    dB = np.zeros((3, 1))
+    other = np.zeros((3, 3))
+    other[2, 2] = 1.0
+    ps = [_Param(0, ("s", 0, 0), dA, dB, 2.0, "a: p", True),
+          _Param(1, ("a",), other, dB, -5.0, "b: pole", False),
+          _Param(1, ("e", 0), 0.5 * dA, dB, 4.0, "b: p", True)]
+    active, theta, merged = _independent(ps, np.array([2.0, -5.0, 4.0]))
+    assert active == [0, 1] and merged == ["b: p (the same term as an earlier effect's)"]
+    np.testing.assert_allclose(theta, [2.0 + 0.5 * 4.0, -5.0])  # exact: the model unchanged

@@ -101,3 +101,62 @@ def test_two_effects_in_two_equations_named_with_their_coefficients(seed):
            if n.startswith("A[v1; v1]")]
     assert pct and abs(pct[0] - 160.0) < 1.6, rep.effect.parameter_notes  # damping 0.5 -> 1.3
     assert any(n.startswith("A[v3; p3]") for n in rep.effect.parameter_notes)
+
+
+def _lag_and_spring(seed):
+    """6-state chain: a 0.1 s actuator lag on F (F enters v1 only) and a 15 N/m spring from
+    mass 3 to the wall, both missing from the model."""
+    nom = chain(3, k=20.0)
+    A, B = np.asarray(nom.A).copy(), np.asarray(nom.B)
+    A[5, 4] -= 15.0
+
+    def f(x, u):
+        dx = np.empty(7)
+        dx[:6] = A @ x[:6] + B[:, 0] * x[6]
+        dx[6] = (u[0] - x[6]) / 0.1
+        return dx
+
+    d = draw(nom, f, n_true=7, dt=0.01, rng=np.random.default_rng(seed),
+             q_std=np.array([0.0, 1e-4] * 3), r_std=1e-3)
+    Ac = np.zeros((7, 7))
+    Ac[:6, :6], Ac[:6, 6], Ac[6, 6] = A, B[:, 0], -10.0
+    Bc = np.zeros((7, 1))
+    Bc[6, 0] = 10.0
+    true = gb.discretize(gb.named_ss(Ac, Bc, np.hstack([np.asarray(nom.C), np.zeros((6, 1))]),
+                                     np.zeros((6, 1)), 0,
+                                     states=list(nom.state_labels) + ["lag"],
+                                     inputs=nom.input_labels, outputs=nom.output_labels), d.dt)
+    floor = gb.validate_model(true, d.y_val, d.u_val, Q=np.eye(7) * 1e-8, R=d.R).se.value
+    return nom, d, floor
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 2])
+def test_static_and_dynamic_effects_refitted_jointly(seed):
+    """Pass 1 finds the spring (its law borrows part of the lag), pass 2 the lag; the joint
+    output-error refit of both effects then drops the borrowed terms: the spring reads
+    -15*p3 and the lag is F alone through 10/(s + 10), at the true model's error."""
+    nom, d, floor = _lag_and_spring(seed)
+    rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    assert len(rep.steps) == 2, rep.message
+    static, dyn = rep.steps[0].effect, rep.steps[1].effect
+    law = static.law
+    names = [s[0] for s in law.spec]
+    terms = {(k, names[j]): law.coef[k, j] for k in range(law.coef.shape[0])
+             for j in np.flatnonzero(law.coef[k])}
+    # the lag's feedthrough -F/m1 = -1*F is one term of the model already: it is kept once
+    # (in the earlier law); the spring -15*p3 within 1 % (interval ~1 %), -1*F within 10 %
+    # (interval ~10 %)
+    assert set(terms) == {(0, "F"), (1, "p3")}, static.formula
+    np.testing.assert_allclose(terms[1, "p3"], -15.0, rtol=0.01)
+    np.testing.assert_allclose(terms[0, "F"], -1.0, rtol=0.1)
+    dl = dyn.dynamic_law
+    assert dl.drivers == ("F",), dyn.formula
+    # tau = 0.1 s within 5 % (its 95 % interval is ~12 % wide); the filtered gain 10 N/s
+    # within 10 % (interval ~20 %)
+    np.testing.assert_allclose(dl.tau, 0.1, rtol=0.05)
+    np.testing.assert_allclose(dl.b[0], 10.0, rtol=0.1)
+    assert any(n.startswith("joint refinement") for n in rep.notes), rep.notes
+    se = rep.table["updated"].se.value
+    assert se < 1.5 * floor, (se, floor)

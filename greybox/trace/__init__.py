@@ -13,10 +13,12 @@ model error d^ on estimation data. d^ is then explained
   identification, PAPER_NOTES §8.4).
 
 Both are kept (PAPER_NOTES §9.2): the workflow chooses between them by the
-simulation error of the augmented model. Laws stay in discrete time
-(PAPER_NOTES §9.5): ``d[j]`` acts through the ZOH-discretized G between
-samples j and j+1, so its units are those of the channel (e.g. [N] for a
-force channel, [x_i units / s] for a bare continuous state equation).
+simulation error of the augmented model. Linear static laws and sparse
+first-order dynamic laws of a continuous model are parametrized in
+continuous time and refined by output error (``oe``, ``dynamic``); with
+several effects, ``joint`` refits them all at once. Nonlinear laws stay in
+discrete time: ``d[j]`` acts through the ZOH-discretized G between samples
+j and j+1.
 """
 
 

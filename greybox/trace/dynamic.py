@@ -217,20 +217,34 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     # d^ alone ranks slow poles too well (they fit its coloured estimation noise):
     # rank the grid by the output error of the augmented model at the least-squares start
     starts = [_start(sys, channel, w, d, y, u, dt, x0, k0, p0, max_drivers) for p0 in grid]
-    starts = sorted((st for st in starts if st is not None), key=lambda st: st[0])
+    starts = sorted((st for st in starts if st is not None), key=lambda st: st[0])[:2]
+    # one input alone (an actuator or servo lag) as a start too: d^ also carries what an
+    # earlier pass's law borrowed, and its forward selection can then prefer states
+    for j in range(sys.ninputs):
+        lone = [_start(sys, channel, w, d, y, u, dt, x0, k0, p0, max_drivers, [("u", j)])
+                for p0 in grid]
+        lone = [st for st in lone if st is not None]
+        if lone:
+            starts.append(min(lone, key=lambda st: st[0]))
     best = None
-    for _, drv, theta0 in starts[:2]:
+    for _, drv, theta0 in starts:
         dl = _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
         if dl is not None and (best is None or dl.se_estimation < best.se_estimation):
             best = dl
     return best
 
 
-def _drivers_and_start(sys, w, d, dt, pole, max_drivers):
-    """Drivers by forward selection on d^ at ``pole``, and least-squares (a, b, e)."""
+def _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers=None):
+    """Drivers by forward selection on d^ at ``pole`` (or ``drivers``), least-squares (a, b, e)."""
     n, m = sys.nstates, sys.ninputs
     names = list(sys.state_labels) + list(sys.input_labels)
     f = lfilter([0.0, 1.0 - pole], [1.0, -pole], w, axis=1)
+    if drivers is not None:
+        idx = [i if kind == "x" else n + i for kind, i in drivers]
+        cols = np.vstack([f[idx], w[idx]])
+        coef = np.linalg.lstsq(cols.T, d[0], rcond=None)[0]
+        a0 = np.log(pole) / dt
+        return list(drivers), np.r_[a0, -a0 * coef[:len(idx)], coef[len(idx):]]
     terms = np.vstack([w, f])
     tnames = [f"{s}" for s in names] + [f"lag({s})" for s in names]
     # the driver choice on at most _SELECT_SAMPLES samples (block means of d^ and terms)
@@ -256,9 +270,9 @@ def _problem(sys, channel, y, u, dt, x0, k0, drv):
                        np.asarray(sys.D, dtype=float), dt, y, u, x0, k0, drv)
 
 
-def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers):
+def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers, drivers=None):
     """(output-error RSS at the least-squares start, drivers, start), or None."""
-    drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers)
+    drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers)
     if drv is None:
         return None
     with single_thread_blas():
@@ -268,8 +282,6 @@ def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers):
 
 def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0):
     """Output error on y from one start (drivers and least-squares values from _start)."""
-    n = sys.nstates
-    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     while True:
         prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
         sol = prob.fit(theta0)
@@ -283,19 +295,28 @@ def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0):
         q = min(weak, key=lambda q: abs(b[q]) / hb[q] + abs(e[q]) / he[q])
         drv = drv[:q] + drv[q + 1:]
         theta0 = np.r_[sol.x[0], np.delete(b, q), np.delete(e, q)]
-    a = float(sol.x[0])
-    if not a < 0:
+    if not float(sol.x[0]) < 0:
         return None
-    r = prob.resid(sol.x).reshape(y.shape[0], -1)
+    return _law_from(sys, channel, prob, drv, sol.x, hw, Q, R)
+
+
+def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
+    """The DynamicLaw record of the drivers ``drv`` at ``theta = (a, b, e)``, half-widths ``hw``."""
+    n, k, dt = sys.nstates, len(drv), prob.dt
+    a, b, e = float(theta[0]), theta[1:1 + k], theta[1 + k:]
+    hb, he = hw[1:1 + k], hw[1 + k:]
+    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
+    r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
     dn = [sys.state_labels[i] if kind == "x" else sys.input_labels[i] for kind, i in drv]
     unit = channel.units[0] if channel.units else ""
     unit = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
     parts = []
     for nm, ei, hi, bi, hbi in zip(dn, e, he, b, hb):
-        if abs(ei) >= hi or not np.isfinite(hi):
+        if ei != 0 and (abs(ei) >= hi or not np.isfinite(hi)):
             parts.append(f"{_pm(ei, hi)}*{nm}")
-        parts.append(f"{_pm(bi, hbi)}/(s + {_pm(-a, hw[0])})*{nm}")
+        if bi != 0:  # 0: dropped by a joint refinement (greybox.trace.joint)
+            parts.append(f"{_pm(bi, hbi)}/(s + {_pm(-a, hw[0])})*{nm}")
     formula = f"{channel.labels[0]} = " + " + ".join(parts).replace("+ (-", "- (") + unit
     formula += f", time constant {1 / -a:.3g} s"
     if np.isfinite(hw[0]):
@@ -308,20 +329,27 @@ def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0):
         formula += (f"; {channel.input} reaches the plant through "
                     f"({1 + e[q]:.3g} s + {dc * -a:.3g})/(s + {-a:.3g}): DC gain {dc:.3g}, "
                     f"time constant {1 / -a:.3g} s")
-    Ad, Bd = prob.disc(sol.x)
+    Ad, Bd = prob.disc(theta)
     Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
     Qa = np.zeros((n + 1, n + 1))
     Qa[:n, :n] = Q
     Qa[n, n] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300)
-    out = named_ss(Ad, Bd, Ca, D, dt, states=list(sys.state_labels) + ["z[0]"],
-                   inputs=sys.input_labels, outputs=sys.output_labels,
-                   name=f"{sys.name or 'model'}_updated")
-    Acn, Bcn = prob.cont(sol.x)
-    cont = named_ss(Acn, Bcn, Ca, D, 0, states=list(sys.state_labels) + ["z[0]"],
-                    inputs=sys.input_labels, outputs=sys.output_labels,
-                    name=f"{sys.name or 'model'}_updated")
-    return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=b, e=e, ci=hw,
-                      npar=1 + 2 * len(drv), formula=formula,
+    states = list(sys.state_labels) + [_lag_state(sys)]
+    out = named_ss(Ad, Bd, Ca, D, dt, states=states, inputs=sys.input_labels,
+                   outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    Acn, Bcn = prob.cont(theta)
+    cont = named_ss(Acn, Bcn, Ca, D, 0, states=states, inputs=sys.input_labels,
+                    outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=np.array(b), e=np.array(e),
+                      ci=np.asarray(hw), npar=1 + 2 * k, formula=formula,
                       model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
                       se_estimation=se, continuous=cont,
                       rows=tuple(i if kind == "x" else n + i for kind, i in drv), dt=dt)
+
+
+def _lag_state(sys) -> str:
+    """Name of a new law state: z[0], or z[1] if the model already has z[0], ..."""
+    k = 0
+    while f"z[{k}]" in sys.state_labels:
+        k += 1
+    return f"z[{k}]"

@@ -1,0 +1,340 @@
+"""Joint output-error refinement of several effects added one after the other.
+
+The several-effects loop adds one effect per pass, each fitted with the
+earlier ones frozen. A pass can then borrow part of an effect that a later
+pass finds (a static law fitted first absorbs some of an actuator lag with
+spurious input and position terms; the lag found next is too slow). Here
+every coefficient of every effect (static laws' terms, dynamic laws' pole,
+filtered and feedthrough gains) is refitted at once by output error on y,
+the final continuous model discretized exactly (ZOH) at every evaluation,
+and terms whose 95 % interval then contains 0 are dropped one at a time.
+
+Every effect enters the continuous model affinely:
+``A(theta) = A0 + sum_q theta_q dA_q`` (same for B), so one parameter list
+covers both law kinds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import control as ct
+import numpy as np
+from numpy.typing import NDArray
+
+from .._blas import single_thread_blas
+from .._lti import lti_states
+from ..system import named_ss
+from ..update import UpdatedModel
+from .channels import Channel
+from .dynamic import DynamicLaw, _law_from, _problem
+from .intervals import hac_covariance
+from .laws import StaticLaw, _law_line, _one_direction, linear_part
+from .oe import noise_covariance, oe_window, zoh
+
+__all__ = ["JointEffect", "JointRefinement", "refine_jointly"]
+
+
+@dataclass(frozen=True)
+class JointEffect:
+    """One effect of the loop, as the joint refinement needs it.
+
+    Attributes
+    ----------
+    base : control.StateSpace
+        The continuous model the effect was added to (states ``n_i``).
+    channel : Channel
+        Its channel (G of shape (n_i, md)).
+    law : StaticLaw or DynamicLaw
+        A continuous-time linear static law, or a sparse first-order law
+        whose state is appended at index ``n_i``.
+    """
+
+    base: ct.StateSpace = field(repr=False)
+    channel: Channel
+    law: object
+
+
+@dataclass(frozen=True)
+class JointRefinement:
+    """Result of :func:`refine_jointly`.
+
+    Attributes
+    ----------
+    laws : tuple
+        The refitted law of every effect, in the loop's order.
+    continuous : control.StateSpace
+        Final model in continuous time.
+    model : UpdatedModel
+        Final model, discretized exactly (ZOH), with the loop's Q and R.
+    se_before, se_after : float
+        Output-error SE [%] on the estimation window of the loop's final model
+        and of the jointly refitted one.
+    npar_before, npar_after : int
+        Coefficients before and after (terms whose interval contains 0 dropped).
+    dropped : tuple of str
+        Terms dropped, as ``"<channel>: <term>"``.
+    """
+
+    laws: tuple
+    continuous: ct.StateSpace = field(repr=False)
+    model: UpdatedModel = field(repr=False)
+    se_before: float
+    se_after: float
+    npar_before: int
+    npar_after: int
+    dropped: tuple[str, ...] = ()
+
+
+class _Param:
+    """One coefficient: its effect, its key, and where it enters (dA, dB)."""
+
+    def __init__(self, eff: int, key, dA: NDArray, dB: NDArray, value: float, name: str,
+                 prunable: bool):
+        self.eff, self.key, self.dA, self.dB = eff, key, dA, dB
+        self.value, self.name, self.prunable = value, name, prunable
+
+
+def _params(effects, nf: int, m: int) -> list[_Param]:
+    out = []
+    for i, ef in enumerate(effects):
+        n = ef.base.nstates
+        G = np.asarray(ef.channel.G, dtype=float)
+        law = ef.law
+        if isinstance(law, StaticLaw):
+            for c in range(law.coef.shape[0]):
+                for j in np.flatnonzero(law.coef[c]):
+                    unit = np.zeros_like(law.coef)
+                    unit[c, j] = 1.0
+                    Ddx, Ddu = linear_part(law.spec, unit, n, m)
+                    dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
+                    dA[:n, :n], dB[:n] = G @ Ddx, G @ Ddu
+                    out.append(_Param(i, ("s", c, int(j)), dA, dB, float(law.coef[c, j]),
+                                      f"{ef.channel.name}: {law.spec[j][0]}", True))
+        else:
+            g = G[:, 0]
+            dA = np.zeros((nf, nf))
+            dA[n, n] = 1.0
+            out.append(_Param(i, ("a",), dA, np.zeros((nf, m)), law.pole,
+                              f"{ef.channel.name}: pole", False))
+            for q, (r, b, e) in enumerate(zip(law.rows, law.b, law.e)):
+                dAb, dBb = np.zeros((nf, nf)), np.zeros((nf, m))
+                dAe, dBe = np.zeros((nf, nf)), np.zeros((nf, m))
+                if r < n:
+                    dAb[n, r], dAe[:n, r] = 1.0, g
+                else:
+                    dBb[n, r - n], dBe[:n, r - n] = 1.0, g
+                nm = law.drivers[q]
+                out.append(_Param(i, ("b", q), dAb, dBb, float(b), f"{ef.channel.name}: lag {nm}",
+                                  True))
+                out.append(_Param(i, ("e", q), dAe, dBe, float(e), f"{ef.channel.name}: {nm}",
+                                  True))
+    return out
+
+
+class _Joint:
+    """Output error on y of the final model with the parameters ``ps`` free."""
+
+    def __init__(self, A0, B0, C, D, ps, dt, y, u, x0, k0):
+        self.A0, self.B0, self.C, self.D, self.ps, self.dt = A0, B0, C, D, ps, dt
+        win = oe_window(y.shape[0])
+        self.y, self.u, self.x0, self.k0 = y[:, :k0 + win], u[:, :k0 + win], x0, k0
+        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
+
+    def cont(self, theta, active):
+        A, B = self.A0.copy(), self.B0.copy()
+        for q, t in zip(active, theta):
+            A += t * self.ps[q].dA
+            B += t * self.ps[q].dB
+        return A, B
+
+    def resid(self, theta, active):
+        Ad, Bd = zoh(*self.cont(theta, active), self.dt)
+        if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
+            return np.full(self.y[:, self.k0:].size, 1e6)
+        with np.errstate(all="ignore"):
+            x = lti_states(Ad, Bd @ self.u, self.x0)
+            r = ((self.y - self.C @ x - self.D @ self.u)[:, self.k0:]
+                 / self.scale[:, None]).ravel()
+        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+
+    def se(self, theta, active) -> float:
+        r = self.resid(theta, active).reshape(self.y.shape[0], -1)
+        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
+
+    def fit(self, theta0, active):
+        from scipy.optimize import least_squares
+
+        return least_squares(self.resid, theta0, args=(active,), method="lm", x_scale="jac",
+                             max_nfev=60 * (len(active) + 1))
+
+    def halfwidths(self, sol, active, Q, R):
+        jac = np.asarray(sol.jac)
+        if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
+            return np.full(sol.x.size, np.nan)
+        var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
+        Ad, _ = zoh(*self.cont(sol.x, active), self.dt)
+        Ji = np.linalg.pinv(jac.T @ jac)
+        vm = np.diag(Ji @ noise_covariance(Ad, self.C, jac, self.scale, self.k0, Q, R) @ Ji)
+        return 1.96 * np.sqrt(np.clip(np.maximum(var, vm), 0, None))
+
+
+def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: NDArray,
+                   R: NDArray, dt: float, x0: NDArray, k0: int) -> JointRefinement:
+    """Refit every effect's coefficients at once by output error (see module docstring).
+
+    Parameters
+    ----------
+    effects : sequence of JointEffect
+        The effects in the order the loop added them.
+    final : control.StateSpace
+        The loop's final continuous model (all effects folded in).
+    y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
+        Estimation record.
+    Q : ndarray, shape (nstates_final, nstates_final)
+        Process-noise covariance of the final discrete model (intervals).
+    R : ndarray, shape (noutputs, noutputs)
+        Measurement-noise covariance.
+    dt : float
+        Sampling period [s].
+    x0 : ndarray, shape (nstates_final,)
+        Initial state of the output-error simulation.
+    k0 : int
+        First sample of the output-error window.
+
+    Returns
+    -------
+    JointRefinement
+    """
+    nf, m = final.nstates, final.ninputs
+    ps = _params(effects, nf, m)
+    theta = np.array([p.value for p in ps])
+    A0 = np.asarray(final.A, dtype=float) - sum(t * p.dA for t, p in zip(theta, ps))
+    B0 = np.asarray(final.B, dtype=float) - sum(t * p.dB for t, p in zip(theta, ps))
+    C, D = np.asarray(final.C, dtype=float), np.asarray(final.D, dtype=float)
+    prob = _Joint(A0, B0, C, D, ps, dt, y, u, np.asarray(x0, dtype=float), k0)
+    active, theta, merged = _independent(ps, theta)
+    with single_thread_blas():
+        se0 = prob.se(theta, active)
+        sol = prob.fit(theta, active)
+        hw = prob.halfwidths(sol, active, Q, R)
+        dropped = list(merged)
+        while True:  # drop the weakest prunable term whose interval contains 0; refit
+            t = np.abs(sol.x) / np.where(np.isfinite(hw) & (hw > 0), hw, np.inf)
+            weak = [q for q in range(len(active)) if ps[active[q]].prunable and t[q] < 1.0
+                    and not _last_of_effect(ps, active, q)]
+            if not weak:
+                break
+            q = min(weak, key=lambda q: t[q])
+            dropped.append(ps[active[q]].name)
+            keep = [i for i in range(len(active)) if i != q]
+            active = [active[i] for i in keep]
+            sol = prob.fit(sol.x[keep], active)
+            hw = prob.halfwidths(sol, active, Q, R)
+        se1 = prob.se(sol.x, active)
+    values = dict(zip(active, sol.x))
+    halves = dict(zip(active, hw))
+    laws = tuple(_rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob)
+                 for i, ef in enumerate(effects))
+    Ac, Bc = prob.cont(sol.x, active)
+    Ad, Bd = zoh(Ac, Bc, dt)
+    kw = dict(states=final.state_labels, inputs=final.input_labels, outputs=final.output_labels,
+              name=final.name)
+    cont = named_ss(Ac, Bc, C, D, 0, **kw)
+    disc = named_ss(Ad, Bd, C, D, dt, **kw)
+    return JointRefinement(laws=laws, continuous=cont,
+                           model=UpdatedModel(sys=disc, Q=Q, R=R, order=nf, kind="joint"),
+                           se_before=se0, se_after=se1, npar_before=len(ps),
+                           npar_after=len(active), dropped=tuple(dropped))
+
+
+def _independent(ps, theta):
+    """Keep the coefficients whose (dA, dB) are independent of the earlier ones'.
+
+    Two effects can hold the same term (a static law's ``p1`` and a dynamic
+    law's feedthrough of ``p1`` both add to the same entry of A): the later
+    one's value is folded into the earlier ones (the model is unchanged) and
+    it is dropped. Returns ``(active, theta_active, merged names)``.
+    """
+    V = np.array([np.r_[p.dA.ravel(), p.dB.ravel()] for p in ps]).T  # (entries, k)
+    keep, merged = [], []
+    vals = {}
+    for q, t in enumerate(theta):
+        if keep:
+            K = V[:, keep]
+            c, *_ = np.linalg.lstsq(K, V[:, q], rcond=None)
+            if np.linalg.norm(K @ c - V[:, q]) <= 1e-9 * np.linalg.norm(V[:, q]):
+                for i, ci in zip(keep, c):
+                    vals[i] += t * ci
+                merged.append(f"{ps[q].name} (the same term as an earlier effect's)")
+                continue
+        keep.append(q)
+        vals[q] = t
+    return keep, np.array([vals[q] for q in keep]), merged
+
+
+def _last_of_effect(ps, active, q) -> bool:
+    """True if ``active[q]`` is the last prunable coefficient left of its effect."""
+    eff = ps[active[q]].eff
+    return sum(1 for i in active if ps[i].eff == eff and ps[i].prunable) <= 1
+
+
+def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
+    """The effect's law record at the jointly refitted values."""
+    law, ch, base = ef.law, ef.channel, ef.base
+    mine = [(q, p) for q, p in enumerate(ps) if p.eff == i]
+    if isinstance(law, StaticLaw):
+        coef = np.zeros_like(law.coef)
+        half = np.full_like(law.coef, np.nan)
+        for q, p in mine:
+            if q in values:
+                _, c, j = p.key
+                coef[p.key[1], p.key[2]] = values[q]
+                half[c, j] = halves[q]
+        Ddx, Ddu = linear_part(law.spec, coef, base.nstates, base.ninputs)
+        lines = []
+        for c in range(coef.shape[0]):
+            idx = list(np.flatnonzero(coef[c]))
+            unit = ch.units[c] if c < len(ch.units) else ""
+            lines.append(_law_line(ch.labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
+                                   unit, half[c, idx]))
+        if "one direction" in law.formula:
+            x = lti_states(*zoh(np.asarray(base.A, float), np.asarray(base.B, float), dt),
+                           u[:, :prob.y.shape[1]], np.zeros(base.nstates))
+            lines += _one_direction(coef, law.term_scale(x, u[:, :x.shape[1]]), ch.labels)
+        return replace(law, coef=coef, ci=half, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines),
+                       npar=int(np.count_nonzero(coef)))
+    # dynamic: keep the drivers whose gains are left
+    a = values[next(q for q, p in mine if p.key == ("a",))]
+    ha = halves[next(q for q, p in mine if p.key == ("a",))]
+    n = base.nstates
+    drv, b, e, hb, he = [], [], [], [], []
+    for k, r in enumerate(law.rows):
+        qb = next(q for q, p in mine if p.key == ("b", k))
+        qe = next(q for q, p in mine if p.key == ("e", k))
+        if qb not in values and qe not in values:
+            continue
+        drv.append(("x", r) if r < n else ("u", r - n))
+        b.append(values.get(qb, 0.0))
+        e.append(values.get(qe, 0.0))
+        hb.append(halves.get(qb, np.nan))
+        he.append(halves.get(qe, np.nan))
+    dprob = _problem(base, ch, y, u, dt, _x0_of(prob, n), k0, drv)
+    Qb = Q[:n, :n]
+    return _law_from(base, ch, dprob, drv, np.r_[a, b, e], np.r_[ha, hb, he], Qb, R)
+
+
+def _x0_of(prob, n):
+    return prob.x0[:n]
+
+
+def joint_effect(base: ct.StateSpace, channel: Channel, law) -> JointEffect | None:
+    """The effect as the joint refinement takes it, or None if it cannot be refitted.
+
+    Continuous-time linear static laws and sparse first-order laws qualify.
+    """
+    if isinstance(law, DynamicLaw) and channel.md == 1:
+        return JointEffect(base=base, channel=channel, law=law)
+    if isinstance(law, StaticLaw) and law.time_base == "continuous" and not law.nonlinear:
+        return JointEffect(base=base, channel=channel, law=law)
+    return None
