@@ -804,13 +804,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                           criterion=crit, nominal=nominal, model=model, table=table, trace=tr,
                           notes=tuple(notes))
 
-    def _joint(passes, final):
-        """Refit all effects at once (greybox.trace.joint); None if some cannot be."""
-        effs = [joint_effect(base, r.channel, r.effect.dynamic_law or r.effect.law)
-                for base, r in passes]
+    def _joint(passes, final, Qf):
+        """Refit all effects at once (greybox.trace.joint); None if some cannot be.
+
+        ``passes``: (base model, channel, effect) per effect; ``Qf`` the final Q.
+        """
+        effs = [joint_effect(base, ch, eff.dynamic_law or eff.law) for base, ch, eff in passes]
         if any(e is None for e in effs) or ct.isdtime(final, strict=True):
             return None
-        Qf = passes[-1][1].model.Q
         x0 = estimate_initial_state(discretize(final, dt), y, u)
         jr = refine_jointly(effs, final, y, u, Q=Qf, R=R, dt=dt, x0=x0, k0=20)
         if not (jr.se_after < jr.se_before or
@@ -913,10 +914,17 @@ def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt, joint) -> 
             table[k] = last.table[k]
     model = last.model
     if not rep.effect.nonlinear:
-        steps, jmodel, row = _refit_jointly(joint, bases, reps, steps,
-                                            _next_model(cur_sys, rep), notes)
-        if row is not None:
-            table["updated"], model = row, jmodel
+        passes = [(b, r.channel, r.effect) for b, r in zip(bases, reps)]
+        out = _refit_jointly(joint, passes, _next_model(cur_sys, rep), rep.model.Q, notes)
+        if out is not None:
+            jr, row = out
+            steps = _refitted_steps(steps, passes, jr, row)
+            alt = _retrace_last(once, joint, jr, passes, reps[-2].model.Q, steps,
+                                _channels_for(jr.partials[-1], spec, sys, sys.nstates), dt,
+                                notes)
+            if alt is not None:
+                jr, row, steps = alt
+            table["updated"], model = row, jr.model
     first = replace(first, effect=steps[0].effect)
     msg = (f"{len(steps)} effects found: " +
            "; then ".join(st.message.split(";")[0].replace("model error found in ", "")
@@ -925,37 +933,74 @@ def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt, joint) -> 
                    notes=tuple(notes))
 
 
-def _refit_jointly(joint, bases, reps, steps, final, notes):
-    """Refit every effect at once by output error; returns (steps, model, validation row).
+def _refit_jointly(joint, passes, final, Qf, notes):
+    """Refit every effect at once by output error; ``(JointRefinement, validation row)``.
 
-    The row is None (and the steps unchanged) when the joint refit does not
-    lower the estimation output error (or keep it within 1 % with fewer
-    coefficients), or when an effect cannot be refitted (a discrete-time or
-    nonlinear law).
+    None when an effect cannot be refitted (a discrete-time or nonlinear
+    law), when the refit fails, or when it does not lower the estimation
+    output error (or keep it within 1 % with fewer coefficients).
     """
     try:
-        out = joint(list(zip(bases, reps)), final)
+        out = joint(passes, final, Qf)
     except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
         notes.append(f"joint refinement failed: {e}")
-        return steps, None, None
+        return None
     if out is None:
-        return steps, None, None
+        return None
     jr, row = out
     drop = f"; dropped {', '.join(jr.dropped)}" if jr.dropped else ""
-    notes.append(f"joint refinement of the {len(steps)} effects by output error: estimation "
+    notes.append(f"joint refinement of the {len(passes)} effects by output error: estimation "
                  f"SE {jr.se_before:.3g}% -> {jr.se_after:.3g}%, {jr.npar_before} -> "
                  f"{jr.npar_after} coefficients{drop}" +
                  ("" if row is not None else " (not kept: no better)"))
-    if row is None:
-        return steps, None, None
+    return None if row is None else (jr, row)
+
+
+def _refitted_steps(steps, passes, jr, row):
+    """The steps with their effects' laws, formulas and notes at the refitted values."""
     new = []
-    for st, base, rp, law in zip(steps, bases, reps, jr.laws):
+    for st, (base, ch, _), law in zip(steps, passes, jr.laws):
         eff = st.effect
         if isinstance(law, DynamicLaw):
             eff = replace(eff, formula=law.formula, dynamic_law=law)
         else:
             eff = replace(eff, formula=law.formula, law=law,
-                          parameter_notes=parameter_notes(base, rp.channel, law))
+                          parameter_notes=parameter_notes(base, ch, law))
         new.append(replace(st, effect=eff))
     new[-1] = replace(new[-1], se_after=row.se.value, model=jr.model)
-    return new, jr.model, row
+    return new
+
+
+def _retrace_last(once, joint, jr, passes, Q, steps, chans, dt, notes):
+    """Trace the last effect again on the earlier effects at their refitted values.
+
+    An earlier pass's law can borrow part of a later effect (a static law
+    fitted first absorbs some of an actuator lag); the last pass then traced
+    what was left and may have picked the wrong drivers. Once the joint
+    refit has dropped the borrowed terms, the last effect is traced again on
+    that model and the whole set refitted; the better set by estimation
+    output error is kept. Returns ``(jr, row, steps)`` or None.
+    """
+    base = jr.partials[-1]
+    try:
+        rep = once(base, discretize(base, dt), Q, chans, False)
+    except (GreyboxError, np.linalg.LinAlgError) as e:
+        notes.append(f"re-trace of the last effect failed: {e}")
+        return None
+    if not rep.updated or rep.effect.nonlinear:
+        notes.append(f"re-trace of the last effect on the refitted model: {rep.message}")
+        return None
+    earlier = [(b, ch, st.effect) for (b, ch, _), st in zip(passes[:-1], steps[:-1])]
+    alt = passes[:-1] + [(base, rep.channel, rep.effect)]
+    out = _refit_jointly(joint, earlier + [(base, rep.channel, rep.effect)],
+                         _next_model(base, rep), rep.model.Q, notes)
+    if out is None or not out[0].se_after < jr.se_after:
+        notes.append("re-trace of the last effect on the refitted model: no better")
+        return None
+    jr2, row2 = out
+    tb = rep.table
+    last = EffectStep(effect=rep.effect, channel=rep.channel.name, message=rep.message,
+                      se_before=tb["nominal"].se.value, se_after=tb["updated"].se.value,
+                      model=rep.model)
+    notes.append(f"re-trace of the last effect on the refitted model: {rep.message}")
+    return jr2, row2, _refitted_steps(steps[:-1] + [last], alt, jr2, row2)

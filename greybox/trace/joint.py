@@ -74,6 +74,9 @@ class JointRefinement:
         Coefficients before and after (terms whose interval contains 0 dropped).
     dropped : tuple of str
         Terms dropped, as ``"<channel>: <term>"``.
+    partials : tuple of control.StateSpace
+        ``partials[k - 1]``: the continuous model with only the first k effects,
+        at their refitted values (k = 1 .. len(laws) - 1).
     """
 
     laws: tuple
@@ -84,6 +87,7 @@ class JointRefinement:
     npar_before: int
     npar_after: int
     dropped: tuple[str, ...] = ()
+    partials: tuple = field(default=(), repr=False)
 
 
 class _Param:
@@ -242,10 +246,19 @@ def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: 
               name=final.name)
     cont = named_ss(Ac, Bc, C, D, 0, **kw)
     disc = named_ss(Ad, Bd, C, D, dt, **kw)
+    partials = []
+    for k in range(1, len(effects)):  # the first k effects at their refitted values
+        nk = effects[k].base.nstates
+        th = np.array([t if ps[q].eff < k else 0.0 for q, t in zip(active, sol.x)])
+        Ak, Bk = prob.cont(th, active)
+        partials.append(named_ss(Ak[:nk, :nk], Bk[:nk], C[:, :nk], D, 0,
+                                 states=final.state_labels[:nk], inputs=final.input_labels,
+                                 outputs=final.output_labels, name=final.name))
     return JointRefinement(laws=laws, continuous=cont,
                            model=UpdatedModel(sys=disc, Q=Q, R=R, order=nf, kind="joint"),
                            se_before=se0, se_after=se1, npar_before=len(ps),
-                           npar_after=len(active), dropped=tuple(dropped))
+                           npar_after=len(active), dropped=tuple(dropped),
+                           partials=tuple(partials))
 
 
 def _independent(ps, theta):
