@@ -669,7 +669,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 tr = replace(tr, static=None, static_model=None)
                 _score(tr)
         # 2b. sparse first-order laws in continuous time for the best one-component channels
-        if max_order >= 1 and scored and not ct.isdtime(sys, strict=True) and not unstable:
+        if max_order >= 1 and scored and not ct.isdtime(sys, strict=True) and not unstable \
+                and not (big and _static_is_enough(scored, y, u, Q, R, k0, lags, alpha)):
             done = set()
             for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
                 ch = tr_.channel
@@ -824,6 +825,23 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
     tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
     return rep
+
+
+def _static_is_enough(scored, y, u, Q, R, k0, lags, alpha) -> bool:
+    """True if the best static candidate leaves white one-step innovations.
+
+    Above SCREEN_ABOVE states no unstructured subsystem is fitted, so there
+    is no dynamic fit to compare with: the evidence for dynamics is then that
+    the best static law leaves the innovations coloured under the user's
+    noise model (Q, R) -- the law is deterministic (the sparse dynamic law
+    costs hundreds of simulations of the full model).
+    """
+    stat = [s for s in scored if s[3] == "static" and np.isfinite(s[0])]
+    if not stat:
+        return False
+    sm = min(stat, key=lambda s: s[0])[2].static_model
+    kf = kalman_filter(sm.sys, y, u, Q=Q, R=R)
+    return whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha).all_white
 
 
 def _along_an_input(sys: ct.StateSpace, ch: Channel, tol: float = 0.02) -> bool:
