@@ -68,9 +68,12 @@ class DynamicLaw:
     continuous : control.StateSpace
         The augmented model in continuous time (states ``[x; z[0]]``).
     rows : tuple of int
-        Rows of the drivers in ``[x; u]``.
+        Rows of the drivers in ``[x; u]`` (-1 for a relative coordinate).
     dt : float
         Sampling period [s] of the discrete model.
+    weights : ndarray, shape (len(drivers), nstates + ninputs)
+        Each driver as a combination of ``[x; u]``: a unit row for a state or
+        an input, ``e_j - e_i`` for a relative coordinate ``x_j - x_i``.
     """
 
     pole: float
@@ -86,17 +89,18 @@ class DynamicLaw:
     continuous: ct.StateSpace = field(default=None, repr=False)
     rows: tuple[int, ...] = ()
     dt: float = float("nan")
+    weights: NDArray[np.float64] = field(default=None, repr=False)
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """The law's d, shape (1, K), on x (nstates, K) and u (ninputs, K).
 
         ``z`` starts at 0 and follows the ZOH-equivalent first-order filter.
         """
-        w = np.vstack([x, u])
+        w = self.weights @ np.vstack([x, u])
         phi = np.exp(self.pole * self.dt)
         out = np.zeros((1, w.shape[1]))
-        for r, b, e in zip(self.rows, self.b, self.e):
-            out[0] += e * w[r] + lfilter([0.0, b * (phi - 1.0) / self.pole], [1.0, -phi], w[r])
+        for wq, b, e in zip(w, self.b, self.e):
+            out[0] += e * wq + lfilter([0.0, b * (phi - 1.0) / self.pole], [1.0, -phi], wq)
         return out
 
 
@@ -112,13 +116,11 @@ class _DynProblem:
         self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
 
     def cont(self, theta):
-        n, drv = self.n, self.drv
-        a, b, e = theta[0], theta[1:1 + len(drv)], theta[1 + len(drv):]
-        bx, bu = np.zeros(n), np.zeros(self.Bc.shape[1])
-        ex, eu = np.zeros(n), np.zeros(self.Bc.shape[1])
-        for (kind, i), bi, ei in zip(drv, b, e):
-            (bx if kind == "x" else bu)[i] = bi
-            (ex if kind == "x" else eu)[i] = ei
+        n, k = self.n, len(self.drv)
+        a, b, e = theta[0], theta[1:1 + k], theta[1 + k:]
+        W = driver_weights(self.drv, n, self.Bc.shape[1])
+        bw, ew = b @ W, e @ W
+        bx, bu, ex, eu = bw[:n], bw[n:], ew[:n], ew[n:]
         A = np.zeros((n + 1, n + 1))
         A[:n, :n] = self.Ac + np.outer(self.Gc, ex)
         A[:n, n] = self.Gc
@@ -161,6 +163,28 @@ class _DynProblem:
         Ji = np.linalg.pinv(jac.T @ jac)
         vm = np.diag(Ji @ noise_covariance(Ad, Ca, jac, self.scale, self.k0, Qa, R) @ Ji)
         return 1.96 * np.sqrt(np.clip(np.maximum(var, vm), 0, None))
+
+
+def driver_weights(drv, n: int, m: int) -> NDArray[np.float64]:
+    """Drivers ``("x", i)``, ``("u", i)``, ``("r", (i, j))`` (x_j - x_i) as rows over [x; u]."""
+    W = np.zeros((len(drv), n + m))
+    for q, (kind, i) in enumerate(drv):
+        if kind == "x":
+            W[q, i] = 1.0
+        elif kind == "u":
+            W[q, n + i] = 1.0
+        else:
+            W[q, i[1]], W[q, i[0]] = 1.0, -1.0
+    return W
+
+
+def _driver_name(sys, d) -> str:
+    kind, i = d
+    if kind == "x":
+        return sys.state_labels[i]
+    if kind == "u":
+        return sys.input_labels[i]
+    return f"({sys.state_labels[i[1]]}-{sys.state_labels[i[0]]})"
 
 
 def _pm(v, h):
@@ -234,13 +258,16 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     return best
 
 
-def _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers=None):
+def _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers=None, relative=()):
     """Drivers by forward selection on d^ at ``pole`` (or ``drivers``), least-squares (a, b, e)."""
     n, m = sys.nstates, sys.ninputs
-    names = list(sys.state_labels) + list(sys.input_labels)
+    cand = [("x", i) for i in range(n)] + [("u", i) for i in range(m)] + \
+        [("r", tuple(ij)) for ij in relative]
+    w = driver_weights(cand, n, m) @ w
+    names = [_driver_name(sys, c) for c in cand]
     f = lfilter([0.0, 1.0 - pole], [1.0, -pole], w, axis=1)
     if drivers is not None:
-        idx = [i if kind == "x" else n + i for kind, i in drivers]
+        idx = [cand.index(c) for c in drivers]
         cols = np.vstack([f[idx], w[idx]])
         coef = np.linalg.lstsq(cols.T, d[0], rcond=None)[0]
         a0 = np.log(pole) / dt
@@ -254,10 +281,10 @@ def _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers=None):
     dbm = d[0, :nb * b].reshape(nb, b).mean(axis=1)
     sel = forward_selection(tb, dbm, tnames, max_terms=2 * max_drivers, min_drop=1e-3,
                             prune=True)
-    idx = sorted({j % (n + m) for j in sel.index})[:max_drivers]
+    idx = sorted({j % len(cand) for j in sel.index})[:max_drivers]
     if not idx:
         return None, None
-    drv = [("x", i) if i < n else ("u", i - n) for i in idx]
+    drv = [cand[i] for i in idx]
     cols = np.vstack([f[idx], w[idx]])
     coef = np.linalg.lstsq(cols.T, d[0], rcond=None)[0]
     a0 = np.log(pole) / dt
@@ -272,7 +299,8 @@ def _problem(sys, channel, y, u, dt, x0, k0, drv):
 
 def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers, drivers=None):
     """(output-error RSS at the least-squares start, drivers, start), or None."""
-    drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers)
+    drv, theta0 = _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers,
+                                     channel.relative)
     if drv is None:
         return None
     with single_thread_blas():
@@ -308,7 +336,7 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
     C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
-    dn = [sys.state_labels[i] if kind == "x" else sys.input_labels[i] for kind, i in drv]
+    dn = [_driver_name(sys, dv) for dv in drv]
     unit = channel.units[0] if channel.units else ""
     unit = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
     parts = []
@@ -344,7 +372,9 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
                       ci=np.asarray(hw), npar=1 + 2 * k, formula=formula,
                       model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
                       se_estimation=se, continuous=cont,
-                      rows=tuple(i if kind == "x" else n + i for kind, i in drv), dt=dt)
+                      rows=tuple(i if kind == "x" else n + i if kind == "u" else -1
+                                 for kind, i in drv), dt=dt,
+                      weights=driver_weights(drv, n, sys.ninputs))
 
 
 def _lag_state(sys) -> str:

@@ -121,13 +121,11 @@ def _params(effects, nf: int, m: int) -> list[_Param]:
             dA[n, n] = 1.0
             out.append(_Param(i, ("a",), dA, np.zeros((nf, m)), law.pole,
                               f"{ef.channel.name}: pole", False))
-            for q, (r, b, e) in enumerate(zip(law.rows, law.b, law.e)):
+            for q, (wq, b, e) in enumerate(zip(law.weights, law.b, law.e)):
                 dAb, dBb = np.zeros((nf, nf)), np.zeros((nf, m))
                 dAe, dBe = np.zeros((nf, nf)), np.zeros((nf, m))
-                if r < n:
-                    dAb[n, r], dAe[:n, r] = 1.0, g
-                else:
-                    dBb[n, r - n], dBe[:n, r - n] = 1.0, g
+                dAb[n, :n], dBb[n] = wq[:n], wq[n:]
+                dAe[:n, :n], dBe[:n] = np.outer(g, wq[:n]), np.outer(g, wq[n:])
                 nm = law.drivers[q]
                 out.append(_Param(i, ("b", q), dAb, dBb, float(b), f"{ef.channel.name}: lag {nm}",
                                   True))
@@ -322,12 +320,12 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
     ha = halves[next(q for q, p in mine if p.key == ("a",))]
     n = base.nstates
     drv, b, e, hb, he = [], [], [], [], []
-    for k, r in enumerate(law.rows):
+    for k, wq in enumerate(law.weights):
         qb = next(q for q, p in mine if p.key == ("b", k))
         qe = next(q for q, p in mine if p.key == ("e", k))
         if qb not in values and qe not in values:
             continue
-        drv.append(("x", r) if r < n else ("u", r - n))
+        drv.append(_driver_of(wq, n))
         b.append(values.get(qb, 0.0))
         e.append(values.get(qe, 0.0))
         hb.append(halves.get(qb, np.nan))
@@ -335,6 +333,16 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
     dprob = _problem(base, ch, y, u, dt, _x0_of(prob, n), k0, drv)
     Qb = Q[:n, :n]
     return _law_from(base, ch, dprob, drv, np.r_[a, b, e], np.r_[ha, hb, he], Qb, R)
+
+
+def _driver_of(wq, n):
+    """The driver tuple of a weight row (see greybox.trace.dynamic.driver_weights)."""
+    nz = np.flatnonzero(wq)
+    if nz.size == 2:  # x_j - x_i
+        i, j = (int(nz[0]), int(nz[1])) if wq[nz[1]] > 0 else (int(nz[1]), int(nz[0]))
+        return ("r", (i, j))
+    r = int(nz[0])
+    return ("x", r) if r < n else ("u", r - n)
 
 
 def _x0_of(prob, n):
