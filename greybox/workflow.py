@@ -79,8 +79,11 @@ __all__ = ["Effect", "EffectStep", "CandidateScore", "LoopReport", "close_the_lo
 # the SCREEN_TOP highest-scoring equations, their pairs and the inputs are traced.
 SCREEN_ABOVE = 4
 SCREEN_TOP = 4
-# ... and only those scoring at least this fraction of the best equation's score.
-SCREEN_REL = 0.05
+# ... and only those scoring at least this fraction of the best equation's score (the
+# score saturates near 150-400 for any strong effect, so two effects of one pass score
+# alike; the coupled neighbours of one missing force score 3-20 % of it and cost a pair
+# each; a weaker effect is left to the next pass of the several-effects loop).
+SCREEN_REL = 0.25
 # A sparse first-order law is fitted for a channel only when its unstructured dynamic
 # fit beats its static law's estimation SE by this factor (evidence of dynamics).
 SPARSE_IF = 0.8
