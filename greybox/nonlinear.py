@@ -597,16 +597,23 @@ def linearize_at(sys, x_op: ArrayLike, u_op: ArrayLike | None = None) -> ct.Stat
         return np.asarray(base.output(0.0, xx, uu), dtype=float).reshape(-1)
 
     p = base.noutputs
-    A = _jacobian(lambda z: f(z, u), x)
-    B = _jacobian(lambda z: f(x, z), u) if m else np.zeros((n, 0))
-    if base.outfcn is None:
-        C, D = np.eye(n)[:p], np.zeros((p, m))
-    else:
-        C = _jacobian(lambda z: h(z, u), x)
-        D = _jacobian(lambda z: h(x, z), u) if m else np.zeros((p, 0))
+    with np.errstate(all="ignore"):  # checked below: one clear error for a non-finite one
+        A, B, C, D = _jacobians(f, h, base.outfcn is None, x, u, n, m, p)
     if not all(np.all(np.isfinite(M)) for M in (A, B, C, D)):
         raise ModelError(f"the linearization of {base.name} is not finite at x = {x}, "
                          f"u = {u}; choose an operating point where f is differentiable")
     return named_ss(A, B, C, D, base.dt, states=list(base.state_labels),
                     inputs=list(base.input_labels), outputs=list(base.output_labels),
                     name=f"{base.name}_linearized")
+
+
+def _jacobians(f, h, no_out, x, u, n, m, p):
+    """(A, B, C, D) of f and h at (x, u) by central differences."""
+    A = _jacobian(lambda z: f(z, u), x)
+    B = _jacobian(lambda z: f(x, z), u) if m else np.zeros((n, 0))
+    if no_out:
+        C, D = np.eye(n)[:p], np.zeros((p, m))
+    else:
+        C = _jacobian(lambda z: h(z, u), x)
+        D = _jacobian(lambda z: h(x, z), u) if m else np.zeros((p, 0))
+    return A, B, C, D
