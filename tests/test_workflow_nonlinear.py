@@ -241,3 +241,73 @@ def test_model_helpers_refuse_bad_input():
                     states=["a", "b"], inputs=["u"], outputs=["a", "b"], name="log")
     with pytest.raises(ModelError, match="linearization of log is not finite"):
         gb.linearize_at(logm, [0.0, 1.0], [0.0])
+
+
+# --------------------------------------------------------------------------- greybox update MODEL.py
+MODEL_PY = '''\
+import control as ct
+import numpy as np
+
+def f(t, x, u, p):
+    return np.array([x[1], -9.81 * np.sin(x[0]) - 0.2 * x[1] + u[0]])
+
+model = ct.nlsys(f, lambda t, x, u, p: x, states=["theta", "omega"], inputs=["T"],
+                 outputs=["theta", "omega"], name="pendulum")
+Q = np.diag([1e-8, 1e-6])
+R = np.diag([1e-4, 1e-4])
+Ts = 0.01
+'''
+
+
+def _csv(path, y, u):
+    data_ = np.vstack([np.arange(y.shape[1]) * DT, u, y])
+    lines = ["time,T,theta,omega"] + [",".join(f"{v:.12g}" for v in row) for row in data_.T]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_cli_update_with_a_nonlinear_model_py(tmp_path, capsys):
+    from greybox.cli import main
+    from greybox.model_io import read_model
+
+    est, val = data()
+    model = tmp_path / "pendulum.py"
+    model.write_text(MODEL_PY)
+    out = tmp_path / "report"
+    code = main(["update", str(model), str(_csv(tmp_path / "est.csv", est.y, est.u)),
+                 "--validate", str(_csv(tmp_path / "val.csv", val.y, val.u)),
+                 "--out", str(out), "--json", "--no-plots", "--quiet"])
+    assert code == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["updated"] is True and s["channels"] == ["omega"]
+    assert "omega^3" in s["effect"]["formula"]
+    assert s["table"]["nominal"]["se"] / s["table"]["updated"]["se"] > 100
+    assert set(s["nonlinear"]) >= {"x_op", "u_op", "operating_point", "linearization"}
+    lin = read_model(out / "updated_model.json")  # the linearization, readable back
+    np.testing.assert_allclose(np.asarray(lin.sys.A), s["nonlinear"]["linearization"]["A"])
+    assert "linearization" in (out / "report.md").read_text()
+
+
+@pytest.mark.parametrize("text, match", [
+    ("raise ValueError('boom')", "raised ValueError while being executed: boom"),
+    ("model = 3\nQ = R = 1", "'model' must be a control.NonlinearIOSystem"),
+    (MODEL_PY.replace("Q = np.diag", "QQ = np.diag"), r"defines no \['Q'\]"),
+    (MODEL_PY.replace("Ts = 0.01", ""), "continuous-time; define Ts"),
+    (MODEL_PY.replace("Ts = 0.01", "Ts = -1"), "'Ts' must be a number > 0"),
+    (MODEL_PY.replace("lambda t, x, u, p: x,", "lambda t, x, u, p: x ** 2,"),
+     "output map .* is not linear"),
+    (MODEL_PY.replace('outputs=["theta", "omega"]', 'outputs=["T", "omega"]'),
+     "named both as input and as output"),
+    (MODEL_PY.replace("R = np.diag([1e-4, 1e-4])", "R = np.eye(3)"), "R"),
+    (MODEL_PY.replace('name="pendulum")', 'name="pendulum", dt=0.02)'),
+     "Ts = 0.01 s disagrees with the discrete model's dt = 0.02 s"),
+    ("def (", "syntax error at line 1"),
+], ids=["raises", "not-a-model", "no-Q", "no-Ts", "bad-Ts", "nonlinear-h", "clash", "R-shape",
+        "dt-mismatch", "syntax"])
+def test_model_py_errors_are_one_clear_line(tmp_path, text, match):
+    from greybox.model_io import read_model
+
+    path = tmp_path / "MODEL.py"
+    path.write_text(text)
+    with pytest.raises(ModelError, match=match):
+        read_model(path)
