@@ -155,6 +155,18 @@ def _names(d, key, path, *, allow_empty=False):
     return v
 
 
+def _check_csv_names(us, ys, path) -> None:
+    """Input and output names become CSV columns: unique, and not a time column's name."""
+    clash = sorted(set(us) & set(ys))
+    if clash:
+        raise ModelError(f"{path}: {clash} named both as input and as output; CSV columns "
+                         f"must be unique: rename one of them")
+    reserved = sorted(set(us + ys) & set(_TIME_COLUMNS))
+    if reserved:
+        raise ModelError(f"{path}: signal name(s) {reserved} are reserved for the CSV time "
+                         f"column; rename them")
+
+
 def _check_channels(chans, xs, path):
     if chans is None:
         return None
@@ -282,14 +294,7 @@ def read_model(path) -> ModelSpec:
     n, m, p = len(xs), len(us), len(ys)
     if m and "B" not in d:
         raise ModelError(f"{path}: missing key 'B' (the model has {m} inputs)")
-    clash = sorted(set(us) & set(ys))
-    if clash:
-        raise ModelError(f"{path}: {clash} named both as input and as output; CSV columns "
-                         f"must be unique: rename one of them")
-    reserved = sorted(set(us + ys) & set(_TIME_COLUMNS))
-    if reserved:
-        raise ModelError(f"{path}: signal name(s) {reserved} are reserved for the CSV time "
-                         f"column; rename them")
+    _check_csv_names(us, ys, path)
     try:
         A = check_matrix(d["A"], (n, n), "A")
         B = check_matrix(d["B"], (n, m), "B") if m else np.zeros((n, 0))
@@ -361,14 +366,7 @@ def read_model_py(path) -> ModelSpec:
         raise ModelError(f"{path}: 'model' must declare its states, inputs and outputs")
     xs, us, ys = (list(v) for v in (sys.state_labels, sys.input_labels, sys.output_labels))
     n, m, p = len(xs), len(us), len(ys)
-    clash = sorted(set(us) & set(ys))
-    if clash:
-        raise ModelError(f"{path}: {clash} named both as input and as output; CSV columns "
-                         f"must be unique: rename one of them")
-    reserved = sorted(set(us + ys) & set(_TIME_COLUMNS))
-    if reserved:
-        raise ModelError(f"{path}: signal name(s) {reserved} are reserved for the CSV time "
-                         f"column; rename them")
+    _check_csv_names(us, ys, path)
     disc = sys.isdtime(strict=True)
     if disc and sys.dt is True:
         raise ModelError(f"{path}: 'model' is discrete with an unspecified dt (True); give "
