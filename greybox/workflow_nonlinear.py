@@ -313,7 +313,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     nominal_d = disc(base)
     notes = []
     if cont:
-        notes.append(f"continuous model discretized with RK4, {nsub} sub-steps per sample "
+        notes.append(f"continuous model discretized with RK4, {nsub} sub-step(s) per sample "
                      f"(inputs and d held over the sample); every model in the table uses it")
 
     # 1. residual of the nominal model: the UKF's innovations
@@ -426,9 +426,12 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                          u_op=u_mean, operating_point=_OP_TEXT.format(what="updated UKF's"),
                          substeps=nsub)
     tick("validation", 1, 1)
-    notes.append("the 'nominal' and 'updated' rows simulate the nonlinear models (RK4); "
-                 "report.model.sys is the updated model's linearization at the operating "
-                 "point (report.nonlinear), not a row of the table")
+    notes.append(f"the 'nominal' and 'updated' rows simulate the nonlinear models"
+                 f"{' (RK4)' if cont else ''}; report.model.sys (updated_model.json) is the "
+                 f"updated model's linearization at x_op = "
+                 f"{np.array2string(x_op_u, precision=4)}, u_op = "
+                 f"{np.array2string(u_mean, precision=4)} ({nl.operating_point}), not a row "
+                 f"of the table")
     notes.append("the parallel delta baseline (linear) is not computed for a nonlinear "
                  "nominal model")
     for name, r in table.items():
