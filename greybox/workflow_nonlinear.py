@@ -83,6 +83,8 @@ __all__ = ["NonlinearUpdate", "close_the_loop_nonlinear", "nonlinear_update_of_l
 
 SKIP = 20
 """Leading samples left out of SE, PE and whiteness (the filters' transient)."""
+_ALTERNATING = -0.5
+"""Below this lag-1 autocorrelation d^ is taken to alternate sign (as in the linear trace)."""
 
 
 @dataclass(frozen=True)
@@ -190,6 +192,18 @@ def _prior(C: NDArray, D: NDArray, y: NDArray, u: NDArray) -> tuple[NDArray, NDA
     n = C.shape[1]
     x0 = np.linalg.lstsq(C, y[:, 0] - D @ u[:, 0], rcond=None)[0]
     return x0, np.eye(n)
+
+
+def _weak_terms(law) -> list[str]:
+    """Names of the law's selected terms whose 95 % interval contains zero."""
+    if law.ci is None:
+        return []
+    out = []
+    for c in range(law.coef.shape[0]):
+        for j in np.flatnonzero(law.coef[c]):
+            if np.isfinite(law.ci[c, j]) and abs(law.coef[c, j]) <= law.ci[c, j]:
+                out.append(law.spec[j][0])
+    return out
 
 
 def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q, R,
@@ -370,8 +384,15 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
             continue
         d = res.d_est[:, SKIP:N - 1]
         x = res.x_filt[:, SKIP:N - 1]
+        # d^ alternating sign (a channel seen through a ZOH zero near z = -1, e.g. a
+        # velocity equation through positions only): fit on the mean of consecutive
+        # samples, as the linear trace does
+        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
         law = _fit_static(d, x, u[:, SKIP:N - 1], lin_cont, nonlinear, labels, ch.units,
-                          False, ch.relative)
+                          r1 < _ALTERNATING, ch.relative)
+        if r1 < _ALTERNATING:
+            notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation {r1:.2f}): "
+                         f"the static law is fitted on the mean of consecutive samples")
         tr = ChannelTrace(channel=ch, status="ok", model=model_cd, filter_result=res,
                           static=law)
         if law.npar == 0:
@@ -412,6 +433,14 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         return _report(f"model error detected (UKF innovations not white), but the best "
                        f"candidate ({ch.name}, static) failed the gate: {', '.join(failed)}; "
                        f"model unchanged", True, cands=cands, tr=tr)
+
+    weak = _weak_terms(law)
+    if weak:
+        notes.append(f"{ch.name}: {len(weak)} of the law's {law.npar} terms ({', '.join(weak)}) "
+                     f"have 95 % intervals containing 0: d^ is mostly estimation noise in this "
+                     f"channel (e.g. a velocity equation seen through positions only) and the "
+                     f"law may be spurious; measure the state the suspected equation drives, "
+                     f"or name the channel (channels=...)")
 
     # 4. before/after on validation data, both simulated with the same RK4
     tick("validation", 0, 1)
