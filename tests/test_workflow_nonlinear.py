@@ -207,6 +207,15 @@ def test_positions_only_is_a_known_limit_and_the_report_says_so():
         assert "law may be spurious" in notes
 
 
+def test_named_channel_is_the_only_candidate():
+    est, val = data()
+    rep = gb.close_the_loop(pendulum(), est.y, est.u, val.y, val.u, Q=QD, R=RM, dt=DT,
+                            channels={"drag": [0.0, 1.0]})
+    assert [c.channel for c in rep.candidates] == ["drag"]
+    assert rep.updated and rep.channel.name == "drag", rep.message
+    assert "drag = -(0.5" in rep.effect.formula  # d named after the channel
+
+
 # --------------------------------------------------------------------------- bad input
 def test_nonlinear_output_map_is_refused():
     est, val = data()
