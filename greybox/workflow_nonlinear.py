@@ -53,7 +53,7 @@ from ._validation import (
     check_same_length,
     check_signal,
 )
-from .exceptions import DataError, GreyboxError, ModelError
+from .exceptions import DataError, GreyboxError, ModelError, RankConditionError
 from .filters import FilterResult, ui_ukf, ukf
 from .metrics import (
     autocorrelation,
@@ -378,9 +378,11 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         try:
             model_cd = disc(with_unknown_inputs(base, ch.G, labels))
             res = ui_ukf(model_cd, y, u, unknown=labels, Q=Q, R=R, x0=x_guess, P0=P0)
+        except RankConditionError as e:  # (17) fails: d is not observable in this channel
+            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", str(e)))
+            continue
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            status = "skipped" if "rank" in str(e).lower() else "failed"
-            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, status, str(e)))
+            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
             continue
         d = res.d_est[:, SKIP:N - 1]
         x = res.x_filt[:, SKIP:N - 1]

@@ -216,6 +216,23 @@ def test_named_channel_is_the_only_candidate():
     assert "drag = -(0.5" in rep.effect.formula  # d named after the channel
 
 
+def test_unobservable_channels_are_skipped_by_the_rank_condition():
+    """A third state z that no output sees: its channels fail (17) and are skipped."""
+    est, val = data()
+
+    def f(t, x, u, p):
+        return np.array([x[1], -9.81 * np.sin(x[0]) - 0.2 * x[1] + u[0], -x[2]])
+
+    nom = ct.nlsys(f, lambda t, x, u, p: x[:2], states=["theta", "omega", "z"],
+                   inputs=["T"], outputs=["theta", "omega"], name="pendulum_z")
+    rep = gb.close_the_loop(nom, est.y, est.u, val.y, val.u, Q=np.diag([1e-8, 1e-6, 1e-8]),
+                            R=RM, dt=DT)
+    status = {c.channel: c.status for c in rep.candidates}
+    assert status["eq(z)"] == "skipped" and status["eq(omega)+eq(z)"] == "skipped"
+    assert "rank(C @ G) = 0" in {c.channel: c.reason for c in rep.candidates}["eq(z)"]
+    assert rep.updated and rep.effect.equations == ("omega",), rep.message
+
+
 # --------------------------------------------------------------------------- bad input
 def test_nonlinear_output_map_is_refused():
     est, val = data()
