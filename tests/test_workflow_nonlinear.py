@@ -77,6 +77,23 @@ def test_missing_cubic_drag_is_found_with_its_coefficient():
     assert not rep.table["nominal"].whiteness.all_white
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [12, 16], ids=lambda s: f"seed{s}")
+def test_over_seeds_right_model_kept_and_drag_found(seed):
+    """Fresh draws: the right model is never changed, the drag always found (8/8 seeds
+    10-17 when this was written: coefficients -0.501 .. -0.504)."""
+    est = record(3000, seed, process_noise=True)
+    val = record(2000, seed + 100, process_noise=False)
+    right = gb.close_the_loop(pendulum(C3), est.y, est.u, val.y, val.u, Q=QD, R=RM, dt=DT)
+    assert not right.updated, right.message
+    rep = gb.close_the_loop(pendulum(0.0), est.y, est.u, val.y, val.u, Q=QD, R=RM, dt=DT)
+    assert rep.updated and rep.effect.equations == ("omega",), rep.message
+    law = rep.effect.law
+    j = [s[0] for s in law.spec].index("omega^3")
+    np.testing.assert_allclose(law.coef[0, j], -C3, rtol=0.02)  # as the first test
+    assert rep.se_ratio() > 100
+
+
 def test_updated_model_is_nonlinear_and_simulates_the_law_exactly():
     rep, nom = run(0.0)
     nl = rep.nonlinear
