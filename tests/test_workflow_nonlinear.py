@@ -192,16 +192,14 @@ def test_coulomb_friction_non_smooth_is_found_as_a_sign_law():
     law = rep.effect.law
     names = [s[0] for s, c in zip(law.spec, law.coef[0]) if c != 0]
     assert names == ["sign(omega)"], rep.effect.formula
-    # the law's sign is tanh(omega/eps): least squares of sign on tanh over the true
-    # omega inflates the level by a computable factor (~2 %); beyond it 3 %: the fit's
-    # 95 % interval is ~1.5 %, and the friction switches inside a held sample
-    om = est.x[1]
-    t = np.tanh(om / law.eps[1])
-    inflation = (t @ np.sign(om)) / (t @ t)
+    # on d^, least squares of sign on the smoothed tanh(omega/eps) inflates the level
+    # (-1.04 here, PAPER_NOTES §9.4); the output-error refinement on y removes it: 3 %,
+    # for tanh against sign near the zero crossings and the switching inside a held sample
+    assert "refined by output error" in " ".join(rep.notes)
     j = [s[0] for s in law.spec].index("sign(omega)")
-    np.testing.assert_allclose(law.coef[0, j], -fc * inflation, rtol=0.03)
+    np.testing.assert_allclose(law.coef[0, j], -fc, rtol=0.03)
     se0, se1 = rep.table["nominal"].se.value, rep.table["updated"].se.value
-    assert se0 / se1 > 10, f"SE {se0:.3g}% -> {se1:.3g}%"  # measured ~45x
+    assert se0 / se1 > 10, f"SE {se0:.3g}% -> {se1:.3g}%"  # measured ~54x
 
 
 @pytest.mark.slow
@@ -230,7 +228,8 @@ def test_named_channel_is_the_only_candidate():
                             channels={"drag": [0.0, 1.0]})
     assert [c.channel for c in rep.candidates] == ["drag"]
     assert rep.updated and rep.channel.name == "drag", rep.message
-    assert "drag = -(0.5" in rep.effect.formula  # d named after the channel
+    assert rep.effect.formula.startswith("drag = -(0.")  # d named after the channel
+    assert "*omega^3" in rep.effect.formula
 
 
 def test_unobservable_channels_are_skipped_by_the_rank_condition():
