@@ -323,7 +323,7 @@ _PY_KEYS = ("model", "Q", "R", "Ts", "channels")
 
 
 def read_model_py(path) -> ModelSpec:
-    """Execute a MODEL.py file and check the ``model``, ``Q``, ``R`` (``Ts``, ``channels``) it defines.
+    """Execute a MODEL.py file; check its ``model``, ``Q``, ``R`` (``Ts``, ``channels``).
 
     Parameters
     ----------

@@ -180,7 +180,7 @@ def _validation_row(model_d, y, u, *, Q, R, x0, P0, name, lags, alpha, order,
 
 
 def _se_from(model_d, u, x_start, y, C, D) -> float:
-    """Estimation SE [%] of a discrete model simulated from x_start at sample SKIP (inf if it diverges)."""
+    """Estimation SE [%] of a model simulated from x_start at sample SKIP (inf: diverged)."""
     try:
         sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=x_start)
     except GreyboxError:

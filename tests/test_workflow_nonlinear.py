@@ -81,7 +81,7 @@ def test_missing_cubic_drag_is_found_with_its_coefficient():
 @pytest.mark.parametrize("seed", [12, 16], ids=lambda s: f"seed{s}")
 def test_over_seeds_right_model_kept_and_drag_found(seed):
     """Fresh draws: the right model is never changed, the drag always found (8/8 seeds
-    10-17 when this was written: coefficients -0.501 .. -0.504)."""
+    10-17 when this was written: coefficients -0.4992 .. -0.5017)."""
     est = record(3000, seed, process_noise=True)
     val = record(2000, seed + 100, process_noise=False)
     right = gb.close_the_loop(pendulum(C3), est.y, est.u, val.y, val.u, Q=QD, R=RM, dt=DT)
@@ -340,7 +340,7 @@ def test_model_helpers_refuse_bad_input():
         gb.linearize_at(logm, [0.0, 1.0], [0.0])
 
 
-# --------------------------------------------------------------------------- greybox update MODEL.py
+# ------------------------------------------------------------------ greybox update MODEL.py
 MODEL_PY = '''\
 import control as ct
 import numpy as np
