@@ -135,11 +135,16 @@ __all__ += [
 # nonlinear models and filters (section IV, issue 10)
 from .filters import MerweScaledSigmaPoints, ensemble_uikf, ui_ukf, ukf  # noqa: E402
 from .nonlinear import (  # noqa: E402
+    add_law,
+    as_nonlinear,
     discretize_nonlinear,
     linear_output_map,
+    linearize_at,
     rk4_substeps,
     simulate_nonlinear,
+    with_unknown_inputs,
 )
+from .workflow_nonlinear import NonlinearUpdate  # noqa: E402
 from .plants import (  # noqa: E402
     MOTOR_PUMP_DT,
     MOTOR_PUMP_Q,
@@ -158,6 +163,11 @@ __all__ += [
     "linear_output_map",
     "rk4_substeps",
     "simulate_nonlinear",
+    "add_law",
+    "as_nonlinear",
+    "linearize_at",
+    "with_unknown_inputs",
+    "NonlinearUpdate",
     "MOTOR_PUMP_DT",
     "MOTOR_PUMP_Q",
     "MOTOR_PUMP_R",

@@ -338,6 +338,24 @@ def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
                    help="no progress on stderr (shown only when stderr is a terminal)")
 
 
+_UPDATE_EPILOG = """\
+MODEL.py (a nonlinear nominal model) is a Python file that defines:
+  model     control.nlsys(f, h, states=[...], inputs=[...], outputs=[...]):
+            continuous (then Ts is needed) or discrete (dt = Ts); the output
+            map must be linear, y = C x + D u (or a control.StateSpace)
+  Q, R      process- and measurement-noise covariances (discrete model)
+  Ts        sampling period of the data [s]
+  channels  optional candidate channels, as in MODEL.json
+The file is executed: use only files you trust. A nonlinear model is
+discretized with RK4 (inputs held over the sample), residuals come from its
+UKF, channels are traced with the unknown-input UKF and static laws only
+(d = law(x, u)); the report's rows simulate the nonlinear models, and
+updated_model.json holds the updated model's linearization at the stated
+operating point (summary.json "nonlinear"), since a Python f cannot be
+written as JSON: the law itself is in the effect's formula.
+"""
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="greybox", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -345,9 +363,13 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("example", choices=sorted(DEMOS), help="which example")
     _common(demo, "greybox-demo-output", "folder for figures and summary.json")
     demo.set_defaults(func=_demo)
-    upd = sub.add_parser("update", help="find, trace and add the effect a model lacks, "
-                                        "from measured data")
-    upd.add_argument("model", help="MODEL.json (schema: greybox.model_io)")
+    upd = sub.add_parser(
+        "update", help="find, trace and add the effect a model lacks, from measured data",
+        description="Find, trace and add the effect a model lacks, from measured data.",
+        epilog=_UPDATE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    upd.add_argument("model", help="MODEL.json (a linear model; schema: greybox.model_io) or "
+                                   "MODEL.py (executed: it defines model, a "
+                                   "control.NonlinearIOSystem or StateSpace, Q, R and Ts)")
     upd.add_argument("estimation", help="estimation data CSV (header: inputs, outputs, "
                                         "optional time)")
     upd.add_argument("--validate", required=True, metavar="VALIDATION.csv",

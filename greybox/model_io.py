@@ -25,6 +25,24 @@ and a ``Ts`` that disagrees with the model's time scale by orders of
 magnitude are refused with one line saying what to change. A model without
 inputs (``"inputs": []``, B and D may then be omitted) is valid.
 
+MODEL.py (a nonlinear model, or any model python-control can hold): a Python
+file that defines, at module level::
+
+    model = control.nlsys(f, h, states=[...], inputs=[...], outputs=[...])
+                                           # a NonlinearIOSystem (continuous, or
+                                           # discrete with dt = Ts) or a StateSpace,
+                                           # named signals, linear output map
+    Q = ...                                # process-noise covariance (discrete)
+    R = ...                                # measurement-noise covariance
+    Ts = 0.01                              # sampling period of the data [s]
+                                           # (optional for a discrete model: its dt)
+    channels = {...}                       # optional, as in MODEL.json
+
+It is *executed* as Python (``runpy.run_path``) to obtain them: read only
+files you trust. Any other module-level names (imports, helper functions,
+parameters) are ignored; an exception inside the file is reported as one
+ModelError naming the file.
+
 CSV: a header row naming every input and every output of the model (any
 order) and optionally a time column named ``time`` or ``t`` [s]; one row
 per sample; numbers only (UTF-8, an Excel byte-order mark is accepted).
@@ -48,9 +66,10 @@ import numpy as np
 
 from ._validation import MAX_MAGNITUDE, check_covariance, check_matrix
 from .exceptions import CovarianceError, DataError, DimensionError, GreyboxWarning, ModelError
+from .nonlinear import linear_output_map
 from .system import named_ss
 
-__all__ = ["ModelSpec", "read_model", "model_to_dict", "write_model", "read_csv"]
+__all__ = ["ModelSpec", "read_model", "read_model_py", "model_to_dict", "write_model", "read_csv"]
 
 _TIME_COLUMNS = ("time", "t")
 _KEYS = ("time", "Ts", "states", "inputs", "outputs", "A", "B", "C", "D", "Q", "R",
@@ -67,8 +86,9 @@ class ModelSpec:
 
     Attributes
     ----------
-    sys : control.StateSpace
-        Continuous (dt = 0) or discrete (dt = Ts) model with named signals.
+    sys : control.StateSpace or control.NonlinearIOSystem
+        Continuous (dt = 0) or discrete (dt = Ts) model with named signals
+        (a NonlinearIOSystem only from MODEL.py).
     Ts : float
         Sampling period of the data [s].
     Q, R : ndarray
@@ -77,7 +97,7 @@ class ModelSpec:
         Candidate channels as given (see :func:`greybox.trace.resolve_channel_spec`).
     """
 
-    sys: ct.StateSpace
+    sys: ct.StateSpace | ct.NonlinearIOSystem
     Ts: float
     Q: np.ndarray
     R: np.ndarray
@@ -133,6 +153,18 @@ def _names(d, key, path, *, allow_empty=False):
     if len(set(v)) != len(v):
         raise ModelError(f"{path}: '{key}' has repeated names {v}")
     return v
+
+
+def _check_csv_names(us, ys, path) -> None:
+    """Input and output names become CSV columns: unique, and not a time column's name."""
+    clash = sorted(set(us) & set(ys))
+    if clash:
+        raise ModelError(f"{path}: {clash} named both as input and as output; CSV columns "
+                         f"must be unique: rename one of them")
+    reserved = sorted(set(us + ys) & set(_TIME_COLUMNS))
+    if reserved:
+        raise ModelError(f"{path}: signal name(s) {reserved} are reserved for the CSV time "
+                         f"column; rename them")
 
 
 def _check_channels(chans, xs, path):
@@ -204,12 +236,13 @@ def _check_time_scale(A, Ts, time, path):
 
 
 def read_model(path) -> ModelSpec:
-    """Read and check MODEL.json (schema in the module docstring).
+    """Read and check MODEL.json or MODEL.py (schemas in the module docstring).
 
     Parameters
     ----------
     path : str or path-like
-        The MODEL.json file (UTF-8).
+        The MODEL.json file (UTF-8), or a MODEL.py file (name ending in
+        ``.py``; executed, see :func:`read_model_py`).
 
     Returns
     -------
@@ -222,6 +255,8 @@ def read_model(path) -> ModelSpec:
     ModelError
         The content breaks the schema (one line says what and where).
     """
+    if str(path).endswith(".py"):
+        return read_model_py(path)
     text = _read_text(path, "model file")
     try:
         d = json.loads(text, object_pairs_hook=_no_repeated_keys)
@@ -259,14 +294,7 @@ def read_model(path) -> ModelSpec:
     n, m, p = len(xs), len(us), len(ys)
     if m and "B" not in d:
         raise ModelError(f"{path}: missing key 'B' (the model has {m} inputs)")
-    clash = sorted(set(us) & set(ys))
-    if clash:
-        raise ModelError(f"{path}: {clash} named both as input and as output; CSV columns "
-                         f"must be unique: rename one of them")
-    reserved = sorted(set(us + ys) & set(_TIME_COLUMNS))
-    if reserved:
-        raise ModelError(f"{path}: signal name(s) {reserved} are reserved for the CSV time "
-                         f"column; rename them")
+    _check_csv_names(us, ys, path)
     try:
         A = check_matrix(d["A"], (n, n), "A")
         B = check_matrix(d["B"], (n, m), "B") if m else np.zeros((n, 0))
@@ -288,6 +316,85 @@ def read_model(path) -> ModelSpec:
     dt = Ts if d["time"] == "discrete" else 0
     sys = named_ss(A, B, C, D, dt, states=xs, inputs=us, outputs=ys,
                    name=str(d.get("name", "model")))
+    return ModelSpec(sys=sys, Ts=Ts, Q=Q, R=R, channels=chans)
+
+
+_PY_KEYS = ("model", "Q", "R", "Ts", "channels")
+
+
+def read_model_py(path) -> ModelSpec:
+    """Execute a MODEL.py file; check its ``model``, ``Q``, ``R`` (``Ts``, ``channels``).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The Python file (UTF-8). It is executed: read only files you trust.
+
+    Returns
+    -------
+    ModelSpec
+        With ``sys`` the file's ``model`` (NonlinearIOSystem or StateSpace).
+
+    Raises
+    ------
+    DataError
+        The file cannot be read or is not UTF-8.
+    ModelError
+        The file raises, lacks ``model``, ``Q`` or ``R``, its model has
+        unnamed or clashing signals, a nonlinear output map, or a ``Ts``
+        that disagrees with a discrete model's dt.
+    """
+    import runpy
+
+    _read_text(path, "model file")  # readable, UTF-8 (one clear error otherwise)
+    try:
+        ns = runpy.run_path(str(path), run_name="greybox_model")
+    except SyntaxError as e:
+        raise ModelError(f"{path}: Python syntax error at line {e.lineno}: {e.msg}") from e
+    except Exception as e:  # noqa: BLE001 - a user's file: report whatever it raised
+        raise ModelError(f"{path} raised {type(e).__name__} while being executed: {e}") from e
+    missing = [k for k in ("model", "Q", "R") if k not in ns]
+    if missing:
+        raise ModelError(f"{path}: defines no {missing}; a MODEL.py must define model (a "
+                         f"control.NonlinearIOSystem or StateSpace), Q and R (and Ts for a "
+                         f"continuous model)")
+    sys = ns["model"]
+    if not isinstance(sys, ct.NonlinearIOSystem):  # StateSpace is a NonlinearIOSystem subclass
+        raise ModelError(f"{path}: 'model' must be a control.NonlinearIOSystem (control.nlsys) "
+                         f"or control.StateSpace; found {type(sys).__name__}")
+    if sys.nstates is None or sys.ninputs is None or not sys.noutputs:
+        raise ModelError(f"{path}: 'model' must declare its states, inputs and outputs")
+    xs, us, ys = (list(v) for v in (sys.state_labels, sys.input_labels, sys.output_labels))
+    n, m, p = len(xs), len(us), len(ys)
+    _check_csv_names(us, ys, path)
+    disc = sys.isdtime(strict=True)
+    if disc and sys.dt is True:
+        raise ModelError(f"{path}: 'model' is discrete with an unspecified dt (True); give "
+                         f"its sampling period")
+    Ts = ns.get("Ts", float(sys.dt) if disc else None)
+    if Ts is None:
+        raise ModelError(f"{path}: 'model' is continuous-time; define Ts, the sampling period "
+                         f"of the data [s]")
+    if isinstance(Ts, bool) or not isinstance(Ts, (int, float, np.floating, np.integer)) or \
+            not np.isfinite(Ts) or Ts <= 0:
+        raise ModelError(f"{path}: 'Ts' must be a number > 0 [s]; found {Ts!r}")
+    Ts = float(Ts)
+    if disc and abs(Ts - float(sys.dt)) > 1e-9 * Ts:
+        raise ModelError(f"{path}: Ts = {Ts:g} s disagrees with the discrete model's dt = "
+                         f"{sys.dt:g} s")
+    try:
+        Q = check_covariance(ns["Q"], n, "Q", definite=False)
+        R = check_covariance(ns["R"], p, "R", definite=True)
+    except (DimensionError, DataError, CovarianceError) as e:
+        raise ModelError(f"{path}: {e} (states {n}, inputs {m}, outputs {p})") from e
+    if not isinstance(sys, ct.StateSpace):
+        try:
+            linear_output_map(sys)
+        except (ModelError, DimensionError) as e:
+            raise ModelError(f"{path}: {e}") from e
+    chans = ns.get("channels")
+    if chans is not None:
+        chans = _check_channels(dict(chans) if isinstance(chans, dict) else chans, xs, path)
     return ModelSpec(sys=sys, Ts=Ts, Q=Q, R=R, channels=chans)
 
 

@@ -40,6 +40,7 @@ from ._validation import (check_covariance, check_input_record, check_positive,
                           check_vector)
 from .exceptions import DataError, DimensionError, ModelError
 from .signals import SimulationResult, _gaussian, _rng
+from .system import named_ss
 
 __all__ = [
     "rk4_substeps",
@@ -48,6 +49,10 @@ __all__ = [
     "simulate_nonlinear",
     "StateMap",
     "state_map",
+    "as_nonlinear",
+    "with_unknown_inputs",
+    "add_law",
+    "linearize_at",
 ]
 
 _RK4_H_LAMBDA = 0.35
@@ -64,17 +69,23 @@ def _check_nlsys(sys, name: str = "sys") -> ct.NonlinearIOSystem:
     return sys
 
 
+def _jacobian(fun: Callable, z: NDArray) -> NDArray:
+    """Central-difference Jacobian of the vector function ``fun(z)``, shape (len(fun), z.size)."""
+    cols = []
+    for i in range(z.size):
+        h = 1e-6 * max(1.0, abs(z[i]))
+        e = np.zeros(z.size)
+        e[i] = h
+        cols.append((np.asarray(fun(z + e), float).reshape(-1)
+                     - np.asarray(fun(z - e), float).reshape(-1)) / (2 * h))
+    if cols:
+        return np.column_stack(cols)
+    return np.zeros((np.asarray(fun(z), float).size, 0))
+
+
 def _jacobian_x(fun: Callable, x: NDArray, u: NDArray) -> NDArray:
     """Central-difference Jacobian of ``fun(x, u)`` with respect to x."""
-    n = x.size
-    J = np.empty((n, n))
-    for i in range(n):
-        h = 1e-6 * max(1.0, abs(x[i]))
-        e = np.zeros(n)
-        e[i] = h
-        J[:, i] = (np.asarray(fun(x + e, u), float).reshape(-1)
-                   - np.asarray(fun(x - e, u), float).reshape(-1)) / (2 * h)
-    return J
+    return _jacobian(lambda z: fun(z, u), x)
 
 
 def _op_point(sys, x_op, u_op):
@@ -403,3 +414,206 @@ def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None 
     if R is not None:
         y = y + _gaussian(check_covariance(R, p, "R", definite=False), N, g)
     return SimulationResult(t=np.arange(N) * dt, x=x, y=y, u=u, y_clean=y_clean, sys=sys)
+
+
+# --------------------------------------------------------------------------- model building
+def as_nonlinear(sys) -> ct.NonlinearIOSystem:
+    """A linear ``StateSpace`` as a ``NonlinearIOSystem`` (same names, dt, C and D).
+
+    Parameters
+    ----------
+    sys : control.StateSpace or control.NonlinearIOSystem
+        A NonlinearIOSystem is returned unchanged.
+
+    Returns
+    -------
+    control.NonlinearIOSystem
+        ``f(t, x, u) = A x + B u`` and ``h(t, x, u) = C x + D u``; both accept
+        a batch of states ``(nstates, npoints)``.
+    """
+    if not isinstance(sys, ct.StateSpace):
+        return _check_nlsys(sys)
+    A, B, C, D = (np.asarray(M, dtype=float) for M in (sys.A, sys.B, sys.C, sys.D))
+
+    def upd(t, x, u, params):
+        return A @ np.asarray(x, dtype=float) + B @ np.asarray(u, dtype=float)
+
+    def out(t, x, u, params):
+        return C @ np.asarray(x, dtype=float) + D @ np.asarray(u, dtype=float)
+
+    return ct.nlsys(upd, out, states=list(sys.state_labels), inputs=list(sys.input_labels),
+                    outputs=list(sys.output_labels), dt=sys.dt, name=sys.name)
+
+
+def _columns(G, n: int, name: str = "G") -> NDArray[np.float64]:
+    G = np.asarray(G, dtype=float)
+    if G.ndim == 1:
+        G = G[:, None]
+    if G.ndim != 2 or G.shape[0] != n or G.shape[1] < 1:
+        raise DimensionError(f"{name} has shape {G.shape}; expected (nstates, md) = ({n}, md)")
+    if not np.all(np.isfinite(G)):
+        raise DataError(f"{name} contains NaN or inf")
+    return G
+
+
+def with_unknown_inputs(sys, G: ArrayLike, labels=None) -> ct.NonlinearIOSystem:
+    """The model with unknown inputs d entering its state equations through G.
+
+    ``dx/dt = f(t, x, u) + G d`` (continuous) or ``x[k+1] = F(k, x, u) + G d``
+    (discrete); inputs ``[u, d]``, the same output map (d does not feed
+    through). A continuous result is discretized by
+    :func:`discretize_nonlinear` with d held over the sample like u, so d
+    keeps its physical units and G its continuous meaning.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem or control.StateSpace
+        Nominal model (continuous or discrete).
+    G : array_like, shape (nstates,) or (nstates, md)
+        Input matrix of d in the model's own time base.
+    labels : sequence of str, optional
+        Names of the md unknown inputs (default ``d``, or ``d0, d1, ...``).
+
+    Returns
+    -------
+    control.NonlinearIOSystem
+        Vectorized in x whenever ``sys`` is.
+
+    Raises
+    ------
+    DimensionError
+        G has the wrong number of rows, or the labels the wrong count.
+    ModelError
+        A label clashes with an input name.
+    """
+    base = as_nonlinear(sys)
+    n, m = base.nstates, base.ninputs
+    G = _columns(G, n)
+    md = G.shape[1]
+    labels = (["d"] if md == 1 else [f"d{j}" for j in range(md)]) if labels is None else \
+        [str(s) for s in labels]
+    if len(labels) != md:
+        raise DimensionError(f"labels has {len(labels)} names; expected md = {md}")
+    clash = sorted(set(labels) & set(base.input_labels))
+    if clash:
+        raise ModelError(f"unknown-input names {clash} clash with inputs of {base.name}; "
+                         f"rename them")
+    f, h, par = base.updfcn, base.outfcn, base.params
+
+    def upd(t, x, ud, params):
+        ud = np.asarray(ud, dtype=float)
+        return np.asarray(f(t, x, ud[:m], params), dtype=float) + G @ ud[m:]
+
+    out = None
+    if h is not None:
+        def out(t, x, ud, params):
+            return h(t, x, np.asarray(ud, dtype=float)[:m], params)
+
+    return ct.nlsys(upd, out, states=list(base.state_labels),
+                    inputs=list(base.input_labels) + labels, outputs=list(base.output_labels),
+                    dt=base.dt, params=dict(par or {}), name=f"{base.name}_with_d")
+
+
+def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None
+            ) -> ct.NonlinearIOSystem:
+    """The model with a law added to its state equations: ``f(t, x, u) + G law(x, u)``.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem or control.StateSpace
+        Nominal model (continuous or discrete); a StateSpace is wrapped by
+        :func:`as_nonlinear`.
+    G : array_like, shape (nstates,) or (nstates, md)
+        Where the law enters, in the model's own time base (the channel's G).
+    law : callable
+        ``law(x, u)`` with x of shape (nstates,) or (nstates, npoints) and u
+        of shape (ninputs,) or (ninputs, npoints); returns (md,) or
+        (md, npoints) (e.g. ``StaticLaw.evaluate``).
+    name : str, optional
+        Name of the new model (default ``<name>_updated``).
+
+    Returns
+    -------
+    control.NonlinearIOSystem
+        Same states, inputs, outputs, dt and output map; simulates the law
+        exactly (vectorized in x when ``sys`` and ``law`` are).
+
+    Raises
+    ------
+    DimensionError
+        G has the wrong number of rows.
+    """
+    base = as_nonlinear(sys)
+    G = _columns(G, base.nstates)
+    if not callable(law):
+        raise ModelError(f"law must be callable as law(x, u); found {type(law).__name__}")
+    f, par = base.updfcn, base.params
+
+    def upd(t, x, u, params):
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        return np.asarray(f(t, x, u, params), dtype=float) + G @ np.asarray(law(x, u), float)
+
+    return ct.nlsys(upd, base.outfcn, states=list(base.state_labels),
+                    inputs=list(base.input_labels), outputs=list(base.output_labels),
+                    dt=base.dt, params=dict(par or {}), name=name or f"{base.name}_updated")
+
+
+def linearize_at(sys, x_op: ArrayLike, u_op: ArrayLike | None = None) -> ct.StateSpace:
+    """Linearization of a nonlinear model at an operating point, as a named StateSpace.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem
+        Continuous or discrete model.
+    x_op : array_like, shape (nstates,)
+        State of the operating point (in the model's units).
+    u_op : array_like, shape (ninputs,), optional
+        Inputs at the operating point (zero by default).
+
+    Returns
+    -------
+    control.StateSpace
+        ``A = df/dx``, ``B = df/du``, ``C = dh/dx``, ``D = dh/du`` at
+        (x_op, u_op) (central differences), same names and dt: ready for
+        ``control.dlqr``/``control.dlqe`` when discrete. The operating point
+        need not be an equilibrium: the drift ``f(x_op, u_op)`` (or
+        ``F(x_op, u_op) - x_op``) is not part of the StateSpace.
+
+    Raises
+    ------
+    ModelError
+        f or h is not finite at the operating point.
+    """
+    base = _check_nlsys(sys)
+    x, u = _op_point(base, x_op, u_op)
+    par = base.params
+    n, m = x.size, u.size
+
+    def f(xx, uu):
+        return np.asarray(base.updfcn(0.0, xx, uu, par), dtype=float).reshape(-1)
+
+    def h(xx, uu):
+        return np.asarray(base.output(0.0, xx, uu), dtype=float).reshape(-1)
+
+    p = base.noutputs
+    with np.errstate(all="ignore"):  # checked below: one clear error for a non-finite one
+        A, B, C, D = _jacobians(f, h, base.outfcn is None, x, u, n, m, p)
+    if not all(np.all(np.isfinite(M)) for M in (A, B, C, D)):
+        raise ModelError(f"the linearization of {base.name} is not finite at x = {x}, "
+                         f"u = {u}; choose an operating point where f is differentiable")
+    return named_ss(A, B, C, D, base.dt, states=list(base.state_labels),
+                    inputs=list(base.input_labels), outputs=list(base.output_labels),
+                    name=f"{base.name}_linearized")
+
+
+def _jacobians(f, h, no_out, x, u, n, m, p):
+    """(A, B, C, D) of f and h at (x, u) by central differences."""
+    A = _jacobian(lambda z: f(z, u), x)
+    B = _jacobian(lambda z: f(x, z), u) if m else np.zeros((n, 0))
+    if no_out:
+        C, D = np.eye(n)[:p], np.zeros((p, m))
+    else:
+        C = _jacobian(lambda z: h(z, u), x)
+        D = _jacobian(lambda z: h(x, z), u) if m else np.zeros((p, 0))
+    return A, B, C, D

@@ -243,6 +243,10 @@ class LoopReport:
         again while they are not white). ``effect``, ``channel``,
         ``candidates``, ``gate`` and ``trace`` describe the first step;
         ``model`` and ``table["updated"]`` hold every effect.
+    nonlinear : greybox.NonlinearUpdate or None
+        Set when the updated model is nonlinear (a nonlinear nominal model,
+        or a nonlinear law): the ``NonlinearIOSystem`` that the "updated"
+        row simulates and its linearization at a stated operating point.
     """
 
     model_error_detected: bool
@@ -260,6 +264,7 @@ class LoopReport:
     trace: ChannelTrace | None = field(default=None, repr=False)
     notes: tuple[str, ...] = ()
     steps: tuple[EffectStep, ...] = ()
+    nonlinear: object = field(default=None, repr=False)
 
     def se_ratio(self) -> float:
         """Validation SE of the nominal model divided by that of the updated model.
@@ -290,6 +295,7 @@ class LoopReport:
             "table": {k: v.as_dict() for k, v in self.table.items()},
             "notes": list(self.notes),
             "steps": [st.as_dict() for st in self.steps],
+            **({"nonlinear": self.nonlinear.as_dict()} if self.nonlinear is not None else {}),
         }
 
 
@@ -389,11 +395,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
 
     Parameters
     ----------
-    sys : control.StateSpace
+    sys : control.StateSpace or control.NonlinearIOSystem
         Nominal model from the measured inputs to the measured outputs, with
         named states, inputs and outputs. Continuous (then ``dt`` is needed
         and the model is ZOH-discretized together with each channel) or
-        discrete.
+        discrete. A NonlinearIOSystem (linear output map) goes through
+        :func:`greybox.workflow_nonlinear.close_the_loop_nonlinear` (UKF
+        residual, UI-UKF trace, static laws, RK4 simulation; ``max_order``,
+        ``delta``, ``delta_max_order`` and ``max_effects`` do not apply).
     y, u : array_like, shapes (noutputs, nsteps), (ninputs, nsteps)
         Estimation record.
     y_val, u_val : array_like
@@ -455,6 +464,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     and by the innovations' whiteness, and the before/after message compares
     PE ("SE n/a").
     """
+    if isinstance(sys, ct.NonlinearIOSystem) and not isinstance(sys, ct.StateSpace):
+        from .workflow_nonlinear import close_the_loop_nonlinear  # issue 10: section IV
+        return close_the_loop_nonlinear(
+            sys, y, u, y_val, u_val, Q=Q, R=R, dt=dt, channels=channels, nonlinear=nonlinear,
+            alpha=alpha, lags=lags, parsimony=parsimony, min_se_drop=min_se_drop,
+            bic_factor=bic_factor, progress=progress)
     check_statespace(sys, "sys")
     tick = ProgressClock(progress)
     lags = check_positive(lags, "lags", integer=True)
@@ -827,7 +842,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
 
     rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
     tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
-    return rep
+    from .workflow_nonlinear import nonlinear_update_of_linear  # a nonlinear law: its nlsys
+    return nonlinear_update_of_linear(rep)
 
 
 def _static_is_enough(scored, y, u, Q, R, k0, lags, alpha) -> bool:

@@ -20,7 +20,9 @@ def test_tutorial05_runs_and_saves_figure(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     for heading in ("Table V", "unknown-input UKF", "recovered load h_r",
                     "ModelError: the state update of tank returned NaN or inf for state "
-                    "'level' at step"):
+                    "'level' at step",
+                    "close_the_loop on a nonlinear model", "law: d_omega = -(0.5",
+                    "the right model: no significant model error"):
         assert heading in proc.stdout
     fig = tmp_path / "fig8_pump_load.png"
     assert fig.is_file() and fig.stat().st_size > 1000

@@ -187,6 +187,35 @@ def test_cubic_law_is_nonlinear_and_reported_linearized():
     assert "updated (linearized)" in rep.table
 
 
+def test_cubic_law_returns_the_exact_nonlinear_model_and_a_linearization():
+    """Issue 10 item 5: the 'updated' row is a NonlinearIOSystem; which row is which."""
+    import control as ct
+
+    rep, (y, u, yv, uv, nom, R) = run_case("cubic")
+    nl = rep.nonlinear
+    assert isinstance(nl.model, ct.NonlinearIOSystem) and nl.model.dt == DT
+    # oracle: the table's "updated" row (simulate_with_law) from its own initial state
+    # equals a plain simulation of the returned NonlinearIOSystem
+    x0 = gb.estimate_initial_state(rep.model.sys, yv, uv)
+    sim = gb.simulate_nonlinear(nl.model, uv, x0=x0)
+    # 1e-9: the same discrete map evaluated by two code paths (rounding only)
+    np.testing.assert_allclose(rep.table["updated"].y_sim, sim.y, rtol=1e-9, atol=1e-12)
+    # the linearization at the stated point: A + G * (3 c p1^2) in the (v1, p1) entry
+    lin = nl.linearization
+    assert isinstance(lin, ct.StateSpace) and lin.dt == DT
+    law = rep.effect.law
+    G = np.asarray(rep.trace.filter_result.G)[:, 0]
+    A = np.asarray(rep.trace.filter_result.sys.A)
+    j = [s[0] for s in law.spec].index("p1^3")
+    slope = 3 * law.coef[0, j] * nl.x_op[0] ** 2
+    # 1e-6: central differences with h = 1e-6 on a cubic (truncation ~h^2 * 6c)
+    np.testing.assert_allclose(lin.A[:, 0], A[:, 0] + G * slope + sum(
+        G * law.coef[0, k] for k, s in enumerate(law.spec) if s[1] == "x" and s[2] == 0),
+        atol=1e-6)
+    assert any("which row is which" in n for n in rep.notes)
+    assert "nonlinear" in rep.as_dict()
+
+
 def test_partial_measurement_still_finds_the_equation():
     rep, _ = run_case("partial")
     assert rep.updated and rep.effect.equations == ("v2",)

@@ -1,0 +1,594 @@
+"""Close the loop on a nonlinear nominal model (section IV): UKF residual, UI-UKF trace, law.
+
+:func:`greybox.close_the_loop` calls :func:`close_the_loop_nonlinear` when its
+model is a ``control.NonlinearIOSystem`` (continuous or discrete, with a
+linear output map, the paper's (33)). The stages mirror the linear pipeline:
+
+1. **Residual.** Ljung-Box test of the one-step innovations of the
+   unscented Kalman filter (:func:`greybox.ukf`) of the nominal model.
+2. **Trace.** For every candidate channel (the channels of
+   :func:`greybox.trace.resolve_channel_spec`, built on the model's
+   linearization at the operating point: each state equation, each input
+   entering two or more equations, pairs where p allows) the model gets the
+   unknown input ``G d`` (:func:`greybox.with_unknown_inputs`) and the
+   unknown-input UKF (:func:`greybox.ui_ukf`) estimates d^; the static law
+   ``d = law(x, u)`` is fitted on d^ by the same d^-regression as the linear
+   pipeline (forward selection with a BIC stopping rule over x, u, x^3,
+   sign(x), |x|). Dynamic (unstructured subsystem) laws are not offered for
+   a nonlinear nominal: the subsystem identification is linear.
+3. **Choose and gate** exactly as the linear pipeline: lowest estimation SE
+   of the updated model, within ``parsimony`` the fewest parameters; update
+   only if some output rejects whiteness, the BIC gain exceeds
+   ``bic_factor`` times its penalty and the SE drops below ``min_se_drop``
+   times the nominal one.
+4. **Before/after.** The updated model is ``f(x, u) + G law(x, u)``
+   (:func:`greybox.add_law`) in the nominal model's own time base; nominal
+   and updated are simulated with the same RK4 discretization
+   (:func:`greybox.discretize_nonlinear`, one sub-step count for both); PE
+   and whiteness come from each model's own UKF predictor.
+
+Initial state of every simulation: the model's own (UI-)UKF filtered state at
+sample ``skip`` = 20; the simulation starts there and SE, PE and the
+whiteness tests leave out the first 20 samples (the first 20 columns of
+``y_sim`` hold the filter's estimates).
+
+The law is fitted in the units of d: for a continuous model d is held over
+each sample like u (zero-order hold) and enters ``dx/dt`` through the
+continuous G, so the law's coefficients are continuous-time coefficients
+(PAPER_NOTES §9.5) and the updated model evaluates the law at every RK4
+stage (exactly, not held).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import control as ct
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from ._validation import (
+    check_covariance,
+    check_positive,
+    check_same_length,
+    check_signal,
+)
+from .exceptions import DataError, GreyboxError, ModelError, RankConditionError
+from .filters import FilterResult, ui_ukf, ukf
+from .metrics import (
+    autocorrelation,
+    correlation_band,
+    cross_correlation,
+    relative_error,
+    whiteness_test,
+)
+from .nonlinear import (
+    add_law,
+    as_nonlinear,
+    discretize_nonlinear,
+    linear_output_map,
+    linearize_at,
+    rk4_substeps,
+    simulate_nonlinear,
+    with_unknown_inputs,
+)
+from .progress import ProgressClock
+from .trace import ChannelTrace, resolve_channel_spec
+from .trace.intervals import hac_covariance
+from .trace.laws import _fit_static, _law_line
+from .update import UpdatedModel
+from .validate import ModelValidation, describe_before_after, undefined_error
+from .workflow import CRITERION, CandidateScore, Effect, LoopReport
+
+__all__ = ["NonlinearUpdate", "close_the_loop_nonlinear", "nonlinear_update_of_linear"]
+
+SKIP = 20
+"""Leading samples left out of SE, PE and whiteness (the filters' transient)."""
+_ALTERNATING = -0.5
+OE_MAX_TERMS = 3
+"""Laws with at most this many terms are refined by output error on y (cost ~ terms)."""
+"""Below this lag-1 autocorrelation d^ is taken to alternate sign (as in the linear trace)."""
+
+
+@dataclass(frozen=True)
+class NonlinearUpdate:
+    """The updated model when it is nonlinear (a nonlinear nominal, or a nonlinear law).
+
+    Attributes
+    ----------
+    model : control.NonlinearIOSystem
+        The updated model in the nominal model's own time base (continuous
+        if the nominal is): ``f(x, u) + G law(x, u)``; the nominal model
+        itself when nothing was changed.
+    discrete : control.NonlinearIOSystem
+        The discrete model the table's "updated" row simulates exactly (RK4
+        sub-steps of ``model``, or ``A x + B u + G law(x, u)`` for a law
+        fitted in discrete time on a linear nominal).
+    linearization : control.StateSpace
+        ``discrete`` linearized at (x_op, u_op): a StateSpace for
+        ``control.dlqr`` / ``control.dlqe`` (the drift ``F(x_op, u_op) -
+        x_op`` is not part of it).
+    x_op : ndarray, shape (nstates,)
+        Operating point of the linearization.
+    u_op : ndarray, shape (ninputs,)
+        Inputs at the operating point.
+    operating_point : str
+        How (x_op, u_op) was chosen, in words.
+    substeps : int
+        RK4 sub-steps per sample of ``discrete`` (0 when no RK4 is involved).
+    """
+
+    model: ct.NonlinearIOSystem = field(repr=False)
+    discrete: ct.NonlinearIOSystem = field(repr=False)
+    linearization: ct.StateSpace = field(repr=False)
+    x_op: NDArray[np.float64]
+    u_op: NDArray[np.float64]
+    operating_point: str
+    substeps: int = 0
+
+    def as_dict(self) -> dict:
+        """JSON-ready summary (the linearization's matrices, the operating point)."""
+        lin = self.linearization
+        return {"model": self.model.name, "x_op": self.x_op.tolist(),
+                "u_op": self.u_op.tolist(), "operating_point": self.operating_point,
+                "substeps": self.substeps, "dt": float(lin.dt),
+                "linearization": {k: np.asarray(getattr(lin, k), float).tolist()
+                                  for k in ("A", "B", "C", "D")}}
+
+
+_OP_TEXT = ("the mean of the {what} filtered states and of the inputs over the estimation "
+            "record")
+
+
+def _flag(value, name):
+    if not isinstance(value, (bool, np.bool_)):
+        raise DataError(f"{name} must be True or False; found {value!r}")
+    return bool(value)
+
+
+def _validation_row(model_d, y, u, *, Q, R, x0, P0, name, lags, alpha, order,
+                    ) -> tuple[ModelValidation, FilterResult]:
+    """SE (simulation from the UKF's state at SKIP), PE and whiteness of the UKF predictor."""
+    C, D = linear_output_map(model_d)
+    kf = ukf(model_d, y, u, Q=Q, R=R, x0=x0, P0=P0)
+    y_pred = C @ kf.x_pred + D @ u
+    e = y - y_pred
+    y_sim = C @ kf.x_filt + D @ u
+    se_reason = ""
+    try:
+        sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=kf.x_filt[:, SKIP])
+        y_sim[:, SKIP:] = C @ sim.x + D @ u[:, SKIP:]
+    except (GreyboxError, FloatingPointError) as ex:
+        se_reason = f"the simulation diverged ({ex}): its simulation error is undefined"
+    if not se_reason and not np.all(np.isfinite(y_sim)):
+        se_reason = "the simulation diverged: its simulation error is undefined"
+    if se_reason:
+        y_sim = np.full(y.shape, np.nan)
+    m = u.shape[0]
+    row = ModelValidation(
+        name=name, order=order,
+        se=undefined_error(y.shape[0]) if se_reason else relative_error(y, y_sim, skip=SKIP),
+        pe=relative_error(y, y_pred, skip=SKIP),
+        whiteness=whiteness_test(e[:, SKIP:], lags, alpha=alpha),
+        autocorr=autocorrelation(e[:, SKIP:], lags),
+        crosscorr=cross_correlation(u[:, SKIP:], e[:, SKIP:], lags) if m else
+        np.zeros((0, y.shape[0], 2 * lags + 1)),
+        band=correlation_band(y.shape[1] - SKIP, 0.99), y_sim=y_sim, y_pred=y_pred,
+        residuals=e, output_labels=tuple(model_d.output_labels), se_reason=se_reason)
+    return row, kf
+
+
+def _se_from(model_d, u, x_start, y, C, D) -> float:
+    """Estimation SE [%] of a model simulated from x_start at sample SKIP (inf: diverged)."""
+    try:
+        sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=x_start)
+    except GreyboxError:
+        return np.inf
+    ys = C @ sim.x + D @ u[:, SKIP:]
+    if not np.all(np.isfinite(ys)):
+        return np.inf
+    return float(relative_error(y[:, SKIP:], ys).value)
+
+
+def _prior(C: NDArray, D: NDArray, y: NDArray, u: NDArray) -> tuple[NDArray, NDArray]:
+    """x0 from the first sample (least squares through C), P0 = I."""
+    n = C.shape[1]
+    x0 = np.linalg.lstsq(C, y[:, 0] - D @ u[:, 0], rcond=None)[0]
+    return x0, np.eye(n)
+
+
+def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
+    """The law's selected coefficients refitted by output error on y; (law, model) or None.
+
+    Residual: the outputs simulated from ``x_start`` at sample SKIP, each scaled
+    by its standard deviation; a diverging simulation counts as a large
+    residual. 95 % half-widths from the output-error Jacobian with the
+    autocorrelation-robust covariance of the linear pipeline.
+    """
+    sel = [(c, j) for c in range(law.coef.shape[0]) for j in np.flatnonzero(law.coef[c])]
+    if not sel:
+        return None
+    rows, cols = (np.array(v) for v in zip(*sel))
+    yy, uu = y[:, SKIP:], u[:, SKIP:]
+    scale = np.maximum(np.std(yy, axis=1), 1e-300)[:, None]
+    big = np.full(yy.size, 1e3)
+
+    def law_at(theta):
+        coef = law.coef.copy()
+        coef[rows, cols] = theta
+        return replace(law, coef=coef)
+
+    def resid(theta):
+        model = disc(add_law(base, ch.G, law_at(theta).evaluate))
+        try:
+            sim = simulate_nonlinear(model, uu, x0=x_start)
+        except GreyboxError:
+            return big
+        r = ((yy - C @ sim.x - D @ uu) / scale).ravel()
+        return r if np.all(np.isfinite(r)) else big
+
+    theta0 = law.coef[rows, cols]
+    try:
+        sol = least_squares(resid, theta0, x_scale="jac", max_nfev=20, ftol=1e-4, xtol=1e-4)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(sol.x)) or sol.fun is big:
+        return None
+    half = np.full_like(law.coef, np.nan)
+    half[rows, cols] = 1.96 * np.sqrt(np.clip(np.diag(
+        hac_covariance(sol.jac, sol.fun, yy.shape[0])), 0, None))
+    new = law_at(sol.x)
+    lines = []
+    for c in range(new.coef.shape[0]):
+        idx = np.flatnonzero(new.coef[c])
+        lines.append(_law_line(ch.labels[c], new.coef[c, idx], [new.spec[j][0] for j in idx],
+                               ch.units[c] if c < len(ch.units) else "", half[c, idx]))
+    new = replace(new, ci=half, formula="; ".join(lines), time_base="continuous"
+                  if base.isctime(strict=True) else "discrete")
+    return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated")
+
+
+def _weak_terms(law) -> list[str]:
+    """Names of the law's selected terms whose 95 % interval contains zero."""
+    if law.ci is None:
+        return []
+    out = []
+    for c in range(law.coef.shape[0]):
+        for j in np.flatnonzero(law.coef[c]):
+            if np.isfinite(law.ci[c, j]) and abs(law.coef[c, j]) <= law.ci[c, j]:
+                out.append(law.spec[j][0])
+    return out
+
+
+def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q, R,
+                             dt: float | None = None, channels=None, nonlinear: bool = True,
+                             alpha: float = 1e-3, lags: int = 20, parsimony: float = 1.1,
+                             min_se_drop: float = 0.8, bic_factor: float = 10.0,
+                             substeps: int | None = None, progress=None) -> LoopReport:
+    """Residual, trace, law and before/after for a nonlinear nominal model.
+
+    Called by :func:`greybox.close_the_loop` for a ``NonlinearIOSystem``;
+    the parameters mean the same there.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem
+        Nominal model with named signals and a linear output map;
+        continuous (then ``dt`` is needed) or discrete.
+    y, u : array_like, shapes (noutputs, nsteps), (ninputs, nsteps)
+        Estimation record.
+    y_val, u_val : array_like
+        Validation record.
+    Q : array_like, shape (nstates, nstates)
+        Process-noise covariance of the discrete model.
+    R : array_like, shape (noutputs, noutputs)
+        Measurement-noise covariance.
+    dt : float, optional
+        Sampling period [s] (required for a continuous ``sys``).
+    channels : optional
+        Candidate channels (see :func:`greybox.trace.resolve_channel_spec`;
+        a G matrix is in the model's own time base).
+    nonlinear : bool
+        Offer x^3, sign(x) and |x| terms to the laws.
+    alpha : float
+        Significance level of the whiteness tests.
+    lags : int
+        Lags of the whiteness tests and correlations.
+    parsimony : float
+        Candidates within this factor of the lowest estimation SE count as
+        equally good; the fewest parameters wins.
+    min_se_drop : float
+        The update must bring the estimation SE below this fraction.
+    bic_factor : float
+        The law's BIC gain on d^ must exceed this many times its penalty.
+    substeps : int, optional
+        RK4 sub-steps per sample for a continuous model (default from
+        :func:`greybox.rk4_substeps` at the operating point).
+    progress : callable, optional
+        Progress callback (see :func:`greybox.close_the_loop`).
+
+    Returns
+    -------
+    LoopReport
+        With ``nonlinear`` (a :class:`NonlinearUpdate`) set: the updated
+        nonlinear model, its discretization and its linearization.
+        ``nominal`` and ``model.sys`` are linearizations at the operating
+        point (StateSpace, for control design); the table's rows simulate
+        the nonlinear models.
+
+    Raises
+    ------
+    ModelError
+        Not a NonlinearIOSystem with declared signals, a nonlinear output
+        map, a continuous model without dt, dt disagreeing with a discrete
+        model.
+    DimensionError, DataError, CovarianceError
+        Bad shapes or data.
+    """
+    tick = ProgressClock(progress)
+    base = as_nonlinear(sys)
+    if isinstance(sys, ct.StateSpace):
+        raise ModelError("close_the_loop_nonlinear expects a control.NonlinearIOSystem; use "
+                         "greybox.close_the_loop for a StateSpace")
+    C, D = linear_output_map(base)
+    n, m, p = base.nstates, base.ninputs, base.noutputs
+    cont = base.isctime(strict=True)
+    if not cont:
+        if base.dt is True:
+            raise ModelError(f"{base.name} is discrete with an unspecified dt (True); give it "
+                             f"the sampling period")
+        if dt is not None and abs(float(dt) - float(base.dt)) > 1e-9 * float(base.dt):
+            raise ModelError(f"dt = {dt} disagrees with the discrete model's dt = {base.dt}")
+        dt = float(base.dt)
+    elif dt is None:
+        raise ModelError("sys is continuous-time; give the sampling period dt [s] of the data "
+                         "so that it can be discretized (RK4 with the inputs held per sample)")
+    dt = check_positive(dt, "dt")
+    lags = check_positive(lags, "lags", integer=True)
+    y = check_signal(y, p, "y", min_steps=max(200, 10 * (n + m) + 4 * lags))
+    u = check_signal(u, m, "u")
+    check_same_length(("y", y), ("u", u))
+    y_val = check_signal(y_val, p, "y_val", min_steps=max(100, 2 * lags + 2 + SKIP))
+    u_val = check_signal(u_val, m, "u_val")
+    check_same_length(("y_val", y_val), ("u_val", u_val))
+    Q = check_covariance(Q, n, "Q", definite=False)
+    R = check_covariance(R, p, "R", definite=True)
+    nonlinear = _flag(nonlinear, "nonlinear")
+    parsimony = check_positive(parsimony, "parsimony")
+    alpha = check_positive(alpha, "alpha")
+    min_se_drop = check_positive(min_se_drop, "min_se_drop")
+    bic_factor = check_positive(bic_factor, "bic_factor")
+    if not parsimony >= 1 or not 0 < alpha < 1 or not 0 < min_se_drop <= 1:
+        raise DataError(f"need parsimony >= 1, 0 < alpha < 1, 0 < min_se_drop <= 1; found "
+                        f"{parsimony}, {alpha}, {min_se_drop}")
+    if substeps is not None:
+        substeps = check_positive(substeps, "substeps", integer=True)
+
+    # operating point of the channels' linearization and of the RK4 sub-step count
+    x_guess, P0 = _prior(C, D, y, u)
+    u_mean = u.mean(axis=1) if m else np.zeros(0)
+    x_mean_y = np.linalg.lstsq(C, y.mean(axis=1) - D @ u_mean, rcond=None)[0]
+    if cont:
+        nsub = substeps or rk4_substeps(base, dt, x_op=x_mean_y, u_op=u_mean)
+
+        def disc(s):
+            return discretize_nonlinear(s, dt, substeps=nsub)
+    else:
+        nsub = 0
+
+        def disc(s):
+            return s
+    nominal_d = disc(base)
+    notes = []
+    if cont:
+        notes.append(f"continuous model discretized with RK4, {nsub} sub-step(s) per sample "
+                     f"(inputs and d held over the sample); every model in the table uses it")
+
+    # 1. residual of the nominal model: the UKF's innovations
+    tick("residual of the nominal model", 0, 1)
+    val_nom, _ = _validation_row(nominal_d, y_val, u_val, Q=Q, R=R,
+                                 x0=_prior(C, D, y_val, u_val)[0], P0=P0, name="nominal",
+                                 lags=lags, alpha=alpha, order=n)
+    kf = ukf(nominal_d, y, u, Q=Q, R=R, x0=x_guess, P0=P0)
+    white = whiteness_test(kf.innovations[:, SKIP:], lags, alpha=alpha)
+    se_nom = _se_from(nominal_d, u, kf.x_filt[:, SKIP], y, C, D)
+    x_op = kf.x_filt[:, SKIP:].mean(axis=1)
+    op_text = _OP_TEXT.format(what="nominal UKF's")
+    lin_nom = linearize_at(nominal_d, x_op, u_mean)
+    lin_cont = linearize_at(base, x_op, u_mean) if cont else lin_nom
+    crit = CRITERION.format(pct=100 * (parsimony - 1))
+    gate = {"whiteness_pvalue": white.pvalue, "alpha": alpha, "se_estimation_nominal": se_nom,
+            "measure": "SE"}
+    tick("residual of the nominal model", 1, 1)
+
+    def _report(msg, detected, updated=False, effect=None, ch=None, cands=(), tr=None,
+                table=None, model=None, nl=None):
+        nl = nl or NonlinearUpdate(model=sys, discrete=nominal_d, linearization=lin_nom,
+                                   x_op=x_op, u_op=u_mean, operating_point=op_text,
+                                   substeps=nsub)
+        model = model or UpdatedModel(sys=lin_nom, Q=Q, R=R, order=n, kind="nominal")
+        return LoopReport(model_error_detected=detected, updated=updated, message=msg,
+                          residual=white, effect=effect or Effect(kind="none"), channel=ch,
+                          candidates=tuple(cands), gate=gate, criterion=crit, nominal=lin_nom,
+                          model=model, table=table or {"nominal": val_nom, "updated": val_nom},
+                          trace=tr, notes=tuple(notes), nonlinear=nl)
+
+    if white.all_white:
+        gate["passed"] = {"whiteness": False}
+        return _report("no significant model error: the nominal UKF's one-step innovations "
+                       f"are white on every output (Ljung-Box, {lags} lags, all p >= "
+                       f"{alpha:g}); model unchanged", False)
+
+    # 2. trace every channel with the unknown-input UKF; static laws on d^
+    chans = resolve_channel_spec(lin_cont, channels)
+    notes.append("nonlinear nominal: candidate channels from its linearization at the "
+                 "operating point; static laws only (dynamic subsystem laws are linear and "
+                 "not offered)")
+    cands, scored = [], []
+    N = y.shape[1]
+    for kc, ch in enumerate(chans):
+        tick("trace candidate channels", kc, len(chans))
+        labels = list(ch.labels)
+        try:
+            model_cd = disc(with_unknown_inputs(base, ch.G, labels))
+            res = ui_ukf(model_cd, y, u, unknown=labels, Q=Q, R=R, x0=x_guess, P0=P0)
+        except RankConditionError as e:  # (17) fails: d is not observable in this channel
+            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", str(e)))
+            continue
+        except (GreyboxError, np.linalg.LinAlgError) as e:
+            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
+            continue
+        d = res.d_est[:, SKIP:N - 1]
+        x = res.x_filt[:, SKIP:N - 1]
+        # d^ alternating sign (a channel seen through a ZOH zero near z = -1, e.g. a
+        # velocity equation through positions only): fit on the mean of consecutive
+        # samples, as the linear trace does
+        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
+        law = _fit_static(d, x, u[:, SKIP:N - 1], lin_cont, nonlinear, labels, ch.units,
+                          r1 < _ALTERNATING, ch.relative)
+        if r1 < _ALTERNATING:
+            notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation {r1:.2f}): "
+                         f"the static law is fitted on the mean of consecutive samples")
+        tr = ChannelTrace(channel=ch, status="ok", model=model_cd, filter_result=res,
+                          static=law)
+        if law.npar == 0:
+            cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "skipped",
+                                        "no law term explains d^"))
+            continue
+        if ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1))):
+            cands.append(CandidateScore(ch.name, "static", 0, np.inf, law.npar, "redundant",
+                                        "a component of d has no term"))
+            continue
+        upd = add_law(base, ch.G, law.evaluate, name=f"{base.name}_updated")
+        se = _se_from(disc(upd), u, res.x_filt[:, SKIP], y, C, D)
+        cands.append(CandidateScore(ch.name, "static", 0, se, law.npar, "ok"))
+        scored.append((se, law.npar, tr, upd))
+    tick("trace candidate channels", len(chans), len(chans))
+    finite = [s for s in scored if np.isfinite(s[0])]
+    if not finite:
+        gate["passed"] = {"whiteness": True, "trace": False}
+        return _report("model error detected, but no candidate channel could explain it "
+                       "(see candidates)", True, cands=cands)
+    best = min(s[0] for s in finite)
+    near = [s for s in finite if s[0] <= parsimony * best]
+    se_c, npar, tr, upd = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
+    ch, law = tr.channel, tr.static
+    # refine the law's coefficients by output error on y, in the nominal's time base with
+    # the same RK4 (PAPER_NOTES §9.3, §9.5); kept only if the estimation SE drops
+    tick("output-error refinement", 0, 1)
+    ref = None
+    if law.npar <= OE_MAX_TERMS:
+        ref = _refine_law_oe(law, base, ch, disc, y, u, tr.filter_result.x_filt[:, SKIP], C, D)
+    else:
+        notes.append(f"{ch.name}: the law has {law.npar} terms (> {OE_MAX_TERMS}): not refined "
+                     f"by output error (each term costs a simulation per iteration)")
+    if ref is not None:
+        law_r, upd_r = ref
+        se_r = _se_from(disc(upd_r), u, tr.filter_result.x_filt[:, SKIP], y, C, D)
+        if se_r < se_c:
+            notes.append(f"{ch.name}: law refined by output error on y: estimation SE "
+                         f"{se_c:.3g}% -> {se_r:.3g}%")
+            law, upd, se_c = law_r, upd_r, se_r
+            tr = replace(tr, static=law)
+    tick("output-error refinement", 1, 1)
+
+    # 3. gate
+    Nd = N - 1 - SKIP
+    gain = float(law.bic_gain + law.npar * np.log(Nd))
+    penalty = float(npar * np.log(Nd))
+    passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
+              "se_drop": se_c < min_se_drop * se_nom}
+    gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
+                 "se_estimation_updated": se_c, "min_se_drop": min_se_drop, "passed": passed})
+    effect = Effect(kind="static", order=0, formula=law.formula, channel=ch.name,
+                    equations=ch.equations, nonlinear=law.nonlinear, linearized=False, law=law)
+    if not (passed["bic"] and passed["se_drop"]):
+        failed = [k for k, v in passed.items() if not v]
+        return _report(f"model error detected (UKF innovations not white), but the best "
+                       f"candidate ({ch.name}, static) failed the gate: {', '.join(failed)}; "
+                       f"model unchanged", True, cands=cands, tr=tr)
+
+    weak = _weak_terms(law)
+    if weak:
+        notes.append(f"{ch.name}: {len(weak)} of the law's {law.npar} terms ({', '.join(weak)}) "
+                     f"have 95 % intervals containing 0: d^ is mostly estimation noise in this "
+                     f"channel (e.g. a velocity equation seen through positions only) and the "
+                     f"law may be spurious; measure the state the suspected equation drives, "
+                     f"or name the channel (channels=...)")
+
+    # 4. before/after on validation data, both simulated with the same RK4
+    tick("validation", 0, 1)
+    upd_d = disc(upd)
+    row, _ = _validation_row(upd_d, y_val, u_val, Q=Q, R=R, x0=_prior(C, D, y_val, u_val)[0],
+                             P0=P0, name="updated", lags=lags, alpha=alpha, order=n)
+    table = {"nominal": val_nom, "updated": row}
+    kf_u = ukf(upd_d, y, u, Q=Q, R=R, x0=x_guess, P0=P0)
+    x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
+    lin_u = linearize_at(upd_d, x_op_u, u_mean)
+    nl = NonlinearUpdate(model=upd, discrete=upd_d, linearization=lin_u, x_op=x_op_u,
+                         u_op=u_mean, operating_point=_OP_TEXT.format(what="updated UKF's"),
+                         substeps=nsub)
+    tick("validation", 1, 1)
+    notes.append(f"the 'nominal' and 'updated' rows simulate the nonlinear models"
+                 f"{' (RK4)' if cont else ''}; report.model.sys (updated_model.json) is the "
+                 f"updated model's linearization at x_op = "
+                 f"{np.array2string(x_op_u, precision=4)}, u_op = "
+                 f"{np.array2string(u_mean, precision=4)} ({nl.operating_point}), not a row "
+                 f"of the table")
+    notes.append("the parallel delta baseline (linear) is not computed for a nonlinear "
+                 "nominal model")
+    for name, r in table.items():
+        if not r.se_defined:
+            notes.append(f"{name}: SE n/a: {r.se_reason}")
+    where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
+    if ch.kind == "input":
+        where = f"input {ch.input} (it enters {where})"
+    msg = f"model error found in {where}: static effect; {describe_before_after(table)}"
+    return _report(msg, True, updated=True, effect=effect, ch=ch, cands=cands, tr=tr,
+                   table=table, model=UpdatedModel(sys=lin_u, Q=Q, R=R, order=n, kind="static"),
+                   nl=nl)
+
+
+def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
+    """Attach the exact nonlinear model to a linear nominal's report with a nonlinear law.
+
+    The table's "updated" row of such a report simulates
+    ``x[k+1] = A x + B u + G law(x, u)`` (discrete A, B, G of the traced
+    channel); this adds it as a ``NonlinearIOSystem`` (``rep.nonlinear``)
+    with its linearization at the mean filtered state and input, and a note
+    saying which row is which. Other reports are returned unchanged.
+
+    Parameters
+    ----------
+    rep : LoopReport
+        A report of :func:`greybox.close_the_loop` on a StateSpace.
+
+    Returns
+    -------
+    LoopReport
+    """
+    eff, tr = rep.effect, rep.trace
+    if not (rep.updated and eff.nonlinear and eff.law is not None and tr is not None
+            and tr.filter_result is not None) or rep.nonlinear is not None:
+        return rep
+    res = tr.filter_result
+    model = add_law(res.sys, res.G, eff.law.evaluate, name=f"{rep.nominal.name}_updated")
+    k0 = max(SKIP, res.period_converged or SKIP)
+    x_op = res.x_filt[:, k0:].mean(axis=1)
+    u = np.asarray(res.u, dtype=float)
+    u_op = u[:, k0:].mean(axis=1) if u.shape[0] else np.zeros(0)
+    lin = linearize_at(model, x_op, u_op)
+    nl = NonlinearUpdate(model=model, discrete=model, linearization=lin, x_op=x_op, u_op=u_op,
+                         operating_point=_OP_TEXT.format(what="unknown-input filter's"))
+    note = ("which row is which: 'updated' simulates the full nonlinear law "
+            "(report.nonlinear.model, a NonlinearIOSystem: A x + B u + G law(x, u) in discrete "
+            "time); 'updated (linearized)' is report.model.sys, the StateSpace holding the "
+            "law's best linear least-squares surrogate (a fit over the record, not a local "
+            "linearization); report.nonlinear.linearization is the local linearization at "
+            "the mean filtered state and input" +
+            (" (a sign(x) term, smoothed as tanh(x/eps), has slope 1/eps there when x is "
+             "near 0: use greybox.linearize_at at your own operating point)"
+             if any(s[1] in ("sign", "rel_sign") and np.any(eff.law.coef[:, j])
+                    for j, s in enumerate(eff.law.spec)) else ""))
+    return replace(rep, nonlinear=nl, notes=tuple(rep.notes) + (note,))
