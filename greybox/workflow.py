@@ -966,8 +966,12 @@ def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt, joint) -> 
     msg = (f"{len(steps)} effects found: " +
            "; then ".join(st.message.split(";")[0].replace("model error found in ", "")
                           for st in steps) + "; " + describe_before_after(table))
+    nl = None
+    if last.effect.nonlinear:  # the last pass's law is nonlinear: its exact model
+        from .workflow_nonlinear import nonlinear_update_of_linear
+        nl = nonlinear_update_of_linear(last).nonlinear
     return replace(first, message=msg, model=model, table=table, steps=tuple(steps),
-                   notes=tuple(notes))
+                   notes=tuple(notes), nonlinear=nl)
 
 
 def _refit_jointly(joint, passes, final, Qf, notes):
