@@ -3,6 +3,9 @@
 ``python bench/workflow.py csv [nsteps]``: the whole ``greybox update`` on a 1e6-row
 CSV of a 2-state model and the CSV readers side by side (issue 13).
 
+``python bench/workflow.py stages [nsteps]``: the same run in a fresh process, one row
+per progress record (time per stage and the peak RSS so far).
+
 ``python bench/workflow.py chains [nsteps] [n ...]``: chains of n/2 masses with
 the coupling spring between the two middle masses missing from the model, all
 states measured and positions only (issue 8): time, peak memory (RSS of a
@@ -193,6 +196,54 @@ def bench_cli(folder):
     return el, rss if rss > before / 1024 else float("nan"), s
 
 
+def _stage_profile(folder):
+    """In this (fresh) process: close_the_loop on the CSV case, one row per progress record.
+
+    Prints the stage, wall time since the start, the time since the previous record and
+    the process's peak RSS so far (ru_maxrss: the high-water mark, it never drops).
+    """
+    import os
+    import resource
+
+    from greybox.model_io import read_csv, read_model
+
+    def peak():
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    t0 = time.perf_counter()
+    spec = read_model(f"{folder}/model.json")
+    ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
+    y, u = read_csv(f"{folder}/est.csv", inputs=ins, outputs=outs, Ts=spec.Ts)
+    yv, uv = read_csv(f"{folder}/val.csv", inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
+    print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} (2 cores shared)")
+    print(f"| stage (progress record) | at [s] | step [s] | peak RSS so far [MB] |")
+    print("|---|---|---|---|")
+    print(f"| imports + read_model + read_csv (est, val) | {time.perf_counter() - t0:.2f} | "
+          f"{time.perf_counter() - t0:.2f} | {peak():.0f} |")
+    last = [time.perf_counter()]
+
+    def cb(p):
+        now = time.perf_counter()
+        print(f"| {p.stage} {p.k}/{p.K} | {now - t0:.2f} | {now - last[0]:.2f} | {peak():.0f} |",
+              flush=True)
+        last[0] = now
+
+    close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
+                   channels=spec.channels, progress=cb)
+    print(f"total {time.perf_counter() - t0:.2f} s, peak RSS {peak():.0f} MB")
+
+
+def main_stages(N=1_000_000):
+    """``python bench/workflow.py stages [nsteps]``: where the 1e6-sample run spends."""
+    import os
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
+        folder = write_csv_case(tmp, N)
+        subprocess.run([sys.executable, __file__, "_stages", str(folder)], check=True)
+
+
 def main_csv(N=1_000_000):
     import os
     import tempfile
@@ -271,6 +322,10 @@ if __name__ == "__main__":
     elif sys.argv[1:2] == ["chains"]:
         args = [int(a) for a in sys.argv[2:]]
         main_chains(*(args[:1] or [100_000]), *([tuple(args[1:])] if args[1:] else []))
+    elif sys.argv[1:2] == ["_stages"]:
+        _stage_profile(sys.argv[2])
+    elif sys.argv[1:2] == ["stages"]:
+        main_stages(*(int(a) for a in sys.argv[2:3]))
     elif sys.argv[1:2] == ["csv"]:
         main_csv(*(int(a) for a in sys.argv[2:3]))
     else:

@@ -556,6 +556,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         x0n = estimate_initial_state(nominal, y, u)
         se_nom = _se(y, kf.y_pred, skip) if unstable else \
             _se(y, simulate_output(nominal, u, x0n), skip)
+        kf = None  # its histories (~60 MB at 1e6 samples) would stay alive through the pass
         nominal_model = UpdatedModel(sys=nominal, Q=Q, R=R, order=n, kind="nominal")
         val_nom = validate_model(nominal, y_val, u_val, Q=Q, R=R, x0="estimate", name="nominal",
                                  lags=lags, alpha=alpha, skip=skip)
