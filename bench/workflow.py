@@ -178,15 +178,19 @@ def bench_readers(path, repeat=3):
 # RUSAGE_CHILDREN is no good here: a forked child's high-water mark starts at the
 # parent's RSS at fork time (this benchmark's, ~2 GB after the CSV readers), which is how
 # the README once quoted 2054 MB for a run that peaked at ~830 MB.
+# It also reports its CPU time (user + system, all threads): on the shared 2-core machine
+# the wall time swings 3x with the other sessions' load, the CPU time much less.
 _CLI_CHILD = """
-import sys
+import resource, sys
 from greybox.cli import main
 try:
     rc = main(sys.argv[1:])
 finally:
     with open("/proc/self/status") as f:
         hwm = [ln.split()[1] for ln in f if ln.startswith("VmHWM")]
+    r = resource.getrusage(resource.RUSAGE_SELF)
     sys.stderr.write("\\nBENCH_VMHWM_KB " + (hwm[0] if hwm else "nan") + "\\n")
+    sys.stderr.write("BENCH_CPU_S " + repr(r.ru_utime + r.ru_stime) + "\\n")
 sys.exit(rc)
 """
 
@@ -208,7 +212,8 @@ def bench_cli(folder):
         raise SystemExit(f"greybox update failed ({p.returncode}): {p.stderr}")
     kb = [ln.split()[1] for ln in p.stderr.splitlines() if ln.startswith("BENCH_VMHWM_KB")]
     rss = float(kb[-1]) / 1024 if kb and kb[-1] != "nan" else float("nan")
-    return el, rss, json.loads(p.stdout)
+    cpu = [float(ln.split()[1]) for ln in p.stderr.splitlines() if ln.startswith("BENCH_CPU_S")]
+    return el, rss, json.loads(p.stdout), (cpu[-1] if cpu else float("nan"))
 
 
 def _stage_profile(folder):
@@ -266,7 +271,9 @@ def main_csv(N=1_000_000):
     with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
         folder = write_csv_case(tmp, N)
         size = os.path.getsize(f"{folder}/est.csv") / 2**20
-        el, rss, s = bench_cli(folder)  # first: the readers below grow this process
+        load0 = os.getloadavg()
+        el, rss, s, cpu = bench_cli(folder)  # first: the readers below grow this process
+        load1 = os.getloadavg()
         rows, nvalues, nbytes = bench_readers(f"{folder}/est.csv")
     print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} (2 cores shared)")
     print(f"CSV reader on {N} rows x 4 columns ({size:.1f} MB of text, {nbytes / 2**20:.1f} MB "
@@ -276,7 +283,8 @@ def main_csv(N=1_000_000):
     for name, t, rate, peak in rows:
         print(f"{name:<28}{t:>9.3f}{rate:>12.3g}{peak:>14.2f}{t / t0:>11.2f}x")
     print(f"\nwhole `greybox update --no-plots` at N = {N} (2-state model, spring missing): "
-          f"{el:.2f} s wall, peak RSS {rss:.0f} MB (goal <= 10 s, <= 500 MB)")
+          f"{el:.2f} s wall, {cpu:.2f} s CPU, peak RSS {rss:.0f} MB (goal <= 10 s, <= 500 MB); "
+          f"load average {load0[0]:.2f} before, {load1[0]:.2f} after")
     t = s["table"]
     print(f"  found {s['channel']} {s['effect']['kind']}: {s['effect']['formula']}; "
           f"validation SE {t['nominal']['se']:.3g}% -> {t['updated']['se']:.3g}%")
