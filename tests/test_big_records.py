@@ -128,3 +128,21 @@ def test_delta_refine_window_is_checked():
         delta_update(sys, y, u, Q=Q, R=R, refine_window=0)
     with pytest.raises(gb.DimensionError, match="refine_window must be an integer"):
         delta_update(sys, y, u, Q=Q, R=R, refine_window=2.5)
+
+
+def test_close_the_loop_refines_the_delta_baseline_on_a_window(monkeypatch):
+    import greybox.workflow as wf
+
+    seen = {}
+    real = wf.delta_update
+
+    def spy(*args, **kw):
+        seen.update(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(wf, "delta_update", spy)
+    y, u, yv, uv, Q, R = _records(3000)
+    rep = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, max_effects=1)
+    # 2 outputs: at most 2e5 residuals = 1e5 samples (the record here is shorter: no effect)
+    assert seen["refine_window"] == wf.DELTA_REFINE_RESIDUALS // 2 == 100_000
+    assert "delta" in rep.table
