@@ -404,6 +404,9 @@ def _section(methods, prob, args, N, nloop):
     return uif_d, rows
 
 
+_PINNED = []  # the active thread limit (kept alive for the whole run)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("-N", type=float, default=1e6, help="samples (default 1e6)")
@@ -418,7 +421,18 @@ def main(argv=None) -> int:
     ap.add_argument("--no-memory", action="store_true", help="skip the tracemalloc runs")
     ap.add_argument("--kf-rtol", type=float, default=1e-6,
                     help="tolerance of the KF-peer check: max|dx| <= rtol * max|x| per state")
+    ap.add_argument("--blas-threads", type=int, default=1,
+                    help="BLAS threads for every method alike (default 1; 0: leave as is)")
     args = ap.parse_args(argv)
+    if args.blas_threads > 0:
+        # every method runs in this one process: pinning here pins both sides equally (a
+        # multithreaded BLAS beside a busy core stalls, which would decide the ratios)
+        try:
+            from threadpoolctl import threadpool_limits
+
+            _PINNED.append(threadpool_limits(limits=args.blas_threads, user_api="blas"))
+        except ImportError:
+            print("# threadpoolctl missing: BLAS threads not pinned")
     N = int(1e4) if args.quick else int(args.N)
     nloop = min(args.loop_n, N)
 
@@ -505,6 +519,8 @@ def main(argv=None) -> int:
               f"{np.max(np.abs(a[ok] - b[:a.size][ok])):.2g} N")
     print(f"greybox delayed_uikf auto: per-sample recursion for the first "
           f"{_CONVERGED.get('greybox delayed_uikf auto')} samples, constant gain after")
+    print(f"# load average at the end {' '.join(f'{x:.2f}' for x in os.getloadavg())}; BLAS: "
+          f"{_blas_info()}")
     return 0
 
 

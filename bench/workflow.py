@@ -3,6 +3,9 @@
 ``python bench/workflow.py csv [nsteps]``: the whole ``greybox update`` on a 1e6-row
 CSV of a 2-state model and the CSV readers side by side (issue 13).
 
+``python bench/workflow.py stages [nsteps]``: the same run in a fresh process, one row
+per progress record (time per stage and the peak RSS so far).
+
 ``python bench/workflow.py chains [nsteps] [n ...]``: chains of n/2 masses with
 the coupling spring between the two middle masses missing from the model, all
 states measured and positions only (issue 8): time, peak memory (RSS of a
@@ -171,26 +174,94 @@ def bench_readers(path, repeat=3):
     return rows, nvalues, nbytes
 
 
+# The child reports its own peak RSS (VmHWM of its address space). ru_maxrss of
+# RUSAGE_CHILDREN is no good here: a forked child's high-water mark starts at the
+# parent's RSS at fork time (this benchmark's, ~2 GB after the CSV readers), which is how
+# the README once quoted 2054 MB for a run that peaked at ~830 MB.
+# It also reports its CPU time (user + system, all threads): on the shared 2-core machine
+# the wall time swings 3x with the other sessions' load, the CPU time much less.
+_CLI_CHILD = """
+import resource, sys
+from greybox.cli import main
+try:
+    rc = main(sys.argv[1:])
+finally:
+    with open("/proc/self/status") as f:
+        hwm = [ln.split()[1] for ln in f if ln.startswith("VmHWM")]
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    sys.stderr.write("\\nBENCH_VMHWM_KB " + (hwm[0] if hwm else "nan") + "\\n")
+    sys.stderr.write("BENCH_CPU_S " + repr(r.ru_utime + r.ru_stime) + "\\n")
+sys.exit(rc)
+"""
+
+
 def bench_cli(folder):
-    """The whole ``greybox update`` in a child process: wall time, peak RSS, result."""
+    """The whole ``greybox update`` in a child process: wall time, peak RSS [MB], result."""
     import json
     import os
-    import resource
     import subprocess
 
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
     t = time.perf_counter()
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    p = subprocess.run([sys.executable, "-m", "greybox", "update", f"{folder}/model.json",
+    p = subprocess.run([sys.executable, "-c", _CLI_CHILD, "update", f"{folder}/model.json",
                         f"{folder}/est.csv", "--validate", f"{folder}/val.csv", "--out",
                         f"{folder}/report", "--force", "--no-plots", "--json", "--quiet"],
                        capture_output=True, text=True, env=env)
     el = time.perf_counter() - t
-    rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024  # kB -> MB
     if p.returncode:
         raise SystemExit(f"greybox update failed ({p.returncode}): {p.stderr}")
-    s = json.loads(p.stdout)
-    return el, rss if rss > before / 1024 else float("nan"), s
+    kb = [ln.split()[1] for ln in p.stderr.splitlines() if ln.startswith("BENCH_VMHWM_KB")]
+    rss = float(kb[-1]) / 1024 if kb and kb[-1] != "nan" else float("nan")
+    cpu = [float(ln.split()[1]) for ln in p.stderr.splitlines() if ln.startswith("BENCH_CPU_S")]
+    return el, rss, json.loads(p.stdout), (cpu[-1] if cpu else float("nan"))
+
+
+def _stage_profile(folder):
+    """In this (fresh) process: close_the_loop on the CSV case, one row per progress record.
+
+    Prints the stage, wall time since the start, the time since the previous record and
+    the process's peak RSS so far (ru_maxrss: the high-water mark, it never drops).
+    """
+    import os
+    import resource
+
+    from greybox.model_io import read_csv, read_model
+
+    def peak():
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    t0 = time.perf_counter()
+    spec = read_model(f"{folder}/model.json")
+    ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
+    y, u = read_csv(f"{folder}/est.csv", inputs=ins, outputs=outs, Ts=spec.Ts)
+    yv, uv = read_csv(f"{folder}/val.csv", inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
+    print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} (2 cores shared)")
+    print(f"| stage (progress record) | at [s] | step [s] | peak RSS so far [MB] |")
+    print("|---|---|---|---|")
+    print(f"| imports + read_model + read_csv (est, val) | {time.perf_counter() - t0:.2f} | "
+          f"{time.perf_counter() - t0:.2f} | {peak():.0f} |")
+    last = [time.perf_counter()]
+
+    def cb(p):
+        now = time.perf_counter()
+        print(f"| {p.stage} {p.k}/{p.K} | {now - t0:.2f} | {now - last[0]:.2f} | {peak():.0f} |",
+              flush=True)
+        last[0] = now
+
+    close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
+                   channels=spec.channels, progress=cb)
+    print(f"total {time.perf_counter() - t0:.2f} s, peak RSS {peak():.0f} MB")
+
+
+def main_stages(N=1_000_000):
+    """``python bench/workflow.py stages [nsteps]``: where the 1e6-sample run spends."""
+    import os
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
+        folder = write_csv_case(tmp, N)
+        subprocess.run([sys.executable, __file__, "_stages", str(folder)], check=True)
 
 
 def main_csv(N=1_000_000):
@@ -200,8 +271,10 @@ def main_csv(N=1_000_000):
     with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
         folder = write_csv_case(tmp, N)
         size = os.path.getsize(f"{folder}/est.csv") / 2**20
+        load0 = os.getloadavg()
+        el, rss, s, cpu = bench_cli(folder)  # first: the readers below grow this process
+        load1 = os.getloadavg()
         rows, nvalues, nbytes = bench_readers(f"{folder}/est.csv")
-        el, rss, s = bench_cli(folder)
     print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} (2 cores shared)")
     print(f"CSV reader on {N} rows x 4 columns ({size:.1f} MB of text, {nbytes / 2**20:.1f} MB "
           f"of numbers); best of 3, same process")
@@ -210,7 +283,8 @@ def main_csv(N=1_000_000):
     for name, t, rate, peak in rows:
         print(f"{name:<28}{t:>9.3f}{rate:>12.3g}{peak:>14.2f}{t / t0:>11.2f}x")
     print(f"\nwhole `greybox update --no-plots` at N = {N} (2-state model, spring missing): "
-          f"{el:.2f} s wall, peak RSS {rss:.0f} MB (goal <= 10 s, <= 500 MB)")
+          f"{el:.2f} s wall, {cpu:.2f} s CPU, peak RSS {rss:.0f} MB (goal <= 10 s, <= 500 MB); "
+          f"load average {load0[0]:.2f} before, {load1[0]:.2f} after")
     t = s["table"]
     print(f"  found {s['channel']} {s['effect']['kind']}: {s['effect']['formula']}; "
           f"validation SE {t['nominal']['se']:.3g}% -> {t['updated']['se']:.3g}%")
@@ -271,6 +345,10 @@ if __name__ == "__main__":
     elif sys.argv[1:2] == ["chains"]:
         args = [int(a) for a in sys.argv[2:]]
         main_chains(*(args[:1] or [100_000]), *([tuple(args[1:])] if args[1:] else []))
+    elif sys.argv[1:2] == ["_stages"]:
+        _stage_profile(sys.argv[2])
+    elif sys.argv[1:2] == ["stages"]:
+        main_stages(*(int(a) for a in sys.argv[2:3]))
     elif sys.argv[1:2] == ["csv"]:
         main_csv(*(int(a) for a in sys.argv[2:3]))
     else:

@@ -493,7 +493,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                  R: ArrayLike, order: int | None = None, max_order: int | None = None,
                  horizon: int | None = None, x0: ArrayLike | None = None,
                  marginal: bool | None = None, holdout: float = 0.25, refine: bool = True,
-                 refine_iter: int = 20,
+                 refine_iter: int = 20, refine_window: int | None = None,
                  state_prefix: str = "delta") -> DeltaModel:
     """Parallel delta augmentation: a model from u to the output error, run beside ``sys``.
 
@@ -599,6 +599,11 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
         Refine the chosen model by output error (step 4).
     refine_iter : int
         Iteration limit of the output-error refinement.
+    refine_window : int, optional
+        Refine on at most this many samples (the first of the estimation
+        part); default all of them. Its cost grows with the samples (a dense
+        Jacobian of ``noutputs * samples`` rows), the model it returns hardly
+        does beyond ~1e5; the held-out check still uses the whole tail.
     state_prefix : str
 
     Returns
@@ -639,6 +644,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
         order = check_positive(order, "order", integer=True)
     if max_order is not None:
         max_order = check_positive(max_order, "max_order", integer=True)
+    if refine_window is not None:
+        refine_window = check_positive(refine_window, "refine_window", integer=True)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
     x = lti_states(A, B @ u, np.zeros(n) if x0 is None else check_vector(x0, n, "x0"))
     y0 = C @ x + D @ u
@@ -719,7 +726,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     best = min(cands, key=lambda c: (c[0], c[2]))
     se_best, name, k, _, part = best
     data, fac = variants[name]
-    rpart = refined(part, data, head) if refine else None
+    rsl = head if refine_window is None else slice(0, min(Ne, refine_window))
+    rpart = refined(part, data, rsl) if refine else None
     se_ref = tail_error(rpart, fac)
     crit[(name + "+oe", k)] = se_ref
     use_refine = bool(np.isfinite(se_ref) and se_ref < se_best)

@@ -23,3 +23,20 @@ def test_there_are_runnable_snippets():
 @pytest.mark.parametrize("code", RUNNABLE, ids=[f"block{i}" for i in range(len(RUNNABLE))])
 def test_snippet_runs(code):
     exec(compile(code, str(README), "exec"), {"__name__": "readme_snippet"})
+
+
+RESULTS_WORKFLOW = README.parent / "bench" / "RESULTS_workflow.md"
+
+
+def test_big_file_figures_are_the_measured_ones():
+    """The README's 1e6-sample table quotes bench/RESULTS_workflow.md (the raw outputs)."""
+    text = README.read_text()
+    m = re.search(r"<!-- workflow-1e6 -->(.*?)<!-- /workflow-1e6 -->", text, flags=re.S)
+    assert m, "README.md lost its marked table of the 1e6-sample run"
+    rows = [ln for ln in m.group(1).splitlines() if ln.startswith("|") and "---" not in ln][1:]
+    assert len(rows) >= 2, "the table needs a before and an after row"
+    raw = RESULTS_WORKFLOW.read_text()
+    for row in rows:
+        for number in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?![\w.])", row.split("|", 2)[2]):
+            assert re.search(rf"(?<![\w.]){re.escape(number)}(?![\w.])", raw), \
+                f"README quotes {number} ({row.strip()}) but bench/RESULTS_workflow.md has not"

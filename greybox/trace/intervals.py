@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.fft import next_fast_len
 
 __all__ = ["hac_covariance"]
 
@@ -31,17 +32,26 @@ def hac_covariance(jac: NDArray, resid: NDArray, nout: int) -> NDArray[np.float6
     r = resid.reshape(nout, T)
     s = np.einsum("otk,ot->tk", jac.reshape(nout, T, k), r)
     rc = r - r.mean(axis=1, keepdims=True)
-    f = np.fft.rfft(rc, 2 * T, axis=1)
-    acf = np.fft.irfft(f * np.conj(f), axis=1)[:, :T]
+    # zero padding to >= 2T makes the circular correlations linear; a 5-smooth length keeps
+    # the FFT fast (2T itself may have a large prime factor: 16x slower at T ~ 1e6)
+    nfft = next_fast_len(2 * T, real=True)
+    f = np.fft.rfft(rc, nfft, axis=1)
+    acf = np.fft.irfft(f * np.conj(f), nfft, axis=1)[:, :T]
     acf = np.mean(acf / np.maximum(acf[:, :1], 1e-300), axis=0)
     above = np.flatnonzero(np.abs(acf[:T // 4]) >= 0.05)
     L = int(min(max(2 * (above[-1] if above.size else 1), 1), T // 4))
-    # Gamma_l = sum_t s[t+l] s[t]^T for every lag at once (FFT), Bartlett weights
-    fs = np.fft.rfft(s, 2 * T, axis=0)                       # (., k)
-    gam = np.fft.irfft(fs[:, :, None] * np.conj(fs[:, None, :]), 2 * T, axis=0)[:L + 1]
+    # Gamma_l = sum_t s[t+l] s[t]^T for every lag at once (FFT), Bartlett weights; one
+    # (a, b) pair at a time: the whole (nfft, k, k) cross-spectrum would need
+    # 16 k^2 nfft bytes (1.3 GB for 9 terms at T = 1e6)
+    fs = np.fft.rfft(s, nfft, axis=0)                        # (., k)
     w = 1.0 - np.arange(1, L + 1) / (L + 1.0)
-    G = np.einsum("l,lab->ab", w, gam[1:])
-    Om = gam[0] + G + G.T
+    Om = np.empty((k, k))
+    for a in range(k):
+        for b in range(a, k):
+            g = np.fft.irfft(fs[:, a] * np.conj(fs[:, b]), nfft)   # g[l] = Gamma_l[a, b]
+            g_ab, g_ba = g[1:L + 1] @ w, g[nfft - L:][::-1] @ w     # Gamma_l[b, a] = g[-l]
+            Om[a, b] = g[0] + g_ab + g_ba
+            Om[b, a] = Om[a, b]
     JtJ = jac.T @ jac
     Ji = np.linalg.pinv(JtJ)
     return Ji @ Om @ Ji

@@ -1,0 +1,148 @@
+"""Memory and time of long records (issue 13, item 5) without changing any result.
+
+* ``hac_covariance`` pads its FFTs to a fast length and forms the long-run
+  covariance one pair of terms at a time: it must equal the Newey-West sum
+  written out lag by lag, also when 2T has a large prime factor.
+* ``close_the_loop`` keeps of a non-chosen channel's filter record only x^
+  and d^ (``workflow._light``) and re-filters the chosen one whole
+  (``workflow._whole_record``): the report's record equals the filter's.
+* ``delta_update(refine_window=...)``: a window that covers the estimation
+  part changes nothing; a bad one is refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import greybox as gb
+from greybox.system import named_ss
+from greybox.trace import resolve_channel_spec, trace_channel
+from greybox.trace.intervals import hac_covariance
+from greybox.update import delta_update
+from greybox.workflow import _light, _whole_record, close_the_loop
+
+DT = 0.01
+
+
+def _osc(k=4.0):
+    A = np.array([[0.0, 1.0], [-k, -0.8]])
+    return named_ss(A, [[0.0], [1.0]], np.eye(2), np.zeros((2, 1)), 0, states=["x", "v"],
+                    inputs=["F"], outputs=["x", "v"], name="osc")
+
+
+def _records(N, seed=0):
+    """Estimation and validation records of the oscillator whose spring is 6 (model: 4)."""
+    rng = np.random.default_rng(seed)
+    truth = gb.discretize(_osc(6.0), DT)
+    Q, R = np.diag([0.0, 1e-8]), 1e-6 * np.eye(2)
+    u = gb.lowpass_noise(N, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
+    uv = gb.lowpass_noise(2000, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
+    y = gb.simulate(truth, u, Q=Q, R=R, rng=rng).y
+    yv = gb.simulate(truth, uv, R=R, rng=rng).y
+    return y, u, yv, uv, Q + 1e-12 * np.eye(2), R
+
+
+def _hac_by_lags(jac, resid, nout):
+    """Newey-West covariance written out: every lag's Gamma_l by a direct sum."""
+    k = jac.shape[1]
+    T = resid.size // nout
+    r = resid.reshape(nout, T)
+    s = np.zeros((T, k))
+    for o in range(nout):
+        s += jac[o * T:(o + 1) * T] * r[o][:, None]
+    rc = r - r.mean(axis=1, keepdims=True)
+    acf = np.zeros(T // 4)
+    for o in range(nout):
+        full = np.array([rc[o, l:] @ rc[o, :T - l] for l in range(T // 4)])
+        acf += full / full[0] / nout
+    above = np.flatnonzero(np.abs(acf) >= 0.05)
+    L = int(min(max(2 * (above[-1] if above.size else 1), 1), T // 4))
+    Om = s.T @ s
+    for lag in range(1, L + 1):
+        gam = s[lag:].T @ s[:T - lag]          # sum_t s[t+l] s[t]^T
+        Om += (1.0 - lag / (L + 1.0)) * (gam + gam.T)
+    Ji = np.linalg.pinv(jac.T @ jac)
+    return Ji @ Om @ Ji, L
+
+
+@pytest.mark.parametrize("T", [1009, 1200])  # 2T = 2 x prime (the slow FFT length) / smooth
+def test_hac_covariance_equals_the_lag_by_lag_sum(T):
+    rng = np.random.default_rng(3)
+    nout, k = 2, 3
+    jac = rng.standard_normal((nout * T, k))
+    # coloured residual: a moving average of 7, so the bandwidth is well above 1
+    e = rng.standard_normal(nout * T + 6)
+    resid = np.convolve(e, np.ones(7) / 7, mode="valid")
+    ref, L = _hac_by_lags(jac, resid, nout)
+    assert L >= 8  # the lag sum really is exercised (MA(7): acf >= 0.05 up to lag ~6)
+    # same sums in a different order (FFT vs direct): round-off only
+    np.testing.assert_allclose(hac_covariance(jac, resid, nout), ref, rtol=1e-9, atol=1e-15)
+
+
+def test_light_trace_is_rebuilt_to_the_same_filter_record():
+    y, u, _, _, Q, R = _records(3000)
+    sys = gb.discretize(_osc(), DT)
+    ch = resolve_channel_spec(sys, None)[1]
+    tr = trace_channel(sys, ch, y, u, Q=Q, R=R)
+    light = _light(tr)
+    res, lres = tr.filter_result, light.filter_result
+    # what the choice reads is kept, the rest is gone (no view on the old arrays either)
+    assert lres.x_filt is res.x_filt and lres.d_est is res.d_est
+    for name in ("t", "x_pred", "d_var", "innovations"):
+        assert getattr(lres, name).shape[-1] == 0 and getattr(lres, name).base is None
+    whole = _whole_record(light, y, u, Q, R).filter_result
+    for f in dataclasses.fields(res):
+        a = getattr(res, f.name)
+        if isinstance(a, np.ndarray):  # the same filter on the same data: bit for bit
+            np.testing.assert_array_equal(getattr(whole, f.name), a, err_msg=f.name)
+    assert _whole_record(tr, y, u, Q, R) is tr  # a whole record is left as it is
+
+
+def test_report_trace_has_the_whole_filter_record():
+    y, u, yv, uv, Q, R = _records(3000)
+    rep = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, delta=False, max_effects=1)
+    assert rep.updated and rep.channel.name == "eq(v)"
+    res = rep.trace.filter_result
+    assert res.t.shape == (3000,) and res.x_pred.shape == (2, 3000)
+    assert res.innovations.shape == (2, 3000) and res.d_var.shape == (1, 3000)
+    ref = gb.uikf(rep.trace.model, y, u, unknown=list(rep.trace.channel.labels), Q=Q, R=R)
+    np.testing.assert_array_equal(res.d_var, ref.d_var)  # same filter, same data
+
+
+def test_delta_refine_window_covering_the_record_changes_nothing():
+    y, u, _, _, Q, R = _records(2000, seed=1)
+    sys = gb.discretize(_osc(), DT)
+    a = delta_update(sys, y, u, Q=Q, R=R)
+    b = delta_update(sys, y, u, Q=Q, R=R, refine_window=10**6)
+    assert a.message == b.message and a.refined == b.refined
+    np.testing.assert_array_equal(np.asarray(a.updated.sys.A), np.asarray(b.updated.sys.A))
+
+
+def test_delta_refine_window_is_checked():
+    y, u, _, _, Q, R = _records(400)
+    sys = gb.discretize(_osc(), DT)
+    with pytest.raises(gb.DataError, match="refine_window must be finite and > 0"):
+        delta_update(sys, y, u, Q=Q, R=R, refine_window=0)
+    with pytest.raises(gb.DimensionError, match="refine_window must be an integer"):
+        delta_update(sys, y, u, Q=Q, R=R, refine_window=2.5)
+
+
+def test_close_the_loop_refines_the_delta_baseline_on_a_window(monkeypatch):
+    import greybox.workflow as wf
+
+    seen = {}
+    real = wf.delta_update
+
+    def spy(*args, **kw):
+        seen.update(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(wf, "delta_update", spy)
+    y, u, yv, uv, Q, R = _records(3000)
+    rep = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, max_effects=1)
+    # 2 outputs: at most 2e5 residuals = 1e5 samples (the record here is shorter: no effect)
+    assert seen["refine_window"] == wf.DELTA_REFINE_RESIDUALS // 2 == 100_000
+    assert "delta" in rep.table
