@@ -232,6 +232,7 @@ def test_trace_channel_errors():
 # --------------------------------------------------------------------------- laws
 def _law(spec, eps, coef, n=2, m=1):
     coef = np.atleast_2d(np.asarray(coef, dtype=float))
+    coef = np.pad(coef, ((0, 0), (0, len(spec) - coef.shape[1])))  # unlisted terms (offset): 0
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=coef[:, :n],
                      Ddu=coef[:, n:n + m], nonlinear=bool(np.any(coef[:, n + m:])),
                      residual_var=np.zeros(coef.shape[0]), bic_gain=0.0,
@@ -248,11 +249,12 @@ def test_law_terms_names_and_values(rng):
     x, u = rng.standard_normal((2, 40)), rng.standard_normal((1, 40))
     T, spec, eps = law_terms(x, u, ["p", "v"], ["F"])
     names = [s[0] for s in spec]
-    assert names == ["p", "v", "F", "p^3", "sign(p)", "|p|", "v^3", "sign(v)", "|v|"]
+    assert names == ["p", "v", "F", "p^3", "sign(p)", "|p|", "v^3", "sign(v)", "|v|", "1"]
     np.testing.assert_allclose(eps, 0.05 * np.sqrt(np.mean(x**2, axis=1)), rtol=1e-12)
     np.testing.assert_array_equal(T[names.index("p^3")], x[0] ** 3)
     np.testing.assert_array_equal(T[names.index("sign(v)")], np.tanh(x[1] / eps[1]))
     np.testing.assert_array_equal(T[names.index("|p|")], np.abs(x[0]))
+    np.testing.assert_array_equal(T[names.index("1")], 1.0)  # the offset term
     T2, spec2, _ = law_terms(x, u, ["p", "v"], ["F"], nonlinear=False)
     assert [s[0] for s in spec2] == ["p", "v", "F"] and T2.shape == (3, 40)
 

@@ -55,7 +55,7 @@ from .uikf import (
     _split,
 )
 
-__all__ = ["RelativeDegree", "delayed_uikf", "detect_relative_degree"]
+__all__ = ["RelativeDegree", "delayed_uikf", "detect_relative_degree", "input_weights"]
 
 #: Relative rank tolerance, as in :func:`~greybox.check_rank_condition`.
 _RANK_TOL = 1e-9
@@ -162,6 +162,81 @@ def _choose(A, C, G, Q, R, labels, max_degree, switch_ratio, maxiter):
 
 
 # --------------------------------------------------------------------------- public
+def input_weights(sys: ct.StateSpace, *, unknown: int | str | Sequence[int | str], r: int
+                  ) -> tuple[NDArray[np.float64], float]:
+    """What a delayed estimate of d stands for: ``d_est[:, j] ~ sum_i w[i] @ d[j + i]``.
+
+    The filter of relative degree r models ``x[k+1] = A x + B u + G~ d'``
+    (module docstring) while the plant has ``G d``. The sequence d' that
+    gives the same outputs is a short moving combination of d: matching the
+    Markov parameters ``C A^(l-1) G = sum_i C A^(l+i-1) G~ w[i]`` for
+    l = 1 .. r + n gives the weights (least squares; exact for a ZOH double
+    integrator with its position measured, where ``w = [1/2, 1/2]``: d^[j]
+    is unbiased for ``(d[j] + d[j+1]) / 2``). A law ``d = f(x, u)`` fitted on
+    d^ must therefore be regressed on ``sum_i w[i] f(x[j+i], u[j+i])``, not
+    on ``f(x[j], u[j])`` (which carries a half-sample shift, PAPER_NOTES §9.5).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete model with inputs ``[u, d]``; d must not feed through.
+    unknown : label(s) or index(es)
+        Unknown-input channels of ``sys``.
+    r : int
+        Relative degree of the estimate (1: ``w = [I]`` exactly).
+
+    Returns
+    -------
+    w : ndarray, shape (r, md, md)
+        Weights of d[j], ..., d[j + r - 1] [dimensionless].
+    misfit : float
+        Relative residual of the Markov-parameter match (0: exact; a large
+        value means no short combination of d explains d^).
+
+    Raises
+    ------
+    RankConditionError
+        If r does not satisfy ``rank(C A^(r-1) G~) = md``.
+
+    Examples
+    --------
+    >>> import greybox as gb
+    >>> dt = 1e-3
+    >>> mass = gb.named_ss([[1, dt], [0, 1]], [[0, dt**2 / 2], [0, dt]], [[1, 0]],
+    ...                    [[0, 0]], dt, states=["p", "v"], inputs=["u", "F"], outputs=["p"])
+    >>> w, misfit = gb.input_weights(mass, unknown="F", r=2)
+    >>> [round(float(v), 6) for v in w[:, 0, 0]], misfit < 1e-9
+    ([0.5, 0.5], True)
+    """
+    r = check_positive(r, "r", integer=True)
+    _, A, _, C, _, G, labels = _split_any(sys, unknown)
+    return _weights(A, C, G, r, labels)
+
+
+def _weights(A, C, G, r, labels):
+    n, md = G.shape
+    shifted = _shifted_input(A, C, G, r)
+    if shifted is None:
+        raise RankConditionError(
+            f"Unknown input {list(labels)} not observable with relative degree {r}: "
+            f"rank(C A^{r - 1} G~) < md = {md}"
+        )
+    Gt = shifted[0]
+    if r == 1:
+        return np.eye(md)[None], 0.0
+    L = r + n
+    pw = [np.eye(n)]
+    for _ in range(L + r):
+        pw.append(A @ pw[-1])
+    h = [C @ pw[l - 1] @ G for l in range(1, L + 1)]            # true Markov parameters
+    ht = [C @ pw[l - 1] @ Gt for l in range(1, L + r + 1)]      # those of the model with G~
+    lhs = np.vstack([np.hstack([ht[l - 1 + i] for i in range(r)]) for l in range(1, L + 1)])
+    rhs = np.vstack(h)
+    W = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    misfit = float(np.linalg.norm(lhs @ W - rhs) / max(np.linalg.norm(rhs), 1e-300))
+    return W.reshape(r, md, md), misfit
+
+
 def detect_relative_degree(sys: ct.StateSpace, *, unknown: int | str | Sequence[int | str],
                            Q: ArrayLike, R: ArrayLike, max_degree: int | None = None,
                            switch_ratio: float = 100.0, maxiter: int = 5000

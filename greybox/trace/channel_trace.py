@@ -11,20 +11,39 @@ from numpy.typing import NDArray
 
 from .._validation import check_discrete, check_positive
 from ..exceptions import DataError, GreyboxError, GreyboxWarning, RankConditionError
-from ..filters import FilterResult, check_rank_condition, uikf
+from ..filters import (
+    FilterResult,
+    check_rank_condition,
+    delayed_uikf,
+    detect_relative_degree,
+    input_weights,
+    smooth_uikf,
+    uikf,
+)
 from ..metrics import autocorrelation
 from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 from ..validate import unstable_reason
 from .channels import Channel, channel_model
-from .laws import LINEAR_KINDS, StaticLaw, _eval_terms, _fit_static, _static_subsystem
+from .laws import (
+    LINEAR_KINDS,
+    StaticLaw,
+    _eval_terms,
+    _fit_static,
+    _static_subsystem,
+    aligned,
+)
 from .oe import _refine_static_oe, _select_static_oe, zoh
 
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
 # estimation noise and the static law is chosen by output error on y instead.
 _LOW_SNR = 0.1
+# ... unless the d^ law explains at least this fraction of var(d^) (then Q overstates the noise)
+_EXPLAINED = 0.5
 # Below this lag-1 autocorrelation d^ is taken to alternate sign (see trace_channel).
 _ALTERNATING = -0.5
+# Covariance iterations before an r = 1 filter counts as not converging (relative degree)
+_DETECT_ITER = 1000
 # Terms offered to an output-error selection of a force law (ranked by correlation with d^).
 _OE_CANDIDATES = 6
 
@@ -43,7 +62,13 @@ class ChannelTrace:
     model : control.StateSpace or None
         Discrete model with inputs ``[u, d]``.
     filter_result : FilterResult or None
-        The unknown-input filter on the estimation data.
+        The (r = 1) unknown-input filter on the estimation data; the dynamic
+        fit uses it.
+    law_estimate : FilterResult or None
+        The estimate the static law was fitted on: smoothed and/or delayed
+        (``relative_degree``, ``smoothed``), else ``filter_result`` itself.
+    relative_degree : int
+        Relative degree of ``law_estimate`` (1 when C G is used directly).
     static : StaticLaw or None
     static_model : UpdatedModel or None
         Nominal model with the (linear part of the) static law folded into A, B.
@@ -58,6 +83,8 @@ class ChannelTrace:
     reason: str = ""
     model: ct.StateSpace | None = field(default=None, repr=False)
     filter_result: FilterResult | None = field(default=None, repr=False)
+    law_estimate: FilterResult | None = field(default=None, repr=False)
+    relative_degree: int = 1
     static: StaticLaw | None = None
     static_model: UpdatedModel | None = field(default=None, repr=False)
     dynamic: Subsystem | None = field(default=None, repr=False)
@@ -65,10 +92,54 @@ class ChannelTrace:
     notes: tuple[str, ...] = ()
 
 
+def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes):
+    """(estimate, r, align) the static law is fitted on.
+
+    The relative degree r is detected from the model and the noise
+    (:func:`greybox.detect_relative_degree`); with ``smooth`` the estimate is
+    the fixed-interval smoother's (:func:`greybox.smooth_uikf`), else the
+    (delayed) filter's. ``align[c]`` (md, r) are the weights of d[j..j+r-1] in
+    what ``d_est[c, j]`` estimates (:func:`greybox.input_weights`).
+    """
+    md = len(labels)
+    try:
+        rd = detect_relative_degree(model, unknown=labels, Q=Q, R=R, maxiter=_DETECT_ITER)
+        r = rd.r
+    except GreyboxError as e:
+        r = 1
+        notes.append(f"relative degree not detected ({e}); the r = 1 filter is used")
+    if r == 1 and smooth != True:  # noqa: E712 ("auto": smooth delayed estimates only)
+        return res, 1, np.ones((md, 1))
+    w, misfit = input_weights(model, unknown=labels, r=r)
+    if r >= 2:
+        notes.append(f"relative degree {r} ({rd.reason}): d^[j] estimates "
+                     + ", ".join(f"{labels[c]}: " + " + ".join(
+                         f"{w[i, c, c]:.3g}*d[j+{i}]" for i in range(r)) for c in range(md))
+                     + (f" (Markov-parameter misfit {misfit:.2g})" if misfit > 1e-3 else ""))
+    off = np.abs(w - np.einsum("icc->ic", w)[:, :, None] * np.eye(md)).max() if md > 1 else 0.0
+    if off > 0.05 * np.abs(w).max():
+        notes.append(f"the delayed d^ mixes components of d (weight {off:.2g}); each "
+                     f"component's law is aligned with its own weights only")
+    align = np.einsum("icc->ci", w)
+    kw = dict(unknown=labels, Q=Q, R=R, relative_degree=r)
+    try:
+        est = smooth_uikf(model, y, u, **kw) if smooth else \
+            (res if r == 1 else delayed_uikf(model, y, u, **kw))
+    except (GreyboxError, np.linalg.LinAlgError) as e:
+        notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
+        est = res if r == 1 else delayed_uikf(model, y, u, **kw)
+    return est, r, align
+
+
+def _aligned_rows(v, align, K):
+    """``v`` (nrows, K + r - 1) weighted like the first component of d^: shape (nrows, K)."""
+    return aligned(v, align[0])[:, :K]
+
+
 def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, *,
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
                   max_order: int = 2, min_order: int = 1, skip: int | None = None,
-                  cond_tol: float = 1e-6) -> ChannelTrace:
+                  cond_tol: float = 1e-6, smooth: bool | str = "auto") -> ChannelTrace:
     """Run the unknown-input filter for one channel and fit static and dynamic laws.
 
     Parameters
@@ -93,6 +164,18 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     cond_tol : float
         A channel with ``sigma_min(C G) < cond_tol * ||C|| ||G||`` is skipped
         as practically unobservable (beyond the exact rank test (17)).
+    smooth : bool or "auto"
+        Fit the static law on the fixed-interval smoothed d^ and x^
+        (:func:`greybox.smooth_uikf`, the whole record is available) rather
+        than on the filter's. "auto": only for a delayed estimate (r >= 2),
+        where the filter's x^ lags; at r = 1 the smoother barely lowers the
+        variance of d^ (d is free at every sample, so only y[j+1] informs
+        d[j]) and costs as much as the filter. Either way the estimate has the relative degree
+        :func:`greybox.detect_relative_degree` chooses (a force entering an
+        acceleration with only positions measured: r = 2, no alternating d^),
+        and the law's terms are weighted as d^ sees them
+        (:func:`greybox.input_weights`). The dynamic fit always uses the causal
+        r = 1 filter (closed-loop identification, PAPER_NOTES §8.4).
 
     Returns
     -------
@@ -120,28 +203,47 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     res = uikf(model, y, u, unknown=labels, Q=Q, R=R)
     N = y.shape[1] - 1
     k0 = skip if skip is not None else max(20, res.period_converged or 20)
-    nterms = (4 * n if nonlinear else n) + m
+    nterms = (4 * n + 1 if nonlinear else n) + m
     if N - k0 <= nterms:
         raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a law of "
                         f"{nterms} candidate terms; give more data or a smaller skip")
-    d = res.d_est[:, k0:N]
-    x = res.x_filt[:, k0:N]
-    uu = u[:, k0:N]
     notes = []
-    # d^ alternating sign: the channel reaches the outputs through a ZOH zero
-    # near z = -1 (e.g. a velocity equation seen through positions only, C G ~
-    # dt^2/2) and the filter's inversion leaves an oscillation at the Nyquist
-    # frequency; the mean of two consecutive samples cancels it.
-    r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
-    pair_mean = r1 < _ALTERNATING
-    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units, pair_mean,
-                      channel.relative)
-    if pair_mean:
-        notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
-                     f"is fitted on the mean of consecutive samples")
+    est, r, align = _law_estimate(model, labels, y, u, Q, R, res, smooth, notes)
+    # est.d_est[:, j] estimates sum_i align[:, i] d[j + i]: the law's terms are weighted alike,
+    # so x and u carry r - 1 more columns than d (the last r columns of a delayed d^ are NaN)
+    okd = np.all(np.isfinite(est.d_est), axis=0)
+    okx = np.all(np.isfinite(est.x_filt), axis=0)
+    Ne = y.shape[1] - r
+    while Ne > k0 and not (okd[Ne - 1] and okx[Ne + r - 2]):
+        Ne -= 1
+    if Ne - k0 <= nterms:
+        raise DataError(f"{Ne - k0} samples left after skipping {k0} cannot fit a law of "
+                        f"{nterms} candidate terms; give more data or a smaller skip")
+    d = est.d_est[:, k0:Ne]
+    xw = est.x_filt[:, k0:Ne + r - 1]
+    uw = u[:, k0:Ne + r - 1]
+    averaged = False
+    if r == 1 and not est.smoothed:
+        # the r = 1 filter kept (the delayed one was not better): d^ may still alternate in
+        # sign (a ZOH zero near z = -1); then it estimates about the mean of two samples
+        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
+        if r1 < _ALTERNATING:
+            align = np.full((channel.md, 2), 0.5)
+            d = 0.5 * (d[:, 1:] + d[:, :-1])
+            averaged = True
+            notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
+                         f"is fitted on terms averaged over consecutive samples")
+    law = _fit_static(d, xw, uw, res.sys, nonlinear, labels, channel.units,
+                      None if align.shape[1] == 1 and np.allclose(align, 1.0) else align,
+                      channel.relative, whiten=est.smoothed or r >= 2)
+    K = d.shape[1]
+    x = _aligned_rows(xw, align, K)
+    uu = _aligned_rows(uw, align, K)
     # d^ barely above its own estimation noise: choose the law by output error
+    dnoise = np.atleast_2d(est.d_cov) if averaged or not est.smoothed else \
+        np.diag(np.mean(est.d_var[:, k0:Ne], axis=1))
     excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
-        max(float(np.trace(np.atleast_2d(res.d_cov))), 1e-300) - 1.0
+        max(float(np.trace(dnoise)), 1e-300) - 1.0
     # a continuous nominal model: linear laws are parametrized in continuous time
     cont = None if ct.isdtime(sys, strict=True) else (
         np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
@@ -151,28 +253,29 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     if not oe_ok:
         notes.append("the nominal model is unstable: the static law is the least-squares fit "
                      "on d^ (no output-error refinement)")
-    if excess < _LOW_SNR and not pair_mean and oe_ok:
+    # ... unless the law itself explains much of d^ (Q overstated, e.g. set from the error)
+    explained = 1.0 - float(np.sum(law.residual_var)) / max(
+        float(np.trace(np.atleast_2d(np.cov(d, bias=True)))), 1e-300)
+    if excess < _LOW_SNR and explained < _EXPLAINED and not averaged and oe_ok:
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units, cont=cont, noise=(Q, R))
         notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
                      f"Pd): static law chosen by output error on y")
-    elif channel.relative and oe_ok and (pair_mean or law.npar > 2 * channel.md):
-        # a force between bodies whose d^ fit is not sparse (d^ alternating or
-        # noise-dominated, e.g. positions only): choose the law by output error among the
-        # linear terms d^'s pair means correlate with most (per component of d)
-        terms = _eval_terms(law.spec, law.eps, x, uu)
+    elif channel.relative and oe_ok and (averaged or law.npar > 2 * channel.md):
+        # a force between bodies whose d^ fit is not sparse (noise-dominated, e.g.
+        # positions only): choose the law by output error among the linear terms d^
+        # correlates with most (per component of d)
         lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
-        tm = 0.5 * (terms[lin, 1:] + terms[lin, :-1])
-        tm = tm - tm.mean(axis=1, keepdims=True)
         only = set()
         for c in range(channel.md):
-            dm = 0.5 * (d[c, 1:] + d[c, :-1])
-            dm = dm - dm.mean()
+            tm = aligned(_eval_terms(law.spec, law.eps, xw, uw)[lin], align[c])
+            tm = tm - tm.mean(axis=1, keepdims=True)
+            dm = d[c] - d[c].mean()
             corr = np.abs(tm @ dm) / (np.linalg.norm(tm, axis=1) * np.linalg.norm(dm) + 1e-300)
             only |= {lin[q] for q in np.argsort(-corr)[:_OE_CANDIDATES]}
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units, cont=cont, noise=(Q, R), only=sorted(only))
-        notes.append("a force seen through alternating d^: static law chosen by output "
+        notes.append("a force whose d^ law is not sparse: static law chosen by output "
                      "error on y among the terms d^ correlates with most")
     elif not law.nonlinear and law.npar and oe_ok:
         tscale = law.term_scale(x, uu)
@@ -181,7 +284,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         if se_y < se_d:
             notes.append(f"static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
-    sub0 = _static_subsystem(law, res, d, x, uu)
+    sub0 = _static_subsystem(law, replace(res, d_cov=dnoise), d, x, uu)
     static_model = augment_model(model, sub0, unknown=labels, Q=Q, R=R)
     if law.time_base == "continuous":  # fold the law in continuous time, discretize exactly
         Ac, Bc, Gc, h = cont
@@ -203,5 +306,5 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"dynamic fit failed: {e}")
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
-                        static=law, static_model=static_model, dynamic=dyn,
+                        law_estimate=est, relative_degree=r, static=law, static_model=static_model, dynamic=dyn,
                         dynamic_model=dyn_model, notes=tuple(notes))

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import solve_toeplitz
+from scipy.signal import lfilter
 
 from ..filters import FilterResult
 from ..ident.regression import SparseLaw, forward_selection
@@ -26,13 +28,13 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
 
     Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
     list of ``(display name, kind, index)`` with kind in
-    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs"},
+    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs", "const"},
     and the eps of each ``tanh(v/eps)`` (5 % of v's RMS unless given; one per
     state, then one per relative coordinate). ``relative`` lists state pairs
     (i, j): the relative coordinate ``x_j - x_i`` (a force between two
     bodies depends on it, PAPER_NOTES §9.6) is offered like a state, with
     index ``(i, j, k)`` where k indexes its eps. The linear terms (x, u,
-    rel) come first.
+    rel) come first; with ``nonlinear`` the constant term "1" (an offset) comes last.
     """
     n, m = x.shape[0], u.shape[0]
     rel = [x[j] - x[i] for i, j in relative]
@@ -67,6 +69,8 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
             spec.append((f"sign{nm}", "rel_sign", (i, j, n + r)))
             rows.append(np.abs(v))
             spec.append((f"|{nm}|", "rel_abs", (i, j, n + r)))
+        rows.append(np.ones(x.shape[1]))  # an offset (a constant force, a biased sensor)
+        spec.append(("1", "const", 0))
     N = x.shape[1]
     return (np.array(rows) if rows else np.zeros((0, N))), spec, eps
 
@@ -77,6 +81,9 @@ LINEAR_KINDS = ("x", "u", "rel")
 def _eval_terms(spec, eps, x, u):
     out = np.empty((len(spec),) + x.shape[1:])
     for r, (_, kind, i) in enumerate(spec):
+        if kind == "const":
+            out[r] = 1.0
+            continue
         if kind.startswith("rel"):
             a, b, e = i
             v, kind = x[b] - x[a], {"rel": "x", "rel^3": "x^3", "rel_sign": "sign",
@@ -171,7 +178,8 @@ def _fmt_sum(coefs, names, half=None) -> str:
     parts = []
     half = np.full(len(coefs), np.nan) if half is None else half
     for c, nm, h in zip(coefs, names, half):
-        s = f"{abs(c):.3g}*{nm}" if not np.isfinite(h) else f"({abs(c):.3g} ± {h:.2g})*{nm}"
+        s = f"{abs(c):.3g}" if not np.isfinite(h) else f"({abs(c):.3g} ± {h:.2g})"
+        s = s if nm == "1" else f"{s}*{nm}"
         parts.append(("- " if c < 0 else "+ ") + s)
     if not parts:
         return "0"
@@ -211,14 +219,55 @@ def _one_direction(coef: NDArray, tscale: NDArray, labels) -> list[str]:
             f"x (one force)"]
 
 
-def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
-                relative=()) -> StaticLaw:
+def aligned(terms: NDArray, w: NDArray) -> NDArray[np.float64]:
+    """``sum_i w[i] terms[:, j + i]`` for j = 0 .. K - r, the terms as a delayed d^ sees them.
+
+    Parameters
+    ----------
+    terms : ndarray, shape (nterms, K)
+    w : ndarray, shape (r,)
+        Weights of ``d[j], ..., d[j + r - 1]`` in what ``d_est[:, j]`` estimates
+        (:func:`greybox.filters.delayed.input_weights`).
+    """
+    r = len(w)
+    K = terms.shape[1] - r + 1
+    return sum(w[i] * terms[:, i:i + K] for i in range(r))
+
+
+# AR order of the prewhitening filter of a smoothed or delayed d^
+_AR_ORDER = 4
+
+
+def _whitening(e: NDArray, p: int) -> NDArray[np.float64]:
+    """``[1, -a_1, ..., -a_p]``: the Yule-Walker AR(p) whitening filter of the residual e."""
+    e = e - e.mean()
+    K = e.size
+    acf = np.array([e[:K - lag] @ e[lag:] for lag in range(p + 1)]) / K
+    if acf[0] <= 0:
+        return np.r_[1.0, np.zeros(p)]
+    return np.r_[1.0, -solve_toeplitz(acf[:p], acf[1:p + 1])]
+
+
+def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
+                relative=(), whiten=False) -> StaticLaw:
+    """Sparse static law of every component of d^ on the terms of (x, u).
+
+    ``align`` (md, r): d^[c, j] estimates ``sum_i align[c, i] d[c, j + i]``
+    (a delayed or averaged estimate); x and u then carry r - 1 more columns
+    than d, and each component is regressed on its own weighted terms.
+    ``whiten``: d^'s estimation noise is coloured (a smoothed or delayed
+    estimate; with only positions measured it is mostly high-frequency, a
+    second difference of the sensor noise), so the white-noise BIC would
+    badly understate what the low-frequency terms explain. The regression is
+    then feasible generalized least squares: an AR(4) filter fitted
+    (Yule-Walker) to the residual of all candidate terms whitens d^ and the
+    terms alike before the selection and the intervals.
+    """
     terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear,
                                  relative=relative)
-    if pair_mean:  # regress (d[j] + d[j+1]) / 2 on (terms[j] + terms[j+1]) / 2
-        terms = 0.5 * (terms[:, 1:] + terms[:, :-1])
-        d = 0.5 * (d[:, 1:] + d[:, :-1])
     md = d.shape[0]
+    tc = [terms if align is None else aligned(terms, align[c]) for c in range(md)]
+    terms = tc[0]
     n, m = x.shape[0], u.shape[0]
     coef = np.zeros((md, len(spec)))
     Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
@@ -229,20 +278,26 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
     names = [s[0] for s in spec]
     half = np.full((md, len(spec)), np.nan)
     for c in range(md):
-        sel = _select(terms, d[c], names)
+        terms, dc = tc[c], d[c]
+        if whiten and terms.shape[1] > 10 * (_AR_ORDER + len(spec)):
+            th = np.linalg.lstsq(terms.T, dc, rcond=None)[0]
+            a = _whitening(dc - th @ terms, _AR_ORDER)
+            dc = lfilter(a, [1.0], dc)[_AR_ORDER:]
+            terms = lfilter(a, [1.0], terms, axis=1)[:, _AR_ORDER:]
+        sel = _select(terms, dc, names)
         idx, cf = list(sel.index), sel.coef
         coef[c, idx] = cf
         if idx:  # 95 % half-widths of the regression on d^, robust to its autocorrelation
             X = terms[idx]
-            cov = hac_covariance(X.T, d[c] - cf @ X, 1)
+            cov = hac_covariance(X.T, dc - cf @ X, 1)
             half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
-        rv[c] = sel.residual_var
+        rv[c] = float(np.mean((d[c] - cf @ tc[c][idx]) ** 2)) if idx else float(np.mean(d[c]**2))
         gain += sel.bic_gain
         npar += len(idx)
         nl = any(j >= nlin for j in idx)
         any_nl |= nl
         if nl:  # best linear surrogate for the StateSpace
-            lin = _select(terms[:nlin], d[c], names[:nlin])
+            lin = _select(terms[:nlin], dc, names[:nlin])
             lc = np.zeros(nlin)
             lc[list(lin.index)] = lin.coef
         else:
@@ -251,7 +306,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
         Ddx[c], Ddu[c] = dx_[0], du_[0]
         lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
                                units[c] if c < len(units) else "", half[c, idx]))
-    tscale = np.sqrt(np.mean(terms**2, axis=1))
+    tscale = np.sqrt(np.mean(tc[0]**2, axis=1))
     lines += _one_direction(coef, tscale, labels)
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
                      residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines),
