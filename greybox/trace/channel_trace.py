@@ -38,8 +38,6 @@ from .oe import _refine_static_oe, _select_static_oe, zoh
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
 # estimation noise and the static law is chosen by output error on y instead.
 _LOW_SNR = 0.1
-# ... unless the d^ law explains at least this fraction of var(d^) (then Q overstates the noise)
-_EXPLAINED = 0.5
 # Below this lag-1 autocorrelation d^ is taken to alternate sign (see trace_channel).
 _ALTERNATING = -0.5
 # Covariance iterations before an r = 1 filter counts as not converging (relative degree)
@@ -92,14 +90,16 @@ class ChannelTrace:
     notes: tuple[str, ...] = ()
 
 
-def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes):
+def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes, continuous=None):
     """(estimate, r, align) the static law is fitted on.
 
     The relative degree r is detected from the model and the noise
     (:func:`greybox.detect_relative_degree`); with ``smooth`` the estimate is
     the fixed-interval smoother's (:func:`greybox.smooth_uikf`), else the
     (delayed) filter's. ``align[c]`` (md, r) are the weights of d[j..j+r-1] in
-    what ``d_est[c, j]`` estimates (:func:`greybox.input_weights`).
+    what ``d_est[c, j]`` estimates (:func:`greybox.input_weights`; with
+    ``continuous = (Ac, Gc)`` of a continuous nominal model, d is a
+    continuous-time law between the samples: r + 1 weights for r >= 2).
     """
     md = len(labels)
     try:
@@ -110,11 +110,12 @@ def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes):
         notes.append(f"relative degree not detected ({e}); the r = 1 filter is used")
     if r == 1 and smooth != True:  # noqa: E712 ("auto": smooth delayed estimates only)
         return res, 1, np.ones((md, 1))
-    w, misfit = input_weights(model, unknown=labels, r=r)
+    w, misfit = input_weights(model, unknown=labels, r=r,
+                              continuous=continuous if r >= 2 else None)
     if r >= 2:
         notes.append(f"relative degree {r} ({rd.reason}): d^[j] estimates "
                      + ", ".join(f"{labels[c]}: " + " + ".join(
-                         f"{w[i, c, c]:.3g}*d[j+{i}]" for i in range(r)) for c in range(md))
+                         f"{w[i, c, c]:.3g}*d[j+{i}]" for i in range(len(w))) for c in range(md))
                      + (f" (Markov-parameter misfit {misfit:.2g})" if misfit > 1e-3 else ""))
     off = np.abs(w - np.einsum("icc->ic", w)[:, :, None] * np.eye(md)).max() if md > 1 else 0.0
     if off > 0.05 * np.abs(w).max():
@@ -184,6 +185,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     """
     if skip is not None:
         skip = check_positive(skip, "skip", integer=True, allow_zero=True)
+    if not (isinstance(smooth, (bool, np.bool_)) or smooth == "auto"):
+        raise DataError(f"smooth must be True, False or 'auto'; found {smooth!r}")
     model = channel_model(sys, channel, dt)
     check_discrete(model)
     n, m = model.nstates, model.ninputs - channel.md
@@ -208,20 +211,25 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a law of "
                         f"{nterms} candidate terms; give more data or a smaller skip")
     notes = []
-    est, r, align = _law_estimate(model, labels, y, u, Q, R, res, smooth, notes)
+    cont = None if ct.isdtime(sys, strict=True) else (
+        np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
+        np.asarray(channel.G, dtype=float), float(model.dt))
+    est, r, align = _law_estimate(model, labels, y, u, Q, R, res, smooth, notes,
+                                  None if cont is None else (cont[0], cont[2]))
     # est.d_est[:, j] estimates sum_i align[:, i] d[j + i]: the law's terms are weighted alike,
-    # so x and u carry r - 1 more columns than d (the last r columns of a delayed d^ are NaN)
+    # so x and u carry nw - 1 more columns than d (the last r columns of a delayed d^ are NaN)
+    nw = align.shape[1]
     okd = np.all(np.isfinite(est.d_est), axis=0)
     okx = np.all(np.isfinite(est.x_filt), axis=0)
-    Ne = y.shape[1] - r
-    while Ne > k0 and not (okd[Ne - 1] and okx[Ne + r - 2]):
+    Ne = y.shape[1] - nw
+    while Ne > k0 and not (okd[Ne - 1] and okx[Ne + nw - 2]):
         Ne -= 1
     if Ne - k0 <= nterms:
         raise DataError(f"{Ne - k0} samples left after skipping {k0} cannot fit a law of "
                         f"{nterms} candidate terms; give more data or a smaller skip")
     d = est.d_est[:, k0:Ne]
-    xw = est.x_filt[:, k0:Ne + r - 1]
-    uw = u[:, k0:Ne + r - 1]
+    xw = est.x_filt[:, k0:Ne + nw - 1]
+    uw = u[:, k0:Ne + nw - 1]
     averaged = False
     if r == 1 and not est.smoothed:
         # the r = 1 filter kept (the delayed one was not better): d^ may still alternate in
@@ -239,28 +247,27 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     K = d.shape[1]
     x = _aligned_rows(xw, align, K)
     uu = _aligned_rows(uw, align, K)
-    # d^ barely above its own estimation noise: choose the law by output error
+    # d^ barely above its own estimation noise: choose the law by output error (r = 1)
     dnoise = np.atleast_2d(est.d_cov) if averaged or not est.smoothed else \
         np.diag(np.mean(est.d_var[:, k0:Ne], axis=1))
     excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
         max(float(np.trace(dnoise)), 1e-300) - 1.0
-    # a continuous nominal model: linear laws are parametrized in continuous time
-    cont = None if ct.isdtime(sys, strict=True) else (
-        np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
-        np.asarray(channel.G, dtype=float), float(model.dt))
     # output error needs a simulation that stays bounded over the record
     oe_ok = not unstable_reason(model, y.shape[1])
     if not oe_ok:
         notes.append("the nominal model is unstable: the static law is the least-squares fit "
                      "on d^ (no output-error refinement)")
-    # ... unless the law itself explains much of d^ (Q overstated, e.g. set from the error)
-    explained = 1.0 - float(np.sum(law.residual_var)) / max(
-        float(np.trace(np.atleast_2d(np.cov(d, bias=True)))), 1e-300)
-    if excess < _LOW_SNR and explained < _EXPLAINED and not averaged and oe_ok:
+    # (a delayed or smoothed d^ is fitted by GLS, whose selection already weighs its coloured
+    # noise: only an empty law sends it to output error; its raw variance is mostly
+    # high-frequency noise that says nothing about the law, and Q may be overstated)
+    whitened = est.smoothed or r >= 2
+    low_snr = law.npar == 0 if whitened else excess < _LOW_SNR
+    if low_snr and not averaged and oe_ok:
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units, cont=cont, noise=(Q, R))
-        notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
-                     f"Pd): static law chosen by output error on y")
+        notes.append("no term explains the delayed d^: static law chosen by output error on y"
+                     if whitened else f"d^ is mostly estimation noise (variance only "
+                     f"{100 * excess:.2g}% above Pd): static law chosen by output error on y")
     elif channel.relative and oe_ok and (averaged or law.npar > 2 * channel.md):
         # a force between bodies whose d^ fit is not sparse (noise-dominated, e.g.
         # positions only): choose the law by output error among the linear terms d^

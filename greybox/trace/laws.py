@@ -289,7 +289,8 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
         coef[c, idx] = cf
         if idx:  # 95 % half-widths of the regression on d^, robust to its autocorrelation
             X = terms[idx]
-            cov = hac_covariance(X.T, dc - cf @ X, 1)
+            sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
+            cov = hac_covariance((X / sx[:, None]).T, dc - cf @ X, 1) / np.outer(sx, sx)
             half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
         rv[c] = float(np.mean((d[c] - cf @ tc[c][idx]) ** 2)) if idx else float(np.mean(d[c]**2))
         gain += sel.bic_gain
