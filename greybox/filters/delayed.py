@@ -56,7 +56,8 @@ from .uikf import (
     _split,
 )
 
-__all__ = ["RelativeDegree", "delayed_uikf", "detect_relative_degree", "input_weights"]
+__all__ = ["RelativeDegree", "delayed_uikf", "detect_relative_degree", "first_order_hold",
+           "input_weights"]
 
 #: Relative rank tolerance, as in :func:`~greybox.check_rank_condition`.
 _RANK_TOL = 1e-9
@@ -230,12 +231,30 @@ def input_weights(sys: ct.StateSpace, *, unknown: int | str | Sequence[int | str
         if Ac.shape != A.shape or Gc.shape != G.shape:
             raise DimensionError(f"continuous: A of shape {Ac.shape} and G of shape {Gc.shape}; "
                                  f"expected {A.shape} and {G.shape}")
-        foh = _foh(Ac, Gc, float(sys.dt))
+        foh = first_order_hold(Ac, Gc, float(sys.dt))
     return _weights(A, C, G, r, labels, foh)
 
 
-def _foh(Ac, Gc, dt):
-    """(Gamma0, Gamma1) of ``x[k+1] = A x + Gamma0 d[k] + Gamma1 d[k+1]`` (first-order hold)."""
+def first_order_hold(Ac: ArrayLike, Gc: ArrayLike, dt: float
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(Gamma0, Gamma1)`` of ``x[k+1] = A x + Gamma0 d[k] + Gamma1 d[k+1]`` (first-order hold).
+
+    Parameters
+    ----------
+    Ac : array_like, shape (nstates, nstates)
+        Continuous-time state matrix.
+    Gc : array_like, shape (nstates, md)
+        Continuous-time input matrix of d.
+    dt : float
+        Sampling period [s].
+
+    Returns
+    -------
+    Gamma0, Gamma1 : ndarray, shape (nstates, md)
+        Weights of d[k] and d[k+1] when d(t) is linear between the samples.
+    """
+    Ac = np.asarray(Ac, dtype=float)
+    Gc = np.asarray(Gc, dtype=float).reshape(Ac.shape[0], -1)
     n, md = Gc.shape
     M = np.zeros((n + 2 * md, n + 2 * md))
     M[:n, :n], M[:n, n:n + md], M[n:n + md, n + md:] = Ac, Gc, np.eye(md)

@@ -22,7 +22,14 @@ force channel, [x_i units / s] for a bare continuous state equation).
 
 from .channel_trace import ChannelTrace, trace_channel
 from .channels import Channel, channel_model, default_channels, resolve_channel_spec
-from .laws import StaticLaw, law_terms, parameter_notes, predict_with_law, simulate_with_law
+from .laws import (
+    StaticLaw,
+    aligned,
+    law_terms,
+    parameter_notes,
+    predict_with_law,
+    simulate_with_law,
+)
 
 
 __all__ = [
@@ -34,6 +41,7 @@ __all__ = [
     "ChannelTrace",
     "trace_channel",
     "law_terms",
+    "aligned",
     "simulate_with_law",
     "predict_with_law",
     "parameter_notes",

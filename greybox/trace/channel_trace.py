@@ -20,6 +20,7 @@ from ..filters import (
     smooth_uikf,
     uikf,
 )
+from ..filters.delayed import first_order_hold
 from ..metrics import autocorrelation
 from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
@@ -244,6 +245,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     law = _fit_static(d, xw, uw, res.sys, nonlinear, labels, channel.units,
                       None if align.shape[1] == 1 and np.allclose(align, 1.0) else align,
                       channel.relative, whiten=est.smoothed or r >= 2)
+    if cont is not None and r >= 2:  # first-order-hold weights: the law is simulated alike
+        law = replace(law, hold=first_order_hold(cont[0], cont[2], cont[3]))
     K = d.shape[1]
     x = _aligned_rows(xw, align, K)
     uu = _aligned_rows(uw, align, K)

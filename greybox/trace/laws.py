@@ -146,6 +146,13 @@ class StaticLaw:
         continuous G, d in the channel's physical units (the augmented model is
         discretized exactly); "discrete": ``d[j]`` acts through the
         ZOH-discretized G between samples j and j+1.
+    hold : tuple of two ndarrays (nstates, md), or None
+        ``(Gamma0, Gamma1)`` when the law is a continuous-time force taken as
+        linear between samples (first-order hold: ``x[k+1] = A x + B u +
+        Gamma0 d[k] + Gamma1 d[k+1]``), as a law fitted on a delayed d^ with
+        first-order-hold weights is; :func:`simulate_with_law` and
+        :func:`predict_with_law` then integrate it so (Heun step). None: d[k]
+        is held over the sample and enters through G.
     """
 
     spec: tuple
@@ -160,6 +167,7 @@ class StaticLaw:
     formula: str
     ci: NDArray[np.float64] | None = None
     time_base: str = "discrete"
+    hold: tuple | None = None
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
@@ -337,9 +345,24 @@ def _law_line(label: str, coefs, names, unit: str, half=None) -> str:
 
 
 # --------------------------------------------------------------------------- nonlinear laws
+def _step(A, xk, bu, G, law, uk):
+    """``A x + B u + G d`` with d held (ZOH), or first-order hold of the law (Heun step)."""
+    fk = law.evaluate(xk[:, None], uk)[:, 0]
+    if law.hold is None:
+        return A @ xk + bu + G @ fk
+    G0, G1 = law.hold
+    base = A @ xk + bu
+    xs = base + (G0 + G1) @ fk  # predictor: d constant over the sample
+    return base + G0 @ fk + G1 @ law.evaluate(xs[:, None], uk)[:, 0]
+
+
 def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArray,
                       x0: NDArray) -> NDArray[np.float64]:
-    """Simulated output of ``x[k+1] = A x + B u + G law(x, u)``, shape (noutputs, nsteps)."""
+    """Simulated output of ``x[k+1] = A x + B u + G law(x, u)``, shape (noutputs, nsteps).
+
+    With ``law.hold`` the law is taken linear between samples instead (see
+    :class:`StaticLaw`).
+    """
     A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
     N = u.shape[1]
     x = np.empty((A.shape[0], N))
@@ -347,7 +370,7 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
     Bu = B @ u
     for k in range(N):
         x[:, k] = xk
-        xk = A @ xk + Bu[:, k] + G @ law.evaluate(xk[:, None], u[:, k:k + 1])[:, 0]
+        xk = _step(A, xk, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xk)) or np.max(np.abs(xk)) > 1e100:
             x[:, k + 1:] = np.nan
             break
@@ -365,7 +388,7 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
     for k in range(N):
         yp[:, k] = C @ xp + Du[:, k]
         xf = xp + K @ (y[:, k] - yp[:, k])
-        xp = A @ xf + Bu[:, k] + G @ law.evaluate(xf[:, None], u[:, k:k + 1])[:, 0]
+        xp = _step(A, xf, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xp)) or np.max(np.abs(xp)) > 1e100:
             yp[:, k + 1:] = np.nan
             break
