@@ -21,11 +21,18 @@ force channel, [x_i units / s] for a bare continuous state equation).
 
 
 from .channel_trace import ChannelTrace, trace_channel
-from .channels import Channel, channel_model, default_channels, resolve_channel_spec
+from .channels import (
+    Channel,
+    channel_model,
+    default_channels,
+    output_channel,
+    resolve_channel_spec,
+)
 from .laws import (
     StaticLaw,
     aligned,
     law_terms,
+    output_terms,
     parameter_notes,
     predict_with_law,
     simulate_with_law,
@@ -35,12 +42,14 @@ from .laws import (
 __all__ = [
     "Channel",
     "default_channels",
+    "output_channel",
     "resolve_channel_spec",
     "channel_model",
     "StaticLaw",
     "ChannelTrace",
     "trace_channel",
     "law_terms",
+    "output_terms",
     "aligned",
     "simulate_with_law",
     "predict_with_law",

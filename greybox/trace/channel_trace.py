@@ -16,6 +16,7 @@ from ..filters import (
     check_rank_condition,
     delayed_uikf,
     detect_relative_degree,
+    feedthrough_uikf,
     input_weights,
     smooth_uikf,
     uikf,
@@ -33,6 +34,7 @@ from .laws import (
     _fit_static,
     _static_subsystem,
     aligned,
+    output_terms,
 )
 from .oe import _refine_static_oe, _select_static_oe, zoh
 
@@ -133,6 +135,47 @@ def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes, continuous=None
     return est, r, align
 
 
+def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> ChannelTrace:
+    """A sensor-error channel: the filter with direct feedthrough and a law on the model output."""
+    labels = list(channel.labels)
+    res = feedthrough_uikf(model, y, u, unknown=labels, Q=Q, R=R)
+    notes = []
+    est = res
+    if smooth is not False:  # the whole record: smoothed x^ and d^ (no delay here)
+        try:
+            est = smooth_uikf(model, y, u, unknown=labels, Q=Q, R=R, relative_degree=0)
+        except (GreyboxError, np.linalg.LinAlgError) as e:
+            notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
+    N = y.shape[1]
+    k0 = skip if skip is not None else max(20, res.period_converged or 20)
+    m = model.ninputs - 1
+    nterms = 4 if nonlinear else 1
+    if N - k0 <= 10 * nterms:
+        raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a sensor law of "
+                        f"{nterms} candidate terms; give more data or a smaller skip")
+    i = list(model.output_labels).index(channel.output)
+    A, B = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)[:, :m]
+    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
+    x, uu, d = est.x_filt[:, k0:N], u[:, k0:N], est.d_est[:, k0:N]
+    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units,
+                      whiten=est.smoothed,
+                      prebuilt=output_terms(x, uu, C[i], D[i], channel.output,
+                                            nonlinear=nonlinear))
+    law = replace(law, output=i)
+    Cn, Dn = C.copy(), D.copy()
+    Cn[i] += law.Ddx[0]
+    Dn[i] += law.Ddu[0]
+    upd = named_ss(A, B, Cn, Dn, model.dt, states=model.state_labels,
+                   inputs=list(model.input_labels)[:m], outputs=model.output_labels,
+                   name=f"{sys.name or 'model'}_updated")
+    static_model = UpdatedModel(sys=upd, Q=Q, R=R, order=model.nstates, kind="static")
+    notes.append("a sensor-error channel: static law on the model's own output "
+                 "(gain, offset, |.|, cube); sensor dynamics are not fitted")
+    return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
+                        law_estimate=est, relative_degree=0, static=law,
+                        static_model=static_model, notes=tuple(notes))
+
+
 def _aligned_rows(v, align, K):
     """``v`` (nrows, K + r - 1) weighted like the first component of d^: shape (nrows, K)."""
     return aligned(v, align[0])[:, :K]
@@ -190,6 +233,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         raise DataError(f"smooth must be True, False or 'auto'; found {smooth!r}")
     model = channel_model(sys, channel, dt)
     check_discrete(model)
+    if channel.kind == "output":
+        return _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth)
     n, m = model.nstates, model.ninputs - channel.md
     Gd = np.asarray(model.B, dtype=float)[:, m:]
     C = np.asarray(model.C, dtype=float)

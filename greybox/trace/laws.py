@@ -75,7 +75,28 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
     return (np.array(rows) if rows else np.zeros((0, N))), spec, eps
 
 
-LINEAR_KINDS = ("x", "u", "rel")
+LINEAR_KINDS = ("x", "u", "rel", "yhat")
+
+
+def output_terms(x: NDArray, u: NDArray, c: NDArray, dd: NDArray, name: str, *,
+                 nonlinear: bool = True) -> tuple[NDArray, list, NDArray]:
+    """Candidate terms of a sensor-error law on the model's own output ``c x + dd u``.
+
+    Returns ``(terms, spec, eps)`` as :func:`law_terms`: ``<name>_model`` (a
+    gain error), and with ``nonlinear`` its cube (a soft saturation), its
+    absolute value (a rectifying sensor: ``|y| - y``) and the offset "1".
+    """
+    c = np.asarray(c, dtype=float).reshape(-1)
+    dd = np.asarray(dd, dtype=float).reshape(-1)
+    yh = c @ x + dd @ u
+    idx = (tuple(float(v) for v in c), tuple(float(v) for v in dd))
+    nm = f"{name}_model"
+    rows, spec = [yh], [(nm, "yhat", idx)]
+    if nonlinear:
+        rows += [yh**3, np.abs(yh), np.ones_like(yh)]
+        spec += [(f"{nm}^3", "yhat^3", idx), (f"|{nm}|", "yhat_abs", idx), ("1", "const", 0)]
+    eps = np.array([0.05 * np.sqrt(np.mean(yh**2)) + 1e-300])
+    return np.array(rows), spec, eps
 
 
 def _eval_terms(spec, eps, x, u):
@@ -83,6 +104,10 @@ def _eval_terms(spec, eps, x, u):
     for r, (_, kind, i) in enumerate(spec):
         if kind == "const":
             out[r] = 1.0
+            continue
+        if kind.startswith("yhat"):
+            v = np.asarray(i[0]) @ x + (np.asarray(i[1]) @ u if len(i[1]) else 0.0)
+            out[r] = v if kind == "yhat" else v**3 if kind == "yhat^3" else np.abs(v)
             continue
         if kind.startswith("rel"):
             a, b, e = i
@@ -107,6 +132,10 @@ def linear_part(spec, coef: NDArray, n: int, m: int) -> tuple[NDArray, NDArray]:
         elif kind == "rel":
             Ddx[:, i[1]] += coef[:, j]
             Ddx[:, i[0]] -= coef[:, j]
+        elif kind == "yhat":
+            Ddx += np.outer(coef[:, j], i[0])
+            if len(i[1]):
+                Ddu += np.outer(coef[:, j], i[1])
     return Ddx, Ddu
 
 
@@ -153,6 +182,10 @@ class StaticLaw:
         first-order-hold weights is; :func:`simulate_with_law` and
         :func:`predict_with_law` then integrate it so (Heun step). None: d[k]
         is held over the sample and enters through G.
+    output : int or None
+        Index of the output a sensor-error law adds to (``y_i = C_i x + D_i u
+        + d``; Ddx, Ddu are then its linear part in the output equation);
+        None: the law enters the state equations.
     """
 
     spec: tuple
@@ -168,6 +201,7 @@ class StaticLaw:
     ci: NDArray[np.float64] | None = None
     time_base: str = "discrete"
     hold: tuple | None = None
+    output: int | None = None
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
@@ -257,7 +291,7 @@ def _whitening(e: NDArray, p: int) -> NDArray[np.float64]:
 
 
 def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
-                relative=(), whiten=False) -> StaticLaw:
+                relative=(), whiten=False, prebuilt=None) -> StaticLaw:
     """Sparse static law of every component of d^ on the terms of (x, u).
 
     ``align`` (md, r): d^[c, j] estimates ``sum_i align[c, i] d[c, j + i]``
@@ -269,10 +303,14 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     badly understate what the low-frequency terms explain. The regression is
     then feasible generalized least squares: an AR(4) filter fitted
     (Yule-Walker) to the residual of all candidate terms whitens d^ and the
-    terms alike before the selection and the intervals.
+    terms alike before the selection and the intervals. ``prebuilt``:
+    ``(terms, spec, eps)`` of other candidates (:func:`output_terms`).
     """
-    terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear,
-                                 relative=relative)
+    if prebuilt is None:
+        terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels,
+                                     nonlinear=nonlinear, relative=relative)
+    else:
+        terms, spec, eps = prebuilt
     md = d.shape[0]
     tc = [terms if align is None else aligned(terms, align[c]) for c in range(md)]
     terms = tc[0]
@@ -282,7 +320,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     rv = np.zeros(md)
     gain, npar, any_nl = 0.0, 0, False
     lines = []
-    nlin = n + m + len(relative)
+    nlin = sum(1 for sp in spec if sp[1] in LINEAR_KINDS)  # the linear terms come first
     names = [s[0] for s in spec]
     half = np.full((md, len(spec)), np.nan)
     for c in range(md):
@@ -361,7 +399,8 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
     """Simulated output of ``x[k+1] = A x + B u + G law(x, u)``, shape (noutputs, nsteps).
 
     With ``law.hold`` the law is taken linear between samples instead (see
-    :class:`StaticLaw`).
+    :class:`StaticLaw`); with ``law.output`` it adds to that output instead
+    (G is then zero).
     """
     A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
     N = u.shape[1]
@@ -374,7 +413,10 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
         if not np.all(np.isfinite(xk)) or np.max(np.abs(xk)) > 1e100:
             x[:, k + 1:] = np.nan
             break
-    return C @ x + D @ u
+    y = C @ x + D @ u
+    if law.output is not None:  # a sensor-error law
+        y[law.output] += law.evaluate(x, u)[0]
+    return y
 
 
 def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArray,
@@ -387,6 +429,8 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
     Bu, Du = B @ u, D @ u
     for k in range(N):
         yp[:, k] = C @ xp + Du[:, k]
+        if law.output is not None:
+            yp[law.output, k] += law.evaluate(xp[:, None], u[:, k:k + 1])[0, 0]
         xf = xp + K @ (y[:, k] - yp[:, k])
         xp = _step(A, xf, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xp)) or np.max(np.abs(xp)) > 1e100:
@@ -394,6 +438,28 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
             break
     return yp
 
+
+
+def _sensor_notes(channel: Channel, law: StaticLaw) -> tuple[str, ...]:
+    """What a sensor-error law says about sensor ``channel.output``: gain, offset, |.|, cube."""
+    nm, out = channel.output, []
+    for j, (_, kind, _) in enumerate(law.spec):
+        c = law.coef[0, j]
+        if c == 0:
+            continue
+        h = law.ci[0, j] if law.ci is not None else np.nan
+        pm = f" ± {h:.2g}" if np.isfinite(h) else ""
+        if kind == "yhat":
+            out.append(f"sensor {nm}: gain 1 in the model; the data want {1 + c:.4g}{pm} "
+                       f"({100 * c:+.1f} %)")
+        elif kind == "const":
+            out.append(f"sensor {nm}: offset {c:.4g}{pm} [{nm}] (0 in the model)")
+        elif kind == "yhat_abs":
+            out.append(f"sensor {nm}: {c:.4g}{pm} * |{nm}| (with the gain at 0 a rectifier: "
+                       f"the sensor reads |{nm}|)")
+        elif kind == "yhat^3":
+            out.append(f"sensor {nm}: {c:.4g}{pm} * {nm}^3 (negative: saturation)")
+    return tuple(out)
 
 
 def _fmt_values(v: NDArray, digits: int) -> str:
@@ -416,6 +482,8 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
     contains 0 (the model's value) has already been dropped from the law, so
     a parameter the data do not contradict is never flagged.
     """
+    if channel.kind == "output":
+        return _sensor_notes(channel, law)
     A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
     out = []
     for k in range(channel.md):
