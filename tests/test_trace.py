@@ -79,7 +79,9 @@ def test_default_channels_singles_and_pairs():
                     states=["a", "b", "c", "e"], inputs=["u"], outputs=["a", "c"])
     chans = default_channels(four)
     assert [c.name for c in chans[:4]] == ["eq(a)", "eq(b)", "eq(c)", "eq(e)"]
-    assert len(chans) == 4 + 1 + 6          # 4 singles, the input (enters 4 rows), C(4, 2) pairs
+    # 4 singles, the input (enters 4 rows), C(4, 2) pairs, the 2 outputs' sensor channels
+    assert len(chans) == 4 + 1 + 6 + 2
+    assert [c.name for c in chans[-2:]] == ["output(a)", "output(c)"]
     inp = chans[4]
     assert inp.name == "input(u)" and inp.kind == "input" and inp.input == "u"
     assert inp.equations == ("a", "b", "c", "e") and inp.units == ("[u]",)
@@ -88,12 +90,13 @@ def test_default_channels_singles_and_pairs():
     assert pair.name == "eq(a)+eq(b)" and pair.md == 2 and pair.equations == ("a", "b")
     np.testing.assert_array_equal(pair.G, np.eye(4)[:, :2])
     assert pair.labels == ("d_a", "d_b") and pair.units == ("[a]/s", "[b]/s")
-    assert len(default_channels(four, pairs=False)) == 5
-    assert len(default_channels(four, pairs=False, inputs=False)) == 4
+    assert len(default_channels(four, pairs=False, outputs=False)) == 5
+    assert len(default_channels(four, pairs=False, inputs=False, outputs=False)) == 4
     # one output: md = 2 cannot satisfy rank(C G) = 2, so no pairs even if asked
     one = named_ss(np.eye(2), np.ones((2, 1)), [[1.0, 0.0]], [[0.0]], 0.1,
                    states=["a", "b"], inputs=["u"], outputs=["a"])
-    assert [c.name for c in default_channels(one, pairs=True)] == ["eq(a)", "eq(b)", "input(u)"]
+    assert [c.name for c in default_channels(one, pairs=True)] == ["eq(a)", "eq(b)", "input(u)",
+                                                                   "output(a)"]
     assert default_channels(one)[0].units == ("[a]/sample",)
     with pytest.raises(gb.DataError, match="pairs must be True, False or 'auto'"):
         default_channels(four, pairs="yes")
@@ -115,7 +118,8 @@ def test_resolve_channel_spec_names_and_G_columns():
     assert pv.name == "pv" and pv.md == 2 and pv.labels == ("d_p", "d_v")
     assert two.labels == ("two[0]", "two[1]") and two.md == 2
     assert resolve_channel_spec(sys, [v]) == (v,)             # records pass through
-    assert [c.name for c in resolve_channel_spec(sys, None)] == ["eq(p)", "eq(v)", "eq(p)+eq(v)"]
+    assert [c.name for c in resolve_channel_spec(sys, None)] == ["eq(p)", "eq(v)", "eq(p)+eq(v)",
+                                                                 "output(p)", "output(v)"]
 
 
 @pytest.mark.parametrize("spec, match", [
