@@ -15,7 +15,8 @@ import pytest
 from plantlib import draw, linear_f, msd
 
 import greybox as gb
-from greybox.exceptions import DimensionError
+from greybox.exceptions import DataError, DimensionError
+from greybox.system import named_ss
 from greybox.validate import simulate_output
 from greybox.trace import (
     channel_model,
@@ -107,6 +108,12 @@ def test_output_channel_records_and_errors():
     assert ch.kind == "output" and ch.output == "vel" and ch.name == "output(vel)"
     assert not np.any(ch.G) and ch.equations == ()
     assert ch in default_channels(nom) and ch not in default_channels(nom, outputs=False)
+    seven = named_ss(np.eye(7), np.ones((7, 1)), np.eye(7), np.zeros((7, 1)), 0,
+                     states=list("abcdefg"), inputs=["u"], outputs=list("abcdefg"))
+    assert not any(c.kind == "output" for c in default_channels(seven))  # "auto": p <= 6
+    assert sum(c.kind == "output" for c in default_channels(seven, outputs=True)) == 7
+    with pytest.raises(DataError, match="outputs must be True, False or 'auto'"):
+        default_channels(nom, outputs="yes")
     m = channel_model(nom, ch, 0.01)
     np.testing.assert_array_equal(np.asarray(m.D)[:, -1], [0.0, 1.0])
     np.testing.assert_array_equal(np.asarray(m.B)[:, -1], [0.0, 0.0])

@@ -14,6 +14,10 @@ from ..system import discretize, named_ss
 
 
 
+# Largest number of outputs whose sensor channels default_channels offers by default
+_AUTO_OUTPUTS = 6
+
+
 # --------------------------------------------------------------------------- channels
 @dataclass(frozen=True, eq=False)
 class Channel:
@@ -130,7 +134,7 @@ def output_channel(sys: ct.StateSpace, output: int | str) -> Channel:
 
 
 def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
-                     inputs: bool = True, outputs: bool = True) -> tuple[Channel, ...]:
+                     inputs: bool = True, outputs: bool | str = "auto") -> tuple[Channel, ...]:
     """Every single state equation, every input and output, and pairs where p allows.
 
     Parameters
@@ -147,10 +151,12 @@ def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
         gain, lag or dead zone of input j enters every equation the input
         enters, with B's ratios). Skipped for inputs that enter a single
         state equation (the equation's channel is the same).
-    outputs : bool
+    outputs : bool or "auto"
         Also try each output's sensor-error channel (:func:`output_channel`:
         offset, gain error, |.| or saturation of one sensor, traced with the
-        unknown-input filter with direct feedthrough).
+        unknown-input filter with direct feedthrough). "auto": only when
+        ``noutputs <= 6`` (each costs a trace; name them explicitly for
+        larger models).
     """
     if not (isinstance(pairs, (bool, np.bool_)) or pairs == "auto"):
         raise DataError(f"pairs must be True, False or 'auto'; found {pairs!r}")
@@ -163,7 +169,9 @@ def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
     use_pairs = (sys.noutputs >= 2 and n <= 4) if pairs == "auto" else bool(pairs)
     if use_pairs and sys.noutputs >= 2:
         out += [_eq_channel(sys, [i, j]) for i in range(n) for j in range(i + 1, n)]
-    if outputs:
+    if not (isinstance(outputs, (bool, np.bool_)) or outputs == "auto"):
+        raise DataError(f"outputs must be True, False or 'auto'; found {outputs!r}")
+    if (sys.noutputs <= _AUTO_OUTPUTS) if outputs == "auto" else outputs:
         out += [output_channel(sys, i) for i in range(sys.noutputs)]
     return tuple(out)
 
