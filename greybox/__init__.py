@@ -34,7 +34,12 @@ from .filters import (  # noqa: E402
     steady_state_filter,
     uikf,
 )
-from .filters.delayed import RelativeDegree, delayed_uikf, detect_relative_degree  # noqa: E402
+from .filters.delayed import (  # noqa: E402
+    RelativeDegree,
+    delayed_uikf,
+    detect_relative_degree,
+    input_weights,
+)
 from .filters.feedthrough import feedthrough_uikf, with_sensor_error  # noqa: E402
 from .filters.smoother import smooth_uikf  # noqa: E402
 from .plants import (  # noqa: E402
@@ -127,6 +132,7 @@ __all__ += [
     "RelativeDegree",
     "delayed_uikf",
     "detect_relative_degree",
+    "input_weights",
     "feedthrough_uikf",
     "smooth_uikf",
     "with_sensor_error",

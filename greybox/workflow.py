@@ -532,7 +532,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         notes.append("equation screen (joint unknown-input filter): " + ", ".join(
             f"eq({s}) z = {scr.score[scr.states.index(s)]:.3g}" for s in top) +
             f"; {len(scr.states) - len(top)} other equations below")
-        keep = [c for c in chans if c.kind == "input" or
+        keep = [c for c in chans if c.kind in ("input", "output") or
                 (c.md == 1 and c.equations and c.equations[0] in top)]
         if nominal.noutputs >= 2:
             idx = sorted(list(sys.state_labels).index(s) for s in top)
@@ -700,7 +700,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
                 ch = tr_.channel
                 if len(done) >= (1 if big else 2) or ch in done or ch.md != 1 or \
-                        not np.isfinite(se_):
+                        not np.isfinite(se_) or ch.kind == "output":
                     continue
                 done.add(ch)
                 se_static = min((c[0] for c in scored

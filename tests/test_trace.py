@@ -79,7 +79,9 @@ def test_default_channels_singles_and_pairs():
                     states=["a", "b", "c", "e"], inputs=["u"], outputs=["a", "c"])
     chans = default_channels(four)
     assert [c.name for c in chans[:4]] == ["eq(a)", "eq(b)", "eq(c)", "eq(e)"]
-    assert len(chans) == 4 + 1 + 6          # 4 singles, the input (enters 4 rows), C(4, 2) pairs
+    # 4 singles, the input (enters 4 rows), C(4, 2) pairs, the 2 outputs' sensor channels
+    assert len(chans) == 4 + 1 + 6 + 2
+    assert [c.name for c in chans[-2:]] == ["output(a)", "output(c)"]
     inp = chans[4]
     assert inp.name == "input(u)" and inp.kind == "input" and inp.input == "u"
     assert inp.equations == ("a", "b", "c", "e") and inp.units == ("[u]",)
@@ -88,12 +90,13 @@ def test_default_channels_singles_and_pairs():
     assert pair.name == "eq(a)+eq(b)" and pair.md == 2 and pair.equations == ("a", "b")
     np.testing.assert_array_equal(pair.G, np.eye(4)[:, :2])
     assert pair.labels == ("d_a", "d_b") and pair.units == ("[a]/s", "[b]/s")
-    assert len(default_channels(four, pairs=False)) == 5
-    assert len(default_channels(four, pairs=False, inputs=False)) == 4
+    assert len(default_channels(four, pairs=False, outputs=False)) == 5
+    assert len(default_channels(four, pairs=False, inputs=False, outputs=False)) == 4
     # one output: md = 2 cannot satisfy rank(C G) = 2, so no pairs even if asked
     one = named_ss(np.eye(2), np.ones((2, 1)), [[1.0, 0.0]], [[0.0]], 0.1,
                    states=["a", "b"], inputs=["u"], outputs=["a"])
-    assert [c.name for c in default_channels(one, pairs=True)] == ["eq(a)", "eq(b)", "input(u)"]
+    assert [c.name for c in default_channels(one, pairs=True)] == ["eq(a)", "eq(b)", "input(u)",
+                                                                   "output(a)"]
     assert default_channels(one)[0].units == ("[a]/sample",)
     with pytest.raises(gb.DataError, match="pairs must be True, False or 'auto'"):
         default_channels(four, pairs="yes")
@@ -115,7 +118,8 @@ def test_resolve_channel_spec_names_and_G_columns():
     assert pv.name == "pv" and pv.md == 2 and pv.labels == ("d_p", "d_v")
     assert two.labels == ("two[0]", "two[1]") and two.md == 2
     assert resolve_channel_spec(sys, [v]) == (v,)             # records pass through
-    assert [c.name for c in resolve_channel_spec(sys, None)] == ["eq(p)", "eq(v)", "eq(p)+eq(v)"]
+    assert [c.name for c in resolve_channel_spec(sys, None)] == ["eq(p)", "eq(v)", "eq(p)+eq(v)",
+                                                                 "output(p)", "output(v)"]
 
 
 @pytest.mark.parametrize("spec, match", [
@@ -232,6 +236,7 @@ def test_trace_channel_errors():
 # --------------------------------------------------------------------------- laws
 def _law(spec, eps, coef, n=2, m=1):
     coef = np.atleast_2d(np.asarray(coef, dtype=float))
+    coef = np.pad(coef, ((0, 0), (0, len(spec) - coef.shape[1])))  # unlisted terms (offset): 0
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=coef[:, :n],
                      Ddu=coef[:, n:n + m], nonlinear=bool(np.any(coef[:, n + m:])),
                      residual_var=np.zeros(coef.shape[0]), bic_gain=0.0,
@@ -248,11 +253,12 @@ def test_law_terms_names_and_values(rng):
     x, u = rng.standard_normal((2, 40)), rng.standard_normal((1, 40))
     T, spec, eps = law_terms(x, u, ["p", "v"], ["F"])
     names = [s[0] for s in spec]
-    assert names == ["p", "v", "F", "p^3", "sign(p)", "|p|", "v^3", "sign(v)", "|v|"]
+    assert names == ["p", "v", "F", "p^3", "sign(p)", "|p|", "v^3", "sign(v)", "|v|", "1"]
     np.testing.assert_allclose(eps, 0.05 * np.sqrt(np.mean(x**2, axis=1)), rtol=1e-12)
     np.testing.assert_array_equal(T[names.index("p^3")], x[0] ** 3)
     np.testing.assert_array_equal(T[names.index("sign(v)")], np.tanh(x[1] / eps[1]))
     np.testing.assert_array_equal(T[names.index("|p|")], np.abs(x[0]))
+    np.testing.assert_array_equal(T[names.index("1")], 1.0)  # the offset term
     T2, spec2, _ = law_terms(x, u, ["p", "v"], ["F"], nonlinear=False)
     assert [s[0] for s in spec2] == ["p", "v", "F"] and T2.shape == (3, 40)
 

@@ -8,14 +8,16 @@ positions are measured in both.
 
 For each we (1) build the nominal continuous StateSpace, (2) choose Q and R,
 (3) run :func:`greybox.close_the_loop` as is, and (4) look inside the
-eq(velocity) channel: the unknown-input filter's d^ there is dominated by a
-(-1)^k oscillation (the ZOH zero at z = -1 of a relative-degree-2 channel,
-inverted by the filter). Averaging two consecutive samples of d^ removes it,
-and greybox's own forward selection on the averaged d^ then finds the omitted
-law: sign(v) and |v| for EMPS (the published Coulomb friction and friction
-asymmetry), y^3 for Silverbox. ``close_the_loop`` now does this averaging
-itself (greybox.trace: lag-1 autocorrelation of d^ below -0.5) and finds the
-EMPS friction in one call; step (4) shows the mechanism with public API.
+eq(velocity) channel. With only positions measured, a force enters the
+outputs two samples later (relative degree 2; under ZOH C G ~ dt^2/2 is not
+zero but tiny): the plain unknown-input filter's d^ is then dominated by a
+(-1)^k oscillation (the ZOH zero near z = -1, inverted). The trace detects
+the relative degree (:func:`greybox.detect_relative_degree`), fits the law
+on the delayed, fixed-interval smoothed d^ (:func:`greybox.smooth_uikf`),
+weights the law's terms as that d^ sees them (:func:`greybox.input_weights`:
+first-order hold of a continuous force, [1/6, 2/3, 1/6]) and fits by GLS
+(the d^ noise is coloured). It finds sign(v) and |v| for EMPS (the published
+Coulomb friction and friction asymmetry) and y^3 first for Silverbox.
 
 Choices (stated, not tuned on validation data):
 
@@ -39,14 +41,21 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 import greybox as gb
-from greybox import forward_selection
 from greybox.system import named_ss
-from greybox.trace import law_terms, resolve_channel_spec, trace_channel
+from greybox.trace import (
+    aligned,
+    law_terms,
+    resolve_channel_spec,
+    simulate_with_law,
+    trace_channel,
+)
+from greybox.trace.intervals import hac_covariance
 from greybox.workflow import close_the_loop
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -80,35 +89,53 @@ def show(rep):
         print(f"   {name:<22} SE {v.se.value:7.3g} %   PE {v.pe.value:7.3g} %")
 
 
-def averaged_law(sys_c, y, u, Q, R, dt, channel="eq(v)", skip=50):
-    """Fit greybox's sparse static law to the 2-sample mean of d^ (the workaround)."""
+def inside(sys_c, y, u, Q, R, dt, channel="eq(v)", skip=50):
+    """trace_channel on one channel: the r = 1 filter's d^ and the delayed, smoothed d^."""
     ch = [c for c in resolve_channel_spec(sys_c, None) if c.name == channel][0]
     tr = trace_channel(sys_c, ch, y, u, Q=Q, R=R, dt=dt, max_order=0)
-    res = tr.filter_result
-    d = res.d_est[0, skip:-1]
-    x = res.x_filt[:, skip:-1]
-    lag1 = float(np.corrcoef(d[1:], d[:-1])[0, 1])
-    d2 = 0.5 * (d[1:] + d[:-1])
-    x2 = 0.5 * (x[:, 1:] + x[:, :-1])
-    u2 = u[:, skip + 1:u.shape[1] - 1]
-    terms, spec, eps = law_terms(x2, u2, res.sys.state_labels[:sys_c.nstates],
-                                 sys_c.input_labels, nonlinear=True)
-    law = forward_selection(terms, d2, [s[0] for s in spec], min_drop=1e-4, prune=True)
-    return dict(trace=tr, d=d, d2=d2, lag1=lag1, var=d.var(), var2=d2.var(), law=law,
-                spec=spec, eps=eps, x2=x2)
+    d1 = tr.filter_result.d_est[0, skip:-1]
+    est = tr.law_estimate
+    w, _ = gb.input_weights(tr.model, unknown=list(ch.labels), r=tr.relative_degree,
+                            continuous=(np.asarray(sys_c.A), ch.G))
+    # the law's terms as d^ sees them: weighted over the samples d^[j] averages
+    last_d = np.flatnonzero(np.isfinite(est.d_est[0]))[-1]
+    last_x = np.flatnonzero(np.all(np.isfinite(est.x_filt), axis=0))[-1]
+    K = min(last_d + 1, last_x - len(w) + 2) - skip
+    d2 = est.d_est[0, skip:skip + K]
+    xs = est.x_filt[:, skip:skip + K + len(w) - 1]
+    us = u[:, skip:skip + K + len(w) - 1]
+    terms, spec, eps = law_terms(xs, us, sys_c.state_labels, sys_c.input_labels)
+    return dict(trace=tr, d1=d1, d2=d2, r=tr.relative_degree, w=w[:, 0, 0],
+                lag1=float(np.corrcoef(d1[1:], d1[:-1])[0, 1]),
+                lag1_2=float(np.corrcoef(d2[1:], d2[:-1])[0, 1]), var1=d1.var(),
+                var2=d2.var(), pd2=float(np.mean(est.d_var[0, skip:skip + K])),
+                terms=aligned(terms, w[:, 0, 0]), names=[sp[0] for sp in spec], eps=eps,
+                x=aligned(xs, w[:, 0, 0]))
 
 
-def simulate_law(sys_d_with_G, law_fn, u, x0):
-    """Simulate x+ = A x + B u + G law(x) (the law acts as in greybox: discrete, via ZOH G)."""
-    A = np.asarray(sys_d_with_G.A)
-    B = np.asarray(sys_d_with_G.B)[:, :-1]
-    G = np.asarray(sys_d_with_G.B)[:, -1]
-    C = np.asarray(sys_d_with_G.C)
-    x, out = np.array(x0, float), np.empty((C.shape[0], u.shape[1]))
-    for k in range(u.shape[1]):
-        out[:, k] = C @ x
-        x = A @ x + B @ u[:, k] + G * law_fn(x)
-    return out
+def fit_terms(info, names):
+    """Least squares of d^ on the named aligned terms, with 95 % HAC half-widths."""
+    X = np.array([info["terms"][info["names"].index(nm)] for nm in names])
+    d = info["d2"]
+    th = np.linalg.lstsq(X.T, d, rcond=None)[0]
+    sx = np.sqrt(np.mean(X**2, axis=1))
+    cov = hac_covariance((X / sx[:, None]).T, d - th @ X, 1) / np.outer(sx, sx)
+    return th, 1.96 * np.sqrt(np.diag(cov))
+
+
+def simulate_law(info, law, u, x0):
+    """Simulate the nominal model plus ``law`` as the trace does (first-order hold of the law)."""
+    res = info["trace"].filter_result
+    return simulate_with_law(res.sys, res.G, law, u, x0)
+
+
+def with_terms(law, names, values):
+    """``law`` with only the named terms, at the given coefficients."""
+    spec = [sp[0] for sp in law.spec]
+    coef = np.zeros_like(law.coef)
+    for nm, v in zip(names, values):
+        coef[0, spec.index(nm)] = v
+    return replace(law, coef=coef)
 
 
 def se(y, ysim, skip=20):
@@ -138,46 +165,48 @@ rep_e = close_the_loop(emps, q[None, est], vir[None, est], q[None, val], vir[Non
 print(f"close_the_loop ({time.time() - t0:.1f} s):")
 show(rep_e)
 
-fe = averaged_law(emps, q[None, est], vir[None, est], Q, R, dt)
-names = [fe["spec"][i][0] for i in fe["law"].index]
-print(f"inside eq(v): lag-1 autocorrelation of d^ {fe['lag1']:.3f}; var(d^) {fe['var']:.3g}, "
-      f"var of its 2-sample mean {fe['var2']:.3g} (m/s^2)^2")
-coef = dict(zip(names, fe["law"].coef))
-print("forward selection on the 2-sample mean of d^:",
-      " + ".join(f"{c:.3g}*{n}" for n, c in coef.items()), "[m/s^2]")
-Fc = -M * coef.get("sign(v)", np.nan)
-dFv = M * coef.get("|v|", np.nan)
-print(f"  -> Coulomb friction Fc = {Fc:.3g} N (published 20.39 N); |v| term "
-      f"{dFv:.3g} N s/m = half the friction asymmetry (published (240.42-166.71)/2 = 36.86)")
-# same law with an offset term, by plain least squares (for the offset)
-x2, d2 = fe["x2"], fe["d2"]
-Phi = np.c_[np.tanh(x2[1] / fe["eps"][1]), np.abs(x2[1]), np.ones_like(d2)]
-th = np.linalg.lstsq(Phi, d2, rcond=None)[0]
-print(f"  least squares with an offset: Fc = {-M * th[0]:.3g} N, offset = {-M * th[2]:.3g} N "
-      f"(published -3.16 N)")
+fe = inside(emps, q[None, est], vir[None, est], Q, R, dt)
+print(f"inside eq(v): relative degree {fe['r']} (weights {np.round(fe['w'], 3)}); r = 1 "
+      f"filter d^: lag-1 autocorrelation {fe['lag1']:.3f}, variance {fe['var1']:.3g}; "
+      f"delayed smoothed d^: lag-1 {fe['lag1_2']:.3f}, variance {fe['var2']:.3g} "
+      f"(its estimation-noise variance {fe['pd2']:.3g}) (m/s^2)^2")
+law_e = fe["trace"].static
+print("trace law (GLS on the delayed, smoothed d^):", law_e.formula)
+names_e = [sp[0] for sp in law_e.spec]
+j = names_e.index("sign(v)")
+Fc, hFc = -M * law_e.coef[0, j], M * law_e.ci[0, j]
+print(f"  -> Coulomb friction Fc = {Fc:.4g} +- {hFc:.2g} N (published 20.39 N)")
+if "|v|" in names_e and law_e.coef[0, names_e.index("|v|")]:
+    j = names_e.index("|v|")
+    print(f"  |v| term {M * law_e.coef[0, j]:.3g} +- {M * law_e.ci[0, j]:.2g} N s/m = half the "
+          f"friction asymmetry (published (240.42-166.71)/2 = 36.86)")
+# the offset is not selected (BIC); forced in by least squares, with its interval
+th, hw = fit_terms(fe, ["sign(v)", "|v|", "1"])
+print(f"  least squares with an offset: Fc = {-M * th[0]:.4g} +- {M * hw[0]:.2g} N, offset = "
+      f"{-M * th[2]:.3g} +- {M * hw[2]:.2g} N (published -3.16 N)")
+th1, hw1 = fit_terms(fe, ["sign(v)", "1"])
+print(f"  without |v|: Fc = {-M * th1[0]:.4g} +- {M * hw1[0]:.2g} N, offset = "
+      f"{-M * th1[1]:.3g} +- {M * hw1[1]:.2g} N")
 # validation: simulate nominal + law on the validation record
-emps_G = gb.discretize(named_ss([[0, 1], [0, -Fv / M]], [[0, 0], [gtau / M, 1]], [[1, 0]],
-                                [[0, 0]], 0, states=["q", "v"], inputs=["vir", "d"],
-                                outputs=["q"]), dt)
 x0 = np.array([q[val.start], (q[val.start + 1] - q[val.start - 1]) / (2 * dt)])
-eps_v = fe["eps"][1]
-y_nom = simulate_law(emps_G, lambda x: 0.0, vir[None, val], x0)
-y_law = simulate_law(emps_G, lambda x: th[0] * np.tanh(x[1] / eps_v) + th[1] * abs(x[1]) + th[2],
-                     vir[None, val], x0)
+y_nom = simulate_law(fe, with_terms(law_e, [], []), vir[None, val], x0)
+y_law = simulate_law(fe, law_e, vir[None, val], x0)
 se_e = (se(q[None, val], y_nom), se(q[None, val], y_law))
 print(f"  validation SE (open-loop simulation from vir): nominal {se_e[0]:.3g} % -> "
       f"nominal + friction law {se_e[1]:.3g} %")
 
 fig, ax = plt.subplots(3, 1, figsize=(8, 8))
 k = np.arange(200, 600)
-ax[0].plot(k * dt, M * fe["d"][k], lw=0.6, label="M d^ (raw)")
-ax[0].plot(k * dt, M * fe["d2"][k], lw=1.5, label="M x 2-sample mean")
-ax[0].set_ylabel("force [N]"); ax[0].legend(); ax[0].set_title("EMPS eq(v): d^ alternates at Nyquist")
-vs = x2[1]
+ax[0].plot(k * dt, M * fe["d1"][k], lw=0.6, label="M d^ (r = 1 filter)")
+ax[0].plot(k * dt, M * fe["d2"][k], lw=1.5, label="M d^ (r = 2, smoothed)")
+ax[0].set_ylim(-150, 150)
+ax[0].set_ylabel("force [N]"); ax[0].legend(); ax[0].set_title("EMPS eq(v): r = 1 d^ alternates at Nyquist")
+vs = fe["x"][1]
 order = np.argsort(vs)
-ax[1].plot(vs, M * d2, ".", ms=1, alpha=0.3)
-ax[1].plot(vs[order], M * (Phi @ th)[order], "r", label="law")
-ax[1].set_xlabel("v [m/s]"); ax[1].set_ylabel("M d^ (2-sample mean) [N]"); ax[1].legend()
+ax[1].plot(vs, M * fe["d2"], ".", ms=1, alpha=0.3)
+ax[1].plot(vs[order], M * law_e.evaluate(fe["x"], np.zeros((1, vs.size)))[0][order], "r",
+           label="law")
+ax[1].set_xlabel("v [m/s]"); ax[1].set_ylabel("M d^ (delayed, smoothed) [N]"); ax[1].legend()
 tt = np.arange(val.stop - val.start) * dt
 ax[2].plot(tt, q[val], "k", label="measured")
 ax[2].plot(tt, y_nom[0], label=f"nominal (SE {se_e[0]:.0f} %)")
@@ -232,24 +261,22 @@ rep_s = close_the_loop(silver, y_sb[None, est], uc[None, est], y_sb[None, val], 
 print(f"close_the_loop ({time.time() - t0:.1f} s):")
 show(rep_s)
 
-fs = averaged_law(silver, y_sb[None, est], uc[None, est], Q, R, dt)
-names = [fs["spec"][i][0] for i in fs["law"].index]
-coef_s = dict(zip(names, fs["law"].coef))
-print(f"inside eq(v): lag-1 autocorrelation of d^ {fs['lag1']:.3f}; var(d^) {fs['var']:.3g}, "
-      f"2-sample mean {fs['var2']:.3g}")
-print("forward selection on the 2-sample mean of d^ (in order of selection):",
-      " + ".join(f"{c:.3g}*{n}" for n, c in coef_s.items()), "[V/s^2]")
-# validation of the physically expected law d_v = a*y + b*v + k*y^3 fitted on averaged d^
-x2, d2 = fs["x2"], fs["d2"]
-Phi = np.c_[x2[0], x2[1], x2[0] ** 3]
-th_s = np.linalg.lstsq(Phi, d2, rcond=None)[0]
-sil_G = gb.discretize(named_ss([[0, 1], [-w2, -c_d]], [[0, 0], [b_in, 1]], [[1, 0]], [[0, 0]], 0,
-                               states=["y", "v"], inputs=["u", "d"], outputs=["y"]), dt)
+fs = inside(silver, y_sb[None, est], uc[None, est], Q, R, dt)
+print(f"inside eq(v): relative degree {fs['r']} (weights {np.round(fs['w'], 3)}); r = 1 "
+      f"filter d^: lag-1 {fs['lag1']:.3f}, variance {fs['var1']:.3g}; delayed smoothed d^: "
+      f"lag-1 {fs['lag1_2']:.3f}, variance {fs['var2']:.3g} (V/s^2)^2")
+print("trace law (GLS on the delayed, smoothed d^):", fs["trace"].static.formula)
+# the physically expected law d_v = a*y + b*v + k*y^3 on the same d^, with intervals
+th_s, hw_s = fit_terms(fs, ["y", "v", "y^3"])
+x2, d2 = fs["x"], fs["d2"]
 x0 = np.array([y_sb[val.start], (y_sb[val.start + 1] - y_sb[val.start - 1]) / (2 * dt)])
-y_nom = simulate_law(sil_G, lambda x: 0.0, uc[None, val], x0)
-y_cub = simulate_law(sil_G, lambda x: th_s @ [x[0], x[1], x[0] ** 3], uc[None, val], x0)
-se_s = (se(y_sb[None, val], y_nom), se(y_sb[None, val], y_cub))
-print(f"  d_v = {th_s[0]:.4g}*y + {th_s[1]:.3g}*v + {th_s[2]:.4g}*y^3: validation SE "
+law_s = fs["trace"].static
+y_nom = simulate_law(fs, with_terms(law_s, [], []), uc[None, val], x0)
+y_cub = simulate_law(fs, with_terms(law_s, ["y", "v", "y^3"], th_s), uc[None, val], x0)
+y_tr = simulate_law(fs, law_s, uc[None, val], x0)
+se_s = (se(y_sb[None, val], y_nom), se(y_sb[None, val], y_cub), se(y_sb[None, val], y_tr))
+print(f"  d_v = {th_s[0]:.4g}*y + {th_s[1]:.3g}*v + ({th_s[2]:.4g} +- {hw_s[2]:.2g})*y^3: "
+      f"validation SE (trace law {se_s[2]:.3g} %) "
       f"nominal {se_s[0]:.3g} % -> {se_s[1]:.3g} % (close_the_loop: "
       f"{rep_s.table['updated'].se.value:.3g} %)")
 
@@ -258,7 +285,7 @@ order = np.argsort(x2[0])
 ax[0].plot(x2[0], d2 - th_s[1] * x2[1], ".", ms=1, alpha=0.3)
 ax[0].plot(x2[0][order], (th_s[0] * x2[0] + th_s[2] * x2[0] ** 3)[order], "r",
            label="a y + k y^3")
-ax[0].set_xlabel("y [V]"); ax[0].set_ylabel("2-sample mean d^ - b v [V/s^2]"); ax[0].legend()
+ax[0].set_xlabel("y [V]"); ax[0].set_ylabel("delayed smoothed d^ - b v [V/s^2]"); ax[0].legend()
 ax[0].set_title("Silverbox eq(v): cubic stiffness")
 tt = np.arange(400) * dt
 ax[1].plot(tt, y_sb[val][:400], "k", label="measured")

@@ -8,7 +8,7 @@ from .uikf import (
     steady_state_filter,
     uikf,
 )
-from .delayed import RelativeDegree, delayed_uikf, detect_relative_degree
+from .delayed import RelativeDegree, delayed_uikf, detect_relative_degree, input_weights
 from .feedthrough import feedthrough_uikf, with_sensor_error
 from .smoother import smooth_uikf
 
@@ -26,6 +26,7 @@ __all__ += [
     "RelativeDegree",
     "delayed_uikf",
     "detect_relative_degree",
+    "input_weights",
     "feedthrough_uikf",
     "smooth_uikf",
     "with_sensor_error",

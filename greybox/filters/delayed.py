@@ -41,9 +41,10 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import expm
 
 from .._validation import check_covariance, check_positive
-from ..exceptions import GreyboxError, ModelError, RankConditionError
+from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
 from .feedthrough import _unknown_feedthrough
 from .uikf import (
     FilterResult,
@@ -55,7 +56,8 @@ from .uikf import (
     _split,
 )
 
-__all__ = ["RelativeDegree", "delayed_uikf", "detect_relative_degree"]
+__all__ = ["RelativeDegree", "delayed_uikf", "detect_relative_degree", "first_order_hold",
+           "input_weights"]
 
 #: Relative rank tolerance, as in :func:`~greybox.check_rank_condition`.
 _RANK_TOL = 1e-9
@@ -162,6 +164,138 @@ def _choose(A, C, G, Q, R, labels, max_degree, switch_ratio, maxiter):
 
 
 # --------------------------------------------------------------------------- public
+def input_weights(sys: ct.StateSpace, *, unknown: int | str | Sequence[int | str], r: int,
+                  continuous: tuple[ArrayLike, ArrayLike] | None = None
+                  ) -> tuple[NDArray[np.float64], float]:
+    """What a delayed estimate of d stands for: ``d_est[:, j] ~ sum_i w[i] @ d[j + i]``.
+
+    The filter of relative degree r models ``x[k+1] = A x + B u + G~ d'``
+    (module docstring) while the plant has ``G d``. The sequence d' that
+    gives the same outputs is a short moving combination of d: matching the
+    Markov parameters ``C A^(l-1) G = sum_i C A^(l+i-1) G~ w[i]`` for
+    l = 1 .. r + n gives the weights (least squares; exact for a ZOH double
+    integrator with its position measured, where ``w = [1/2, 1/2]``: d^[j]
+    is unbiased for ``(d[j] + d[j+1]) / 2``). A law ``d = f(x, u)`` fitted on
+    d^ must therefore be regressed on ``sum_i w[i] f(x[j+i], u[j+i])``, not
+    on ``f(x[j], u[j])`` (which carries a half-sample shift, PAPER_NOTES §9.5).
+
+    With ``continuous = (Ac, Gc)`` d is a continuous-time signal d(t) (a law
+    of the continuous states, e.g. a friction force) rather than a held one:
+    its exact effect between samples is taken as first-order hold of the
+    samples d(t_j) (``x[k+1] = A x + Gamma0 d[k] + Gamma1 d[k+1]``), and the
+    weights (then r + 1 of them) refer to those samples. For the double
+    integrator ``w = [1/6, 2/3, 1/6]``: a ZOH alignment would leave a
+    half-sample shift (a spurious ``-dt/2 * df/dt`` term beside the law).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete model with inputs ``[u, d]``; d must not feed through.
+    unknown : label(s) or index(es)
+        Unknown-input channels of ``sys``.
+    r : int
+        Relative degree of the estimate (1: ``w = [I]`` exactly for a held d).
+    continuous : (ndarray (nstates, nstates), ndarray (nstates, md)), optional
+        Continuous-time A and G of the model whose ZOH discretization is
+        ``sys`` (sampling period ``sys.dt``): d is then a continuous signal.
+
+    Returns
+    -------
+    w : ndarray, shape (r, md, md) or (r + 1, md, md) with ``continuous``
+        Weights of d[j], d[j + 1], ... [dimensionless].
+    misfit : float
+        Relative residual of the Markov-parameter match (0: exact; a large
+        value means no short combination of d explains d^).
+
+    Raises
+    ------
+    RankConditionError
+        If r does not satisfy ``rank(C A^(r-1) G~) = md``.
+
+    Examples
+    --------
+    >>> import greybox as gb
+    >>> dt = 1e-3
+    >>> mass = gb.named_ss([[1, dt], [0, 1]], [[0, dt**2 / 2], [0, dt]], [[1, 0]],
+    ...                    [[0, 0]], dt, states=["p", "v"], inputs=["u", "F"], outputs=["p"])
+    >>> w, misfit = gb.input_weights(mass, unknown="F", r=2)
+    >>> [round(float(v), 6) for v in w[:, 0, 0]], misfit < 1e-9
+    ([0.5, 0.5], True)
+    """
+    r = check_positive(r, "r", integer=True)
+    _, A, _, C, _, G, labels = _split_any(sys, unknown)
+    foh = None
+    if continuous is not None:
+        Ac = np.asarray(continuous[0], dtype=float)
+        Gc = np.asarray(continuous[1], dtype=float).reshape(A.shape[0], -1)
+        if Ac.shape != A.shape or Gc.shape != G.shape:
+            raise DimensionError(f"continuous: A of shape {Ac.shape} and G of shape {Gc.shape}; "
+                                 f"expected {A.shape} and {G.shape}")
+        foh = first_order_hold(Ac, Gc, float(sys.dt))
+    return _weights(A, C, G, r, labels, foh)
+
+
+def first_order_hold(Ac: ArrayLike, Gc: ArrayLike, dt: float
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(Gamma0, Gamma1)`` of ``x[k+1] = A x + Gamma0 d[k] + Gamma1 d[k+1]`` (first-order hold).
+
+    Parameters
+    ----------
+    Ac : array_like, shape (nstates, nstates)
+        Continuous-time state matrix.
+    Gc : array_like, shape (nstates, md)
+        Continuous-time input matrix of d.
+    dt : float
+        Sampling period [s].
+
+    Returns
+    -------
+    Gamma0, Gamma1 : ndarray, shape (nstates, md)
+        Weights of d[k] and d[k+1] when d(t) is linear between the samples.
+    """
+    Ac = np.asarray(Ac, dtype=float)
+    Gc = np.asarray(Gc, dtype=float).reshape(Ac.shape[0], -1)
+    n, md = Gc.shape
+    M = np.zeros((n + 2 * md, n + 2 * md))
+    M[:n, :n], M[:n, n:n + md], M[n:n + md, n + md:] = Ac, Gc, np.eye(md)
+    E = expm(M * dt)
+    Ga, Gb = E[:n, n:n + md], E[:n, n + md:] / dt
+    return Ga - Gb, Gb
+
+
+def _weights(A, C, G, r, labels, foh=None):
+    n, md = G.shape
+    shifted = _shifted_input(A, C, G, r)
+    if shifted is None:
+        raise RankConditionError(
+            f"Unknown input {list(labels)} not observable with relative degree {r}: "
+            f"rank(C A^{r - 1} G~) < md = {md}"
+        )
+    Gt = shifted[0]
+    if r == 1 and foh is None:
+        return np.eye(md)[None], 0.0
+    L = r + n
+    nw = r if foh is None else r + 1
+    pw = [np.eye(n)]
+    for _ in range(L + nw + 1):
+        pw.append(A @ pw[-1])
+    # Markov parameters h(m) of d[k - m] in y[k]: held d (m >= 1), or first-order hold (m >= 0)
+    if foh is None:
+        ms = range(1, L + 1)
+        h = [C @ pw[m - 1] @ G for m in ms]
+    else:
+        G0, G1 = foh
+        ms = range(0, L + 1)
+        h = [C @ G1 if m == 0 else C @ pw[m - 1] @ G0 + C @ pw[m] @ G1 for m in ms]
+    def ht(l):  # those of the model with G~ (zero for l < 1)
+        return C @ pw[l - 1] @ Gt if l >= 1 else np.zeros((C.shape[0], md))
+    lhs = np.vstack([np.hstack([ht(m + i) for i in range(nw)]) for m in ms])
+    rhs = np.vstack(h)
+    W = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    misfit = float(np.linalg.norm(lhs @ W - rhs) / max(np.linalg.norm(rhs), 1e-300))
+    return W.reshape(nw, md, md), misfit
+
+
 def detect_relative_degree(sys: ct.StateSpace, *, unknown: int | str | Sequence[int | str],
                            Q: ArrayLike, R: ArrayLike, max_degree: int | None = None,
                            switch_ratio: float = 100.0, maxiter: int = 5000

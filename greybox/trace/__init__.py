@@ -23,19 +23,36 @@ j and j+1.
 
 
 from .channel_trace import ChannelTrace, trace_channel
-from .channels import Channel, channel_model, default_channels, resolve_channel_spec
-from .laws import StaticLaw, law_terms, parameter_notes, predict_with_law, simulate_with_law
+from .channels import (
+    Channel,
+    channel_model,
+    default_channels,
+    output_channel,
+    resolve_channel_spec,
+)
+from .laws import (
+    StaticLaw,
+    aligned,
+    law_terms,
+    output_terms,
+    parameter_notes,
+    predict_with_law,
+    simulate_with_law,
+)
 
 
 __all__ = [
     "Channel",
     "default_channels",
+    "output_channel",
     "resolve_channel_spec",
     "channel_model",
     "StaticLaw",
     "ChannelTrace",
     "trace_channel",
     "law_terms",
+    "output_terms",
+    "aligned",
     "simulate_with_law",
     "predict_with_law",
     "parameter_notes",

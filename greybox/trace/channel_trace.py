@@ -11,13 +11,31 @@ from numpy.typing import NDArray
 
 from .._validation import check_discrete, check_positive
 from ..exceptions import DataError, GreyboxError, GreyboxWarning, RankConditionError
-from ..filters import FilterResult, check_rank_condition, uikf
+from ..filters import (
+    FilterResult,
+    check_rank_condition,
+    delayed_uikf,
+    detect_relative_degree,
+    feedthrough_uikf,
+    input_weights,
+    smooth_uikf,
+    uikf,
+)
+from ..filters.delayed import first_order_hold
 from ..metrics import autocorrelation
 from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 from ..validate import unstable_reason
 from .channels import Channel, channel_model
-from .laws import LINEAR_KINDS, StaticLaw, _eval_terms, _fit_static, _static_subsystem
+from .laws import (
+    LINEAR_KINDS,
+    StaticLaw,
+    _eval_terms,
+    _fit_static,
+    _static_subsystem,
+    aligned,
+    output_terms,
+)
 from .oe import _refine_static_oe, _select_static_oe, zoh
 
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
@@ -25,6 +43,8 @@ from .oe import _refine_static_oe, _select_static_oe, zoh
 _LOW_SNR = 0.1
 # Below this lag-1 autocorrelation d^ is taken to alternate sign (see trace_channel).
 _ALTERNATING = -0.5
+# Covariance iterations before an r = 1 filter counts as not converging (relative degree)
+_DETECT_ITER = 1000
 # Terms offered to an output-error selection of a force law (ranked by correlation with d^).
 _OE_CANDIDATES = 6
 
@@ -43,7 +63,13 @@ class ChannelTrace:
     model : control.StateSpace or None
         Discrete model with inputs ``[u, d]``.
     filter_result : FilterResult or None
-        The unknown-input filter on the estimation data.
+        The (r = 1) unknown-input filter on the estimation data; the dynamic
+        fit uses it.
+    law_estimate : FilterResult or None
+        The estimate the static law was fitted on: smoothed and/or delayed
+        (``relative_degree``, ``smoothed``), else ``filter_result`` itself.
+    relative_degree : int
+        Relative degree of ``law_estimate`` (1 when C G is used directly).
     static : StaticLaw or None
     static_model : UpdatedModel or None
         Nominal model with the (linear part of the) static law folded into A, B.
@@ -58,6 +84,8 @@ class ChannelTrace:
     reason: str = ""
     model: ct.StateSpace | None = field(default=None, repr=False)
     filter_result: FilterResult | None = field(default=None, repr=False)
+    law_estimate: FilterResult | None = field(default=None, repr=False)
+    relative_degree: int = 1
     static: StaticLaw | None = None
     static_model: UpdatedModel | None = field(default=None, repr=False)
     dynamic: Subsystem | None = field(default=None, repr=False)
@@ -65,10 +93,98 @@ class ChannelTrace:
     notes: tuple[str, ...] = ()
 
 
+def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes, continuous=None):
+    """(estimate, r, align) the static law is fitted on.
+
+    The relative degree r is detected from the model and the noise
+    (:func:`greybox.detect_relative_degree`); with ``smooth`` the estimate is
+    the fixed-interval smoother's (:func:`greybox.smooth_uikf`), else the
+    (delayed) filter's. ``align[c]`` (md, r) are the weights of d[j..j+r-1] in
+    what ``d_est[c, j]`` estimates (:func:`greybox.input_weights`; with
+    ``continuous = (Ac, Gc)`` of a continuous nominal model, d is a
+    continuous-time law between the samples: r + 1 weights for r >= 2).
+    """
+    md = len(labels)
+    try:
+        rd = detect_relative_degree(model, unknown=labels, Q=Q, R=R, maxiter=_DETECT_ITER)
+        r = rd.r
+    except GreyboxError as e:
+        r = 1
+        notes.append(f"relative degree not detected ({e}); the r = 1 filter is used")
+    if r == 1 and smooth != True:  # noqa: E712 ("auto": smooth delayed estimates only)
+        return res, 1, np.ones((md, 1))
+    w, misfit = input_weights(model, unknown=labels, r=r,
+                              continuous=continuous if r >= 2 else None)
+    if r >= 2:
+        notes.append(f"relative degree {r} ({rd.reason}): d^[j] estimates "
+                     + ", ".join(f"{labels[c]}: " + " + ".join(
+                         f"{w[i, c, c]:.3g}*d[j+{i}]" for i in range(len(w))) for c in range(md))
+                     + (f" (Markov-parameter misfit {misfit:.2g})" if misfit > 1e-3 else ""))
+    off = np.abs(w - np.einsum("icc->ic", w)[:, :, None] * np.eye(md)).max() if md > 1 else 0.0
+    if off > 0.05 * np.abs(w).max():
+        notes.append(f"the delayed d^ mixes components of d (weight {off:.2g}); each "
+                     f"component's law is aligned with its own weights only")
+    align = np.einsum("icc->ci", w)
+    kw = dict(unknown=labels, Q=Q, R=R, relative_degree=r)
+    try:
+        est = smooth_uikf(model, y, u, **kw) if smooth else \
+            (res if r == 1 else delayed_uikf(model, y, u, **kw))
+    except (GreyboxError, np.linalg.LinAlgError) as e:
+        notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
+        est = res if r == 1 else delayed_uikf(model, y, u, **kw)
+    return est, r, align
+
+
+def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> ChannelTrace:
+    """A sensor-error channel: the filter with direct feedthrough and a law on the model output."""
+    labels = list(channel.labels)
+    res = feedthrough_uikf(model, y, u, unknown=labels, Q=Q, R=R)
+    notes = []
+    est = res
+    if smooth is not False:  # the whole record: smoothed x^ and d^ (no delay here)
+        try:
+            est = smooth_uikf(model, y, u, unknown=labels, Q=Q, R=R, relative_degree=0)
+        except (GreyboxError, np.linalg.LinAlgError) as e:
+            notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
+    N = y.shape[1]
+    k0 = skip if skip is not None else max(20, res.period_converged or 20)
+    m = model.ninputs - 1
+    nterms = 4 if nonlinear else 1
+    if N - k0 <= 10 * nterms:
+        raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a sensor law of "
+                        f"{nterms} candidate terms; give more data or a smaller skip")
+    i = list(model.output_labels).index(channel.output)
+    A, B = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)[:, :m]
+    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
+    x, uu, d = est.x_filt[:, k0:N], u[:, k0:N], est.d_est[:, k0:N]
+    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units,
+                      whiten=est.smoothed,
+                      prebuilt=output_terms(x, uu, C[i], D[i], channel.output,
+                                            nonlinear=nonlinear))
+    law = replace(law, output=i)
+    Cn, Dn = C.copy(), D.copy()
+    Cn[i] += law.Ddx[0]
+    Dn[i] += law.Ddu[0]
+    upd = named_ss(A, B, Cn, Dn, model.dt, states=model.state_labels,
+                   inputs=list(model.input_labels)[:m], outputs=model.output_labels,
+                   name=f"{sys.name or 'model'}_updated")
+    static_model = UpdatedModel(sys=upd, Q=Q, R=R, order=model.nstates, kind="static")
+    notes.append("a sensor-error channel: static law on the model's own output "
+                 "(gain, offset, |.|, cube); sensor dynamics are not fitted")
+    return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
+                        law_estimate=est, relative_degree=0, static=law,
+                        static_model=static_model, notes=tuple(notes))
+
+
+def _aligned_rows(v, align, K):
+    """``v`` (nrows, K + r - 1) weighted like the first component of d^: shape (nrows, K)."""
+    return aligned(v, align[0])[:, :K]
+
+
 def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, *,
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
                   max_order: int = 2, min_order: int = 1, skip: int | None = None,
-                  cond_tol: float = 1e-6) -> ChannelTrace:
+                  cond_tol: float = 1e-6, smooth: bool | str = "auto") -> ChannelTrace:
     """Run the unknown-input filter for one channel and fit static and dynamic laws.
 
     Parameters
@@ -93,6 +209,18 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     cond_tol : float
         A channel with ``sigma_min(C G) < cond_tol * ||C|| ||G||`` is skipped
         as practically unobservable (beyond the exact rank test (17)).
+    smooth : bool or "auto"
+        Fit the static law on the fixed-interval smoothed d^ and x^
+        (:func:`greybox.smooth_uikf`, the whole record is available) rather
+        than on the filter's. "auto": only for a delayed estimate (r >= 2),
+        where the filter's x^ lags; at r = 1 the smoother barely lowers the
+        variance of d^ (d is free at every sample, so only y[j+1] informs
+        d[j]) and costs as much as the filter. Either way the estimate has the relative degree
+        :func:`greybox.detect_relative_degree` chooses (a force entering an
+        acceleration with only positions measured: r = 2, no alternating d^),
+        and the law's terms are weighted as d^ sees them
+        (:func:`greybox.input_weights`). The dynamic fit always uses the causal
+        r = 1 filter (closed-loop identification, PAPER_NOTES §8.4).
 
     Returns
     -------
@@ -101,8 +229,12 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     """
     if skip is not None:
         skip = check_positive(skip, "skip", integer=True, allow_zero=True)
+    if not (isinstance(smooth, (bool, np.bool_)) or smooth == "auto"):
+        raise DataError(f"smooth must be True, False or 'auto'; found {smooth!r}")
     model = channel_model(sys, channel, dt)
     check_discrete(model)
+    if channel.kind == "output":
+        return _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth)
     n, m = model.nstates, model.ninputs - channel.md
     Gd = np.asarray(model.B, dtype=float)[:, m:]
     C = np.asarray(model.C, dtype=float)
@@ -120,59 +252,85 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     res = uikf(model, y, u, unknown=labels, Q=Q, R=R)
     N = y.shape[1] - 1
     k0 = skip if skip is not None else max(20, res.period_converged or 20)
-    nterms = (4 * n if nonlinear else n) + m
+    nterms = (4 * n + 1 if nonlinear else n) + m
     if N - k0 <= nterms:
         raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a law of "
                         f"{nterms} candidate terms; give more data or a smaller skip")
-    d = res.d_est[:, k0:N]
-    x = res.x_filt[:, k0:N]
-    uu = u[:, k0:N]
     notes = []
-    # d^ alternating sign: the channel reaches the outputs through a ZOH zero
-    # near z = -1 (e.g. a velocity equation seen through positions only, C G ~
-    # dt^2/2) and the filter's inversion leaves an oscillation at the Nyquist
-    # frequency; the mean of two consecutive samples cancels it.
-    r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
-    pair_mean = r1 < _ALTERNATING
-    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units, pair_mean,
-                      channel.relative)
-    if pair_mean:
-        notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
-                     f"is fitted on the mean of consecutive samples")
-    # d^ barely above its own estimation noise: choose the law by output error
-    excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
-        max(float(np.trace(np.atleast_2d(res.d_cov))), 1e-300) - 1.0
-    # a continuous nominal model: linear laws are parametrized in continuous time
     cont = None if ct.isdtime(sys, strict=True) else (
         np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
         np.asarray(channel.G, dtype=float), float(model.dt))
+    est, r, align = _law_estimate(model, labels, y, u, Q, R, res, smooth, notes,
+                                  None if cont is None else (cont[0], cont[2]))
+    # est.d_est[:, j] estimates sum_i align[:, i] d[j + i]: the law's terms are weighted alike,
+    # so x and u carry nw - 1 more columns than d (the last r columns of a delayed d^ are NaN)
+    nw = align.shape[1]
+    okd = np.all(np.isfinite(est.d_est), axis=0)
+    okx = np.all(np.isfinite(est.x_filt), axis=0)
+    Ne = y.shape[1] - nw
+    while Ne > k0 and not (okd[Ne - 1] and okx[Ne + nw - 2]):
+        Ne -= 1
+    if Ne - k0 <= nterms:
+        raise DataError(f"{Ne - k0} samples left after skipping {k0} cannot fit a law of "
+                        f"{nterms} candidate terms; give more data or a smaller skip")
+    d = est.d_est[:, k0:Ne]
+    xw = est.x_filt[:, k0:Ne + nw - 1]
+    uw = u[:, k0:Ne + nw - 1]
+    averaged = False
+    if r == 1 and not est.smoothed:
+        # the r = 1 filter kept (the delayed one was not better): d^ may still alternate in
+        # sign (a ZOH zero near z = -1); then it estimates about the mean of two samples
+        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
+        if r1 < _ALTERNATING:
+            align = np.full((channel.md, 2), 0.5)
+            d = 0.5 * (d[:, 1:] + d[:, :-1])
+            averaged = True
+            notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
+                         f"is fitted on terms averaged over consecutive samples")
+    law = _fit_static(d, xw, uw, res.sys, nonlinear, labels, channel.units,
+                      None if align.shape[1] == 1 and np.allclose(align, 1.0) else align,
+                      channel.relative, whiten=est.smoothed or r >= 2)
+    if cont is not None and r >= 2:  # first-order-hold weights: the law is simulated alike
+        law = replace(law, hold=first_order_hold(cont[0], cont[2], cont[3]))
+    K = d.shape[1]
+    x = _aligned_rows(xw, align, K)
+    uu = _aligned_rows(uw, align, K)
+    # d^ barely above its own estimation noise: choose the law by output error (r = 1)
+    dnoise = np.atleast_2d(est.d_cov) if averaged or not est.smoothed else \
+        np.diag(np.mean(est.d_var[:, k0:Ne], axis=1))
+    excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
+        max(float(np.trace(dnoise)), 1e-300) - 1.0
     # output error needs a simulation that stays bounded over the record
     oe_ok = not unstable_reason(model, y.shape[1])
     if not oe_ok:
         notes.append("the nominal model is unstable: the static law is the least-squares fit "
                      "on d^ (no output-error refinement)")
-    if excess < _LOW_SNR and not pair_mean and oe_ok:
+    # (a delayed or smoothed d^ is fitted by GLS, whose selection already weighs its coloured
+    # noise: only an empty law sends it to output error; its raw variance is mostly
+    # high-frequency noise that says nothing about the law, and Q may be overstated)
+    whitened = est.smoothed or r >= 2
+    low_snr = law.npar == 0 if whitened else excess < _LOW_SNR
+    if low_snr and not averaged and oe_ok:
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units, cont=cont, noise=(Q, R))
-        notes.append(f"d^ is mostly estimation noise (variance only {100 * excess:.2g}% above "
-                     f"Pd): static law chosen by output error on y")
-    elif channel.relative and oe_ok and (pair_mean or law.npar > 2 * channel.md):
-        # a force between bodies whose d^ fit is not sparse (d^ alternating or
-        # noise-dominated, e.g. positions only): choose the law by output error among the
-        # linear terms d^'s pair means correlate with most (per component of d)
-        terms = _eval_terms(law.spec, law.eps, x, uu)
+        notes.append("no term explains the delayed d^: static law chosen by output error on y"
+                     if whitened else f"d^ is mostly estimation noise (variance only "
+                     f"{100 * excess:.2g}% above Pd): static law chosen by output error on y")
+    elif channel.relative and oe_ok and (averaged or law.npar > 2 * channel.md):
+        # a force between bodies whose d^ fit is not sparse (noise-dominated, e.g.
+        # positions only): choose the law by output error among the linear terms d^
+        # correlates with most (per component of d)
         lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
-        tm = 0.5 * (terms[lin, 1:] + terms[lin, :-1])
-        tm = tm - tm.mean(axis=1, keepdims=True)
         only = set()
         for c in range(channel.md):
-            dm = 0.5 * (d[c, 1:] + d[c, :-1])
-            dm = dm - dm.mean()
+            tm = aligned(_eval_terms(law.spec, law.eps, xw, uw)[lin], align[c])
+            tm = tm - tm.mean(axis=1, keepdims=True)
+            dm = d[c] - d[c].mean()
             corr = np.abs(tm @ dm) / (np.linalg.norm(tm, axis=1) * np.linalg.norm(dm) + 1e-300)
             only |= {lin[q] for q in np.argsort(-corr)[:_OE_CANDIDATES]}
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
                                 channel.units, cont=cont, noise=(Q, R), only=sorted(only))
-        notes.append("a force seen through alternating d^: static law chosen by output "
+        notes.append("a force whose d^ law is not sparse: static law chosen by output "
                      "error on y among the terms d^ correlates with most")
     elif not law.nonlinear and law.npar and oe_ok:
         tscale = law.term_scale(x, uu)
@@ -181,7 +339,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         if se_y < se_d:
             notes.append(f"static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
-    sub0 = _static_subsystem(law, res, d, x, uu)
+    sub0 = _static_subsystem(law, replace(res, d_cov=dnoise), d, x, uu)
     static_model = augment_model(model, sub0, unknown=labels, Q=Q, R=R)
     if law.time_base == "continuous":  # fold the law in continuous time, discretize exactly
         Ac, Bc, Gc, h = cont
@@ -203,5 +361,5 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"dynamic fit failed: {e}")
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
-                        static=law, static_model=static_model, dynamic=dyn,
+                        law_estimate=est, relative_degree=r, static=law, static_model=static_model, dynamic=dyn,
                         dynamic_model=dyn_model, notes=tuple(notes))

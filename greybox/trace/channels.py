@@ -14,6 +14,10 @@ from ..system import discretize, named_ss
 
 
 
+# Largest number of outputs whose sensor channels default_channels offers by default
+_AUTO_OUTPUTS = 6
+
+
 # --------------------------------------------------------------------------- channels
 @dataclass(frozen=True, eq=False)
 class Channel:
@@ -35,9 +39,13 @@ class Channel:
         Names of the states whose equations the channel enters.
     kind : str
         "equation" (d enters state equations directly), "input" (d adds to
-        a known input: ``G = B[:, j]``) or "user".
+        a known input: ``G = B[:, j]``), "force" (one force inside a pair of
+        equations), "output" (d adds to one measured output: a sensor error,
+        ``y_i = C_i x + D_i u + d``; G is zero) or "user".
     input : str
         The input's name for an input channel ("" otherwise).
+    output : str
+        The output's name for an output channel ("" otherwise).
     relative : tuple of (int, int)
         State pairs (i, j) whose relative coordinate ``x_j - x_i`` the static
         law may use (a force between two bodies); kind "force".
@@ -51,6 +59,7 @@ class Channel:
     kind: str = "equation"
     input: str = ""
     relative: tuple[tuple[int, int], ...] = ()
+    output: str = ""
 
     @property
     def md(self) -> int:
@@ -60,7 +69,7 @@ class Channel:
     def _key(self):
         G = np.asarray(self.G, dtype=float)
         return (self.name, G.shape, G.tobytes(), tuple(self.labels), tuple(self.units),
-                tuple(self.equations), self.kind, self.input, tuple(self.relative))
+                tuple(self.equations), self.kind, self.input, tuple(self.relative), self.output)
 
     def __eq__(self, other):  # G is an array: the generated __eq__ would be ambiguous
         if not isinstance(other, Channel):
@@ -93,9 +102,40 @@ def _input_channel(sys: ct.StateSpace, j: int) -> Channel:
                    units=(f"[{name}]",), equations=rows, kind="input", input=name)
 
 
+def output_channel(sys: ct.StateSpace, output: int | str) -> Channel:
+    """The channel of a sensor error on one output: ``y_i = C_i x + D_i u + d`` (G = 0).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Nominal model.
+    output : int or str
+        Index or name of the output.
+
+    Raises
+    ------
+    DimensionError
+        If the output does not exist.
+    """
+    labels = list(sys.output_labels)
+    if isinstance(output, str):
+        if output not in labels:
+            raise DimensionError(f"output_channel: no output named {output!r}; outputs are "
+                                 f"{labels}")
+        i = labels.index(output)
+    else:
+        i = int(output)
+        if not 0 <= i < len(labels):
+            raise DimensionError(f"output_channel: output index {output} out of range "
+                                 f"0..{len(labels) - 1}")
+    name = labels[i]
+    return Channel(name=f"output({name})", G=np.zeros((sys.nstates, 1)), labels=(f"d_{name}",),
+                   units=(f"[{name}]",), equations=(), kind="output", output=name)
+
+
 def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
-                     inputs: bool = True) -> tuple[Channel, ...]:
-    """Every single state equation, every input, and pairs of equations where p allows.
+                     inputs: bool = True, outputs: bool | str = "auto") -> tuple[Channel, ...]:
+    """Every single state equation, every input and output, and pairs where p allows.
 
     Parameters
     ----------
@@ -111,6 +151,12 @@ def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
         gain, lag or dead zone of input j enters every equation the input
         enters, with B's ratios). Skipped for inputs that enter a single
         state equation (the equation's channel is the same).
+    outputs : bool or "auto"
+        Also try each output's sensor-error channel (:func:`output_channel`:
+        offset, gain error, |.| or saturation of one sensor, traced with the
+        unknown-input filter with direct feedthrough). "auto": only when
+        ``noutputs <= 6`` (each costs a trace; name them explicitly for
+        larger models).
     """
     if not (isinstance(pairs, (bool, np.bool_)) or pairs == "auto"):
         raise DataError(f"pairs must be True, False or 'auto'; found {pairs!r}")
@@ -123,6 +169,10 @@ def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
     use_pairs = (sys.noutputs >= 2 and n <= 4) if pairs == "auto" else bool(pairs)
     if use_pairs and sys.noutputs >= 2:
         out += [_eq_channel(sys, [i, j]) for i in range(n) for j in range(i + 1, n)]
+    if not (isinstance(outputs, (bool, np.bool_)) or outputs == "auto"):
+        raise DataError(f"outputs must be True, False or 'auto'; found {outputs!r}")
+    if (sys.noutputs <= _AUTO_OUTPUTS) if outputs == "auto" else outputs:
+        out += [output_channel(sys, i) for i in range(sys.noutputs)]
     return tuple(out)
 
 
@@ -182,6 +232,8 @@ def resolve_channel_spec(sys: ct.StateSpace, spec) -> tuple[Channel, ...]:
 def channel_model(sys: ct.StateSpace, channel: Channel, dt: float | None = None) -> ct.StateSpace:
     """Discrete model with inputs ``[u, d]`` for one channel (ZOH once, PAPER_NOTES §1).
 
+    For an output channel d enters the output equation (D column e_i), not B.
+
     Parameters
     ----------
     sys : control.StateSpace
@@ -211,7 +263,13 @@ def channel_model(sys: ct.StateSpace, channel: Channel, dt: float | None = None)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
     p, md = C.shape[0], channel.md
     inputs = list(sys.input_labels) + list(channel.labels)
-    full = named_ss(A, np.hstack([B, channel.G]), C, np.hstack([D, np.zeros((p, md))]),
+    H = np.zeros((p, md))
+    if channel.kind == "output":
+        if channel.output not in list(sys.output_labels):
+            raise DimensionError(f"channel {channel.name!r}: no output {channel.output!r}; "
+                                 f"outputs are {list(sys.output_labels)}")
+        H[list(sys.output_labels).index(channel.output), 0] = 1.0
+    full = named_ss(A, np.hstack([B, channel.G]), C, np.hstack([D, H]),
                     sys.dt if ct.isdtime(sys, strict=True) else 0,
                     states=sys.state_labels, inputs=inputs, outputs=sys.output_labels,
                     name=sys.name)

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import solve_toeplitz
+from scipy.signal import lfilter
 
 from ..filters import FilterResult
 from ..ident.regression import SparseLaw, forward_selection
@@ -26,13 +28,13 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
 
     Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
     list of ``(display name, kind, index)`` with kind in
-    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs"},
+    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs", "const"},
     and the eps of each ``tanh(v/eps)`` (5 % of v's RMS unless given; one per
     state, then one per relative coordinate). ``relative`` lists state pairs
     (i, j): the relative coordinate ``x_j - x_i`` (a force between two
     bodies depends on it, PAPER_NOTES §9.6) is offered like a state, with
     index ``(i, j, k)`` where k indexes its eps. The linear terms (x, u,
-    rel) come first.
+    rel) come first; with ``nonlinear`` the constant term "1" (an offset) comes last.
     """
     n, m = x.shape[0], u.shape[0]
     rel = [x[j] - x[i] for i, j in relative]
@@ -67,16 +69,46 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
             spec.append((f"sign{nm}", "rel_sign", (i, j, n + r)))
             rows.append(np.abs(v))
             spec.append((f"|{nm}|", "rel_abs", (i, j, n + r)))
+        rows.append(np.ones(x.shape[1]))  # an offset (a constant force, a biased sensor)
+        spec.append(("1", "const", 0))
     N = x.shape[1]
     return (np.array(rows) if rows else np.zeros((0, N))), spec, eps
 
 
-LINEAR_KINDS = ("x", "u", "rel")
+LINEAR_KINDS = ("x", "u", "rel", "yhat")
+
+
+def output_terms(x: NDArray, u: NDArray, c: NDArray, dd: NDArray, name: str, *,
+                 nonlinear: bool = True) -> tuple[NDArray, list, NDArray]:
+    """Candidate terms of a sensor-error law on the model's own output ``c x + dd u``.
+
+    Returns ``(terms, spec, eps)`` as :func:`law_terms`: ``<name>_model`` (a
+    gain error), and with ``nonlinear`` its cube (a soft saturation), its
+    absolute value (a rectifying sensor: ``|y| - y``) and the offset "1".
+    """
+    c = np.asarray(c, dtype=float).reshape(-1)
+    dd = np.asarray(dd, dtype=float).reshape(-1)
+    yh = c @ x + dd @ u
+    idx = (tuple(float(v) for v in c), tuple(float(v) for v in dd))
+    nm = f"{name}_model"
+    rows, spec = [yh], [(nm, "yhat", idx)]
+    if nonlinear:
+        rows += [yh**3, np.abs(yh), np.ones_like(yh)]
+        spec += [(f"{nm}^3", "yhat^3", idx), (f"|{nm}|", "yhat_abs", idx), ("1", "const", 0)]
+    eps = np.array([0.05 * np.sqrt(np.mean(yh**2)) + 1e-300])
+    return np.array(rows), spec, eps
 
 
 def _eval_terms(spec, eps, x, u):
     out = np.empty((len(spec),) + x.shape[1:])
     for r, (_, kind, i) in enumerate(spec):
+        if kind == "const":
+            out[r] = 1.0
+            continue
+        if kind.startswith("yhat"):
+            v = np.asarray(i[0]) @ x + (np.asarray(i[1]) @ u if len(i[1]) else 0.0)
+            out[r] = v if kind == "yhat" else v**3 if kind == "yhat^3" else np.abs(v)
+            continue
         if kind.startswith("rel"):
             a, b, e = i
             v, kind = x[b] - x[a], {"rel": "x", "rel^3": "x^3", "rel_sign": "sign",
@@ -100,6 +132,10 @@ def linear_part(spec, coef: NDArray, n: int, m: int) -> tuple[NDArray, NDArray]:
         elif kind == "rel":
             Ddx[:, i[1]] += coef[:, j]
             Ddx[:, i[0]] -= coef[:, j]
+        elif kind == "yhat":
+            Ddx += np.outer(coef[:, j], i[0])
+            if len(i[1]):
+                Ddu += np.outer(coef[:, j], i[1])
     return Ddx, Ddu
 
 
@@ -139,6 +175,17 @@ class StaticLaw:
         continuous G, d in the channel's physical units (the augmented model is
         discretized exactly); "discrete": ``d[j]`` acts through the
         ZOH-discretized G between samples j and j+1.
+    hold : tuple of two ndarrays (nstates, md), or None
+        ``(Gamma0, Gamma1)`` when the law is a continuous-time force taken as
+        linear between samples (first-order hold: ``x[k+1] = A x + B u +
+        Gamma0 d[k] + Gamma1 d[k+1]``), as a law fitted on a delayed d^ with
+        first-order-hold weights is; :func:`simulate_with_law` and
+        :func:`predict_with_law` then integrate it so (Heun step). None: d[k]
+        is held over the sample and enters through G.
+    output : int or None
+        Index of the output a sensor-error law adds to (``y_i = C_i x + D_i u
+        + d``; Ddx, Ddu are then its linear part in the output equation);
+        None: the law enters the state equations.
     """
 
     spec: tuple
@@ -153,6 +200,8 @@ class StaticLaw:
     formula: str
     ci: NDArray[np.float64] | None = None
     time_base: str = "discrete"
+    hold: tuple | None = None
+    output: int | None = None
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
@@ -171,7 +220,8 @@ def _fmt_sum(coefs, names, half=None) -> str:
     parts = []
     half = np.full(len(coefs), np.nan) if half is None else half
     for c, nm, h in zip(coefs, names, half):
-        s = f"{abs(c):.3g}*{nm}" if not np.isfinite(h) else f"({abs(c):.3g} ± {h:.2g})*{nm}"
+        s = f"{abs(c):.3g}" if not np.isfinite(h) else f"({abs(c):.3g} ± {h:.2g})"
+        s = s if nm == "1" else f"{s}*{nm}"
         parts.append(("- " if c < 0 else "+ ") + s)
     if not parts:
         return "0"
@@ -211,38 +261,90 @@ def _one_direction(coef: NDArray, tscale: NDArray, labels) -> list[str]:
             f"x (one force)"]
 
 
-def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
-                relative=()) -> StaticLaw:
-    terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels, nonlinear=nonlinear,
-                                 relative=relative)
-    if pair_mean:  # regress (d[j] + d[j+1]) / 2 on (terms[j] + terms[j+1]) / 2
-        terms = 0.5 * (terms[:, 1:] + terms[:, :-1])
-        d = 0.5 * (d[:, 1:] + d[:, :-1])
+def aligned(terms: NDArray, w: NDArray) -> NDArray[np.float64]:
+    """``sum_i w[i] terms[:, j + i]`` for j = 0 .. K - r, the terms as a delayed d^ sees them.
+
+    Parameters
+    ----------
+    terms : ndarray, shape (nterms, K)
+    w : ndarray, shape (r,)
+        Weights of ``d[j], ..., d[j + r - 1]`` in what ``d_est[:, j]`` estimates
+        (:func:`greybox.filters.delayed.input_weights`).
+    """
+    r = len(w)
+    K = terms.shape[1] - r + 1
+    return sum(w[i] * terms[:, i:i + K] for i in range(r))
+
+
+# AR order of the prewhitening filter of a smoothed or delayed d^
+_AR_ORDER = 4
+
+
+def _whitening(e: NDArray, p: int) -> NDArray[np.float64]:
+    """``[1, -a_1, ..., -a_p]``: the Yule-Walker AR(p) whitening filter of the residual e."""
+    e = e - e.mean()
+    K = e.size
+    acf = np.array([e[:K - lag] @ e[lag:] for lag in range(p + 1)]) / K
+    if acf[0] <= 0:
+        return np.r_[1.0, np.zeros(p)]
+    return np.r_[1.0, -solve_toeplitz(acf[:p], acf[1:p + 1])]
+
+
+def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
+                relative=(), whiten=False, prebuilt=None) -> StaticLaw:
+    """Sparse static law of every component of d^ on the terms of (x, u).
+
+    ``align`` (md, r): d^[c, j] estimates ``sum_i align[c, i] d[c, j + i]``
+    (a delayed or averaged estimate); x and u then carry r - 1 more columns
+    than d, and each component is regressed on its own weighted terms.
+    ``whiten``: d^'s estimation noise is coloured (a smoothed or delayed
+    estimate; with only positions measured it is mostly high-frequency, a
+    second difference of the sensor noise), so the white-noise BIC would
+    badly understate what the low-frequency terms explain. The regression is
+    then feasible generalized least squares: an AR(4) filter fitted
+    (Yule-Walker) to the residual of all candidate terms whitens d^ and the
+    terms alike before the selection and the intervals. ``prebuilt``:
+    ``(terms, spec, eps)`` of other candidates (:func:`output_terms`).
+    """
+    if prebuilt is None:
+        terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels,
+                                     nonlinear=nonlinear, relative=relative)
+    else:
+        terms, spec, eps = prebuilt
     md = d.shape[0]
+    tc = [terms if align is None else aligned(terms, align[c]) for c in range(md)]
+    terms = tc[0]
     n, m = x.shape[0], u.shape[0]
     coef = np.zeros((md, len(spec)))
     Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
     rv = np.zeros(md)
     gain, npar, any_nl = 0.0, 0, False
     lines = []
-    nlin = n + m + len(relative)
+    nlin = sum(1 for sp in spec if sp[1] in LINEAR_KINDS)  # the linear terms come first
     names = [s[0] for s in spec]
     half = np.full((md, len(spec)), np.nan)
     for c in range(md):
-        sel = _select(terms, d[c], names)
+        terms, dc = tc[c], d[c]
+        if whiten and terms.shape[1] > 10 * (_AR_ORDER + len(spec)):
+            th = np.linalg.lstsq(terms.T, dc, rcond=None)[0]
+            a = _whitening(dc - th @ terms, _AR_ORDER)
+            dc = lfilter(a, [1.0], dc)[_AR_ORDER:]
+            terms = lfilter(a, [1.0], terms, axis=1)[:, _AR_ORDER:]
+        sel = _select(terms, dc, names)
         idx, cf = list(sel.index), sel.coef
         coef[c, idx] = cf
         if idx:  # 95 % half-widths of the regression on d^, robust to its autocorrelation
             X = terms[idx]
-            cov = hac_covariance(X.T, d[c] - cf @ X, 1)
+            sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
+            cov = hac_covariance((X / sx[:, None]).T, dc - cf @ X, 1) / np.outer(sx, sx)
             half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
-        rv[c] = sel.residual_var
+        rv[c] = float(np.mean((d[c] - cf @ tc[c][idx]) ** 2)) if idx else float(np.mean(d[c]**2))
         gain += sel.bic_gain
         npar += len(idx)
         nl = any(j >= nlin for j in idx)
         any_nl |= nl
         if nl:  # best linear surrogate for the StateSpace
-            lin = _select(terms[:nlin], d[c], names[:nlin])
+            lin = _select(terms[:nlin], dc, names[:nlin])
             lc = np.zeros(nlin)
             lc[list(lin.index)] = lin.coef
         else:
@@ -251,7 +353,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, pair_mean=False,
         Ddx[c], Ddu[c] = dx_[0], du_[0]
         lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
                                units[c] if c < len(units) else "", half[c, idx]))
-    tscale = np.sqrt(np.mean(terms**2, axis=1))
+    tscale = np.sqrt(np.mean(tc[0]**2, axis=1))
     lines += _one_direction(coef, tscale, labels)
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
                      residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines),
@@ -281,9 +383,25 @@ def _law_line(label: str, coefs, names, unit: str, half=None) -> str:
 
 
 # --------------------------------------------------------------------------- nonlinear laws
+def _step(A, xk, bu, G, law, uk):
+    """``A x + B u + G d`` with d held (ZOH), or first-order hold of the law (Heun step)."""
+    fk = law.evaluate(xk[:, None], uk)[:, 0]
+    if law.hold is None:
+        return A @ xk + bu + G @ fk
+    G0, G1 = law.hold
+    base = A @ xk + bu
+    xs = base + (G0 + G1) @ fk  # predictor: d constant over the sample
+    return base + G0 @ fk + G1 @ law.evaluate(xs[:, None], uk)[:, 0]
+
+
 def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArray,
                       x0: NDArray) -> NDArray[np.float64]:
-    """Simulated output of ``x[k+1] = A x + B u + G law(x, u)``, shape (noutputs, nsteps)."""
+    """Simulated output of ``x[k+1] = A x + B u + G law(x, u)``, shape (noutputs, nsteps).
+
+    With ``law.hold`` the law is taken linear between samples instead (see
+    :class:`StaticLaw`); with ``law.output`` it adds to that output instead
+    (G is then zero).
+    """
     A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
     N = u.shape[1]
     x = np.empty((A.shape[0], N))
@@ -291,11 +409,14 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
     Bu = B @ u
     for k in range(N):
         x[:, k] = xk
-        xk = A @ xk + Bu[:, k] + G @ law.evaluate(xk[:, None], u[:, k:k + 1])[:, 0]
+        xk = _step(A, xk, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xk)) or np.max(np.abs(xk)) > 1e100:
             x[:, k + 1:] = np.nan
             break
-    return C @ x + D @ u
+    y = C @ x + D @ u
+    if law.output is not None:  # a sensor-error law
+        y[law.output] += law.evaluate(x, u)[0]
+    return y
 
 
 def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArray,
@@ -308,13 +429,37 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
     Bu, Du = B @ u, D @ u
     for k in range(N):
         yp[:, k] = C @ xp + Du[:, k]
+        if law.output is not None:
+            yp[law.output, k] += law.evaluate(xp[:, None], u[:, k:k + 1])[0, 0]
         xf = xp + K @ (y[:, k] - yp[:, k])
-        xp = A @ xf + Bu[:, k] + G @ law.evaluate(xf[:, None], u[:, k:k + 1])[:, 0]
+        xp = _step(A, xf, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xp)) or np.max(np.abs(xp)) > 1e100:
             yp[:, k + 1:] = np.nan
             break
     return yp
 
+
+
+def _sensor_notes(channel: Channel, law: StaticLaw) -> tuple[str, ...]:
+    """What a sensor-error law says about sensor ``channel.output``: gain, offset, |.|, cube."""
+    nm, out = channel.output, []
+    for j, (_, kind, _) in enumerate(law.spec):
+        c = law.coef[0, j]
+        if c == 0:
+            continue
+        h = law.ci[0, j] if law.ci is not None else np.nan
+        pm = f" ± {h:.2g}" if np.isfinite(h) else ""
+        if kind == "yhat":
+            out.append(f"sensor {nm}: gain 1 in the model; the data want {1 + c:.4g}{pm} "
+                       f"({100 * c:+.1f} %)")
+        elif kind == "const":
+            out.append(f"sensor {nm}: offset {c:.4g}{pm} [{nm}] (0 in the model)")
+        elif kind == "yhat_abs":
+            out.append(f"sensor {nm}: {c:.4g}{pm} * |{nm}| (with the gain at 0 a rectifier: "
+                       f"the sensor reads |{nm}|)")
+        elif kind == "yhat^3":
+            out.append(f"sensor {nm}: {c:.4g}{pm} * {nm}^3 (negative: saturation)")
+    return tuple(out)
 
 
 def _fmt_values(v: NDArray, digits: int) -> str:
@@ -337,6 +482,8 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
     contains 0 (the model's value) has already been dropped from the law, so
     a parameter the data do not contradict is never flagged.
     """
+    if channel.kind == "output":
+        return _sensor_notes(channel, law)
     A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
     out = []
     for k in range(channel.md):
