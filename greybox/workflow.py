@@ -38,7 +38,7 @@ from ._validation import (
 )
 from .exceptions import DataError, GreyboxError, ModelError
 from .progress import ProgressClock
-from .filters import kalman_filter, uikf
+from .filters import feedthrough_uikf, kalman_filter, uikf
 from .metrics import (
     WhitenessTest,
     autocorrelation,
@@ -896,7 +896,8 @@ def _whole_record(tr: ChannelTrace, y, u, Q, R) -> ChannelTrace:
     res = tr.filter_result
     if res is None or res.t.shape[0] == y.shape[1]:
         return tr
-    return replace(tr, filter_result=uikf(tr.model, y, u, unknown=list(tr.channel.labels),
+    filt = feedthrough_uikf if tr.channel.kind == "output" else uikf  # as trace_channel ran
+    return replace(tr, filter_result=filt(tr.model, y, u, unknown=list(tr.channel.labels),
                                           Q=Q, R=R))
 
 

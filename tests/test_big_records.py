@@ -146,3 +146,18 @@ def test_close_the_loop_refines_the_delta_baseline_on_a_window(monkeypatch):
     # 2 outputs: at most 2e5 residuals = 1e5 samples (the record here is shorter: no effect)
     assert seen["refine_window"] == wf.DELTA_REFINE_RESIDUALS // 2 == 100_000
     assert "delta" in rep.table
+
+
+def test_light_output_channel_is_rebuilt_with_its_own_filter():
+    """A sensor channel is traced with the feedthrough filter: its record is rebuilt with
+    that filter (the plain one would treat d as a state-equation input)."""
+    from greybox.trace.channels import output_channel
+
+    y, u, _, _, Q, R = _records(3000)
+    sys = gb.discretize(_osc(), DT)
+    tr = trace_channel(sys, output_channel(sys, 0), y, u, Q=Q, R=R)
+    whole = _whole_record(_light(tr), y, u, Q, R).filter_result
+    for f in dataclasses.fields(tr.filter_result):
+        a = getattr(tr.filter_result, f.name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(getattr(whole, f.name), a, err_msg=f.name)

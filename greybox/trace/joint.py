@@ -354,6 +354,8 @@ def joint_effect(base: ct.StateSpace, channel: Channel, law) -> JointEffect | No
 
     Continuous-time linear static laws and sparse first-order laws qualify.
     """
+    if channel.kind == "output":  # a sensor law acts on C and D, not on the state equations
+        return None
     if isinstance(law, DynamicLaw) and channel.md == 1:
         return JointEffect(base=base, channel=channel, law=law)
     if isinstance(law, StaticLaw) and law.time_base == "continuous" and not law.nonlinear:
