@@ -563,8 +563,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
        whitened errors (an AR(1) correction for oversampled data whose errors
        the noise model does not whiten; on the tape drive ``N_eff / N`` is
        a few per cent, without it BIC picks models that fit the noise).
-    5. **Pole refinement.** For the ``nrefine`` best candidates of each
-       variant the poles are refined by output error on the first ``1 -
+    5. **Pole refinement.** For the ``nrefine`` best candidates the poles
+       are refined by output error on the first ``1 -
        holdout`` of the variant's own data
        (:func:`greybox.ident.modal_oe.refine_output_error`, poles kept inside
        the unit circle) and kept as a further candidate only if, with
@@ -625,7 +625,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     refine_iter : int
         Iteration limit of that refinement.
     nrefine : int
-        Candidates per variant whose poles are refined.
+        Number of best candidates whose poles are refined.
     state_prefix : str
         Names of the delta states: ``delta[0]``, ``delta[1]``, ...
 
@@ -727,7 +727,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                        / np.maximum(np.sum(wdy**2, axis=1), np.finfo(float).tiny)))
     r1 = min(max(r1, 0.0), 0.999)
     Neff = max(N * (1.0 - r1) / (1.0 + r1), 1.0)
-    crit, cands = {("initial", 0): Neff * logdet(wdy)}, []
+    crit, cands, origin = {("initial", 0): Neff * logdet(wdy)}, [], {}
     horizons = [horizon] if horizon is not None else list(_HORIZONS)
     for name, (data, hold) in variants.items():
         starts = {}
@@ -748,37 +748,38 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                     crit[key] = float("nan")
                     continue
                 starts[key] = fABC
-        mine = []
         for key, fABC in starts.items():
             poles = np.zeros(0, dtype=complex) if fABC is None else _upper_poles(fABC[0])
             crit[key], fit = score(poles, hold)
             if fit is not None:
-                mine.append((crit[key], key[1], key[0], fit))
-        # the poles of N4SID on oversampled, noisy data can be far off: refine the
-        # best candidates' poles by output error (modal form, stable by
-        # construction) on the head of the variant's own data, and keep them
-        # only if, with residues fitted on the head too, they predict the
-        # held-out tail better than N4SID's poles (noise fitting shows there)
-        best = sorted((c[:3] for c in mine if c[1] > 0), key=lambda c: (c[0], c[1]))
-        for _, k, key0 in best[:nrefine if refine else 0]:
-            fA, fB, fC = starts[(key0, k)]
-            try:
-                ref = refine_output_error(fA, fB, fC, u[:, head], data[:, head],
-                                          max_iter=refine_iter)
-            except IdentificationError:
-                continue
-            if _spectral_radius(ref.A) > 1.0 - 1e-6:
-                continue  # driven to the parametrization's bound: not a real pole
-            new_poles = _upper_poles(ref.A)
-            t_new, _ = score(new_poles, hold, head, tail)
-            t_old, _ = score(_upper_poles(fA), hold, head, tail)
-            crit[(key0 + "+oe tail", k)] = t_new - t_old
-            if not t_new < t_old:
-                continue
-            crit[(key0 + "+oe", k)], fit = score(new_poles, hold)
-            if fit is not None:
-                mine.append((crit[(key0 + "+oe", k)], k, key0, fit))
-        cands += [(b, k, name, f) for b, k, _, f in mine]
+                cands.append((crit[key], key[1], name, fit))
+                origin[(name, key)] = (fABC, data, hold)
+    # the poles of N4SID on oversampled, noisy data can be far off: refine the
+    # best candidates' poles by output error (modal form, stable by
+    # construction) on the head of the variant's own data, and keep them
+    # only if, with residues fitted on the head too, they predict the
+    # held-out tail better than N4SID's poles (noise fitting shows there)
+    ranked = sorted(((b_, k, name, key) for (name, key), (b_, k) in
+                     ((nk, (crit[nk[1]], nk[1][1])) for nk in origin) if k > 0),
+                    key=lambda c: (c[0], c[1]))
+    for _, k, name, key in ranked[:nrefine if refine else 0]:
+        (fA, fB, fC), data, hold = origin[(name, key)]
+        try:
+            ref = refine_output_error(fA, fB, fC, u[:, head], data[:, head],
+                                      max_iter=refine_iter)
+        except IdentificationError:
+            continue
+        if _spectral_radius(ref.A) > 1.0 - 1e-6:
+            continue  # driven to the parametrization's bound: not a real pole
+        new_poles = _upper_poles(ref.A)
+        t_new, _ = score(new_poles, hold, head, tail)
+        t_old, _ = score(_upper_poles(fA), hold, head, tail)
+        crit[(key[0] + "+oe tail", k)] = t_new - t_old
+        if not t_new < t_old:
+            continue
+        crit[(key[0] + "+oe", k)], fit = score(new_poles, hold)
+        if fit is not None:
+            cands.append((crit[(key[0] + "+oe", k)], k, name, fit))
     se = {"initial_estimation": relative_error(y, y0).value}
 
     def no_improvement(why):
