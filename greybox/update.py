@@ -698,7 +698,11 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     wdy = wh.apply(dy)
 
     def logdet(e):
-        sign, ld = np.linalg.slogdet(np.atleast_2d(np.cov(e, bias=True)))
+        # floor at 1e-12 of the mean variance: noise-free data give (near)
+        # singular covariances, whose -inf would tie every candidate
+        S = np.atleast_2d(np.cov(e, bias=True))
+        S = S + max(1e-12 * np.trace(S) / S.shape[0], np.finfo(float).tiny) * np.eye(S.shape[0])
+        sign, ld = np.linalg.slogdet(S)
         return ld if sign > 0 else -np.inf
 
     def score(poles, hold, fit_on=slice(None), score_on=None):
