@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+import scipy.linalg as sla
+from scipy.signal import lfilter
 
 from ._lti import lti_states
 from ._validation import (
@@ -32,8 +34,14 @@ from ._validation import (
     check_signal,
     check_vector,
 )
-from .exceptions import DataError, DimensionError, GreyboxWarning, IdentificationError
-from .filters import FilterResult
+from .exceptions import (
+    DataError,
+    DimensionError,
+    GreyboxError,
+    GreyboxWarning,
+    IdentificationError,
+)
+from .filters import FilterResult, steady_state_filter
 from .metrics import relative_error
 from .ident import n4sid, pbsid
 from .ident.modal_oe import refine_output_error
@@ -417,30 +425,29 @@ class DeltaModel:
         ``improved`` is False).
     order : int
         States the delta model adds to the combined model (0 when no
-        improvement was found); ``updated.order = n + order``. The fixed
-        unit-circle states are not among them when they could be merged
-        into the initial model's own integrators (see :func:`delta_update`).
+        improvement was found); ``updated.order = n + order``. The held
+        integrators are not among them: they drive the initial model's own
+        integrators (see :func:`delta_update`).
     improved : bool
-        False if no stable candidate lowered both the held-out SE and the
-        estimation-record SE of the initial model: "parallel model: no
-        improvement found".
+        False if no candidate lowered the initial model's BIC and its SE on
+        the estimation record: "parallel model: no improvement found".
     marginal : bool
-        True if the initial model's unit-circle modes were factored out
-        (chosen by the held-out SE, see :func:`delta_update`).
+        True if the chosen candidate is of the "marginal" variant (poles from
+        the differenced data, with held integrators when they apply).
     nfixed : int
-        Fixed states of ``delta`` (the initial model's unit-circle modes in
-        series).
+        States of ``delta`` held exactly at 1 (the held integrators).
     refined : bool
-        True if the output-error refinement was kept.
+        True if the residues were fitted by prediction error (always, when
+        ``improved``).
     se : dict of str to float
-        Errors (eq. 42, relative RMS) [%]: ``"initial_holdout"`` and
-        ``"delta_holdout"`` (held-out score in the selection coordinates of
-        :func:`delta_update`), ``"initial_estimation"`` and ``"delta_estimation"`` (plain SE on the
-        whole estimation record); keys are missing for steps not reached.
+        Errors (eq. 42, relative RMS) [%]: ``"initial_estimation"`` and
+        ``"delta_estimation"`` (plain SE on the whole estimation record,
+        which on data with process noise is dominated by the noise's
+        random walk); keys are missing for steps not reached.
     criterion : dict of (str, int) to float
-        Held-out score [%] of every candidate ``(variant, order)``, variant
-        "plain", "marginal", or with "+oe" the refined winner; NaN for
-        rejected (unstable) candidates.
+        BIC of every candidate ``(variant, N4SID order)`` (variant "plain" or
+        "marginal"; order 0: held integrators only) and of the initial model
+        ``("initial", 0)``; NaN for rejected (unstable) candidates.
     message : str
         One line for reports, e.g. "parallel model: no improvement found".
     """
@@ -485,6 +492,14 @@ def _n4sid_fits(data: NDArray, u: NDArray, orders, dt: float, horizon: int | Non
     return out
 
 
+#: Largest condition number of the eigenvector matrix of the whitening filter's
+#: modal split (:class:`_Whitener`).
+_MODAL_COND = 1e8
+#: N4SID horizons tried by :func:`delta_update` (poles from each are candidates):
+#: short horizons suit fast dynamics, long ones oversampled slow dynamics.
+_HORIZONS = (10, 40)
+
+
 def _spectral_radius(A: NDArray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
 
@@ -492,83 +507,92 @@ def _spectral_radius(A: NDArray) -> float:
 def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike,
                  R: ArrayLike, order: int | None = None, max_order: int | None = None,
                  horizon: int | None = None, x0: ArrayLike | None = None,
-                 marginal: bool | None = None, holdout: float = 0.25, refine: bool = True,
-                 refine_iter: int = 20, refine_window: int | None = None,
+                 marginal: bool | None = None, holdout: float = 0.25,
+                 refine: bool = True, refine_iter: int = 20, nrefine: int = 1,
+                 refine_window: int | None = None,
                  state_prefix: str = "delta") -> DeltaModel:
     """Parallel delta augmentation: a model from u to the output error, run beside ``sys``.
 
     ``dy = y - y_initial`` (the initial model's simulated output) is modelled
-    from ``u`` (open-loop data: u does not depend on the noise), eqs. (21)-(24).
-    The procedure, in order:
+    from ``u`` (open-loop data: u does not depend on the noise), eqs. (21)-(24),
+    as a sum of first-order modes::
 
-    1. **Candidates.** Every order ``1..max_order`` is identified with N4SID
-       (:func:`greybox.ident.n4sid`, one block-Hankel factor shared by all
-       orders) on the first ``1 - holdout`` of the record, in two variants:
-       "plain" (``u -> dy``) and "marginal" (the initial model's unit-circle
-       modes factored out, below), when ``sys`` has such modes that the
-       outputs see.
-    2. **Stability.** A candidate whose identified part has a pole on or
-       outside the unit circle is rejected (not mirrored): it would diverge
-       in simulation (PAPER_NOTES §8.6).
-    3. **Selection.** Each stable candidate is simulated over the whole
-       record from rest and scored on the held-out tail by eq. (42)
-       (relative RMS) of ``y - y_initial - dy_hat`` against ``y``, both taken
-       in the *selection coordinates*: ``[P(q) U1^T W .; U2^T W .]`` when the
-       initial model has observed unit-circle modes (below), else ``W .``.
-       Differencing the channels that see those modes removes the random
-       walk that process noise drives through them, which otherwise swamps
-       any simulation error on estimation data (PAPER_NOTES §8.6). The
-       candidate with the lowest score wins: this one rule chooses the order
-       *and* the variant. (A second condition, a lower plain SE on the tail
-       with both models restarted from a least-squares state, was tried and
-       made the choice worse on every test plant: that state is poorly
-       determined from a short window.)
-    4. **Refinement.** The winner is refined by output error on its own
-       identification data (``dy``, or its differenced form)
-       (:func:`greybox.ident.modal_oe.refine_output_error`: poles kept
-       inside the unit circle by construction, C by least squares) on the
-       first part of the record, and kept if that lowers the held-out score.
-       An unrefined winner is refitted by N4SID on the whole record (kept if
-       stable).
-    5. **No improvement.** If there is no stable candidate, or the winner's
-       held-out score is not below the initial model's, or the final model
-       does not lower the initial model's score over the whole estimation
-       record (same coordinates) *and* its plain SE there, the
-       initial model is returned with ``improved=False``, order 0 and
-       ``message`` starting "parallel model: no improvement found". The
-       returned model therefore never diverges in simulation.
+        dy_hat[k] = sum_i R_i F_i(u)[k] (+ U1 R_0 sum_{j<k} u[j]),
+        F_i = q^-1 / (1 - lambda_i q^-1)
 
-    **Marginal modes of the initial model.** ``dy = (G_true - G_initial) u``
-    has the initial model's unit-circle poles (e.g. integrators) unless the
-    truth has them too with the same residues; a delta model with a pole
-    *near* 1 cannot cancel such a drift. With ``P(q) = prod (1 - lambda
-    q^-1)`` over the *minimal* polynomial of those eigenvalues (a semisimple
-    double integrator counts once) and ``U1`` an orthonormal basis of the
-    output directions in which they are observed (``range(W C V)``, ``V``
-    their invariant subspace, ``W`` the output scaling below; ``U2`` its
-    complement), the "marginal" candidates are identified from ``u`` to
-    ``[P(q) U1^T W dy; U2^T W dy]`` and ``1/P(q)`` is placed in series on the
-    ``U1`` channels as ``deg P * rank(C V)`` fixed states (``nfixed``), with
-    exactly the initial model's unit-circle eigenvalues (marginally stable
-    like the initial model itself, never unstable). ``DeltaModel.delta``
-    holds that series form. In the combined model, when ``P(q) = 1 - q^-1``
-    and the eigenvalue 1 of ``A`` is semisimple (integrators, as in the tape
-    drive), the fixed states are not duplicated: the identified part's
-    differenced output drives the initial model's own integrators through
-    ``V M`` (``A V = V``, ``C V M = W^-1 U1``). The input-output behaviour
-    is the same; a second set of integrators observed through the same
-    outputs would be an unobservable mode on the unit circle, and the
-    combined model could not be used for a Kalman filter or an LQ design.
+    with poles ``lambda_i`` from N4SID and residue matrices ``R_i``
+    (noutputs x ninputs, complex for complex poles) fitted by prediction
+    error. The procedure, in order:
 
-    Scaling: every output is divided by its RMS (``W``) before
-    identification, so the least-squares costs weigh the channels as eq. (42)
-    does.
+    1. **Poles.** N4SID (:func:`greybox.ident.n4sid`, one block-Hankel factor
+       shared by all orders) of every order ``1..max_order`` on the whole
+       record, at horizons 10 and 40 (short horizons suit fast dynamics, long
+       ones slow dynamics on oversampled data), in two variants: "plain"
+       (``u -> W^-1 dy``) and "marginal" (``u -> [P(q) U1^T W^-1 dy; U2^T
+       W^-1 dy]``, the initial model's unit-circle modes differenced out)
+       when ``sys`` has such modes that the outputs see. A candidate with a
+       pole on or outside the unit circle is rejected (not mirrored): it
+       would diverge in simulation (PAPER_NOTES §8.6). Order 0 (no pole) is
+       a candidate too when there are held integrators.
+    2. **Held integrators.** When the initial model's eigenvalue 1 is
+       semisimple (integrators, as in the tape drive) and observed, every
+       candidate also gets the term ``U1 R_0 sum u`` with the pole held
+       *exactly* at 1 and its output directions ``U1 = orth(C V)`` (``A V =
+       V``): ``dy`` carries the drift of the initial model's integrators
+       that the truth does not have, which no pole inside the unit circle
+       can follow. ``R_0`` is fitted (zero if the data do not need it), so
+       this nests the structure without them.
+    3. **Residues by prediction error.** With the poles fixed the model is
+       linear in the residues, which are fitted by least squares on the
+       one-step prediction errors of the *combined* model under the initial
+       model's noise model: ``e = S^-1/2 L(q) (dy - dy_hat)`` with ``L(q)``
+       the innovation filter of ``sys``'s steady-state Kalman predictor for
+       ``(Q, R)`` and ``S`` its innovation covariance (a prediction-error
+       method with a fixed noise model; consistent whatever that model, and
+       efficient when it is right). This matters on estimation data with
+       process noise: there ``dy`` carries random walks and slow noise that a
+       plain simulation-error fit mistakes for signal. With several inputs
+       the residues are then made rank one, ``R_i = c_i v_i^T`` (one state
+       per pole, as in an order-k state-space model): ``v_i`` is the first
+       right singular vector of the full fit's ``R_i`` and ``c_i`` is
+       refitted the same way. A candidate whose single modes are 1000 times
+       larger than ``dy`` (near-equal poles cancelling) is rejected.
+    4. **Order, variant, horizon** by BIC: ``N_eff log det cov(e) + npar log
+       N_eff``, ``npar`` = real coefficients of the poles, the ``c_i``, the
+       ``v_i`` (up to scale) and ``R_0``; ``N_eff = N (1 - r1) / (1 + r1)``
+       with ``r1`` the mean lag-1 autocorrelation of the initial model's
+       whitened errors (an AR(1) correction for oversampled data whose errors
+       the noise model does not whiten; on the tape drive ``N_eff / N`` is
+       a few per cent, without it BIC picks models that fit the noise).
+    5. **Pole refinement.** For the ``nrefine`` best candidates the poles
+       are refined by output error on the first ``1 -
+       holdout`` of the variant's own data
+       (:func:`greybox.ident.modal_oe.refine_output_error`, poles kept inside
+       the unit circle) and kept as a further candidate only if, with
+       residues fitted on that part too, they predict the held-out tail
+       better (``log det`` of the whitened errors) than the N4SID poles.
+    6. **No improvement.** If no candidate has a lower BIC than the initial
+       model (``dy_hat = 0``), or the chosen model does not lower the plain
+       SE (eq. 42) on the estimation record's selection coordinates (the
+       "marginal" differencing when it applies), the initial model is
+       returned with ``improved=False``, order 0 and ``message`` starting
+       "parallel model: no improvement found". The returned model never
+       diverges in simulation.
 
-    Noise of the combined model: ``Q = blockdiag(Q, K_d Re K_d^T)`` and, as
-    its output noise, ``R = Re``, the delta model's N4SID innovation
-    covariance (it contains the measurement noise); the cross-covariance is
-    neglected. With factored marginal modes the innovations of the ``U1``
-    channels also drive the fixed states.
+    **Realization.** A real pole with a rank-r residue adds r states, a
+    complex pair with a rank-r complex residue 2 r states (the rank from the
+    residue's SVD, relative cut 1e-9; r = 1 with several inputs):
+    ``DeltaModel.order`` is their sum, the N4SID order k.
+    The held integrator term is not duplicated in the combined model: it
+    drives the initial model's own integrators (``B + V M R_0`` with ``C V M
+    = U1``), the same input-output behaviour without an unobservable second
+    set of integrators (which a Kalman filter or LQ design could not use).
+    ``DeltaModel.delta`` holds the delta model alone, the held integrators
+    as ``nfixed`` states at exactly 1.
+
+    Noise of the combined model: ``Q = blockdiag(Q, 0)`` (the delta states
+    are deterministic functions of u) and ``R``, the noise model under which
+    the residues were fitted.
 
     Parameters
     ----------
@@ -579,32 +603,37 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     Q : array_like, shape (nstates, nstates)
     R : array_like, shape (noutputs, noutputs)
     order : int, optional
-        Order of the identified part of the delta model (skips the order
-        selection; the variant is still chosen on the held-out tail).
+        N4SID order of the poles (skips the order selection; the variant is
+        still chosen by BIC).
     max_order : int, optional
-        Highest order tried; default ``n + 6`` (the exact delta
+        Highest N4SID order tried; default ``n + 6`` (the exact delta
         ``G_true - G_initial`` has order up to ``n_true + n``; the paper's
         parallel model had order 12 for n = 6).
     horizon : int, optional
-        N4SID horizon; default ``max(10, ceil(max_order / noutputs) + 1)``.
+        A single N4SID horizon instead of the default 10 and 40 (raised when
+        ``max_order`` needs it).
     x0 : array_like, shape (nstates,), optional
         Initial state of the initial model's simulation.
     marginal : bool, optional
-        None (default): try both variants and let the held-out SE choose.
-        True / False: only the "marginal" / "plain" variant.
+        None (default): try both variants and let BIC choose.
+        True: only the "marginal" variant. False: only the "plain" variant,
+        without held integrators.
     holdout : float
-        Fraction of the record (its tail) held out for the selection,
-        in (0, 0.5].
+        Fraction of the record (its tail) held out to check a pole
+        refinement (step 5), in (0, 0.5].
     refine : bool
-        Refine the chosen model by output error (step 4).
+        Refine poles by output error (step 5).
     refine_iter : int
-        Iteration limit of the output-error refinement.
+        Iteration limit of that refinement.
+    nrefine : int
+        Number of best candidates whose poles are refined.
     refine_window : int, optional
         Refine on at most this many samples (the first of the estimation
         part); default all of them. Its cost grows with the samples (a dense
-        Jacobian of ``noutputs * samples`` rows), the model it returns hardly
-        does beyond ~1e5; the held-out check still uses the whole tail.
+        Jacobian of ``noutputs * samples`` rows), the poles it returns hardly
+        do beyond ~1e5; the held-out check still uses the whole tail.
     state_prefix : str
+        Names of the delta states: ``delta[0]``, ``delta[1]``, ...
 
     Returns
     -------
@@ -613,7 +642,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     Raises
     ------
     DataError
-        Bad ``holdout``, or fewer than 200 samples.
+        Fewer than 200 samples, or ``holdout`` outside (0, 0.5].
 
     Examples
     --------
@@ -626,7 +655,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     >>> rng = np.random.default_rng(0)
     >>> u = rng.standard_normal((1, 400))
     >>> y = gb.validate.simulate_output(sys, u) + 0.1 * rng.standard_normal((1, 400))
-    >>> dm = delta_update(sys, y, u, Q=[[1e-6]], R=[[1e-6]])
+    >>> dm = delta_update(sys, y, u, Q=[[1e-6]], R=[[1e-2]])
     >>> dm.improved, dm.order, dm.message[:36]
     (False, 0, 'parallel model: no improvement found')
     """
@@ -634,9 +663,6 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     y = check_signal(y, sys.noutputs, "y", min_steps=200)
     u = check_signal(u, sys.ninputs, "u")
     N = check_same_length(("y", y), ("u", u))
-    holdout = float(holdout)
-    if not 0.0 < holdout <= 0.5:
-        raise DataError(f"holdout must be in (0, 0.5]; found {holdout}")
     n = sys.nstates
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, sys.noutputs, "R", definite=True)
@@ -644,73 +670,130 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
         order = check_positive(order, "order", integer=True)
     if max_order is not None:
         max_order = check_positive(max_order, "max_order", integer=True)
-    if refine_window is not None:
-        refine_window = check_positive(refine_window, "refine_window", integer=True)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
     x = lti_states(A, B @ u, np.zeros(n) if x0 is None else check_vector(x0, n, "x0"))
     y0 = C @ x + D @ u
     dy = y - y0
     p, m = dy.shape[0], u.shape[0]
-    Ne = N - int(round(holdout * N))
-    tail = slice(Ne, N)
     w = np.sqrt(np.mean(y**2, axis=1))
     w[w == 0] = 1.0
     dys = dy / w[:, None]
 
-    variants = {}
     factor = _marginal_factor(A, C / w[:, None]) if marginal is not False else None
+    held = _held_integrators(A, C) if factor is not None else None
+    # the held integrators nest the plain structure (their drive may be 0), so
+    # every candidate gets them where they apply; the variants differ in the
+    # data N4SID takes its poles from
+    variants = {}
     if marginal is not True or factor is None:
-        variants["plain"] = (dys, None)
+        variants["plain"] = (dys, held)
     if factor is not None:
-        variants["marginal"] = (_difference(dys, factor), factor)
-    # selection coordinates: the initial model's unit-circle modes differenced out
+        variants["marginal"] = (_difference(dys, factor), held)
     ys_sel = _difference(y / w[:, None], factor)
+    holdout = float(holdout)
+    if not 0.0 < holdout <= 0.5:
+        raise DataError(f"holdout must be in (0, 0.5]; found {holdout}")
+    refine_iter = check_positive(refine_iter, "refine_iter", integer=True)
+    nrefine = check_positive(nrefine, "nrefine", integer=True, allow_zero=True)
+    if refine_window is not None:
+        refine_window = check_positive(refine_window, "refine_window", integer=True)
+    Ne = N - int(round(holdout * N))
+    head, tail = slice(0, Ne), slice(Ne, N)
     max_order = max_order if max_order is not None else n + 6
     orders = [order] if order is not None else list(range(1, max_order + 1))
-    head, tail = slice(0, Ne), slice(Ne, N)
 
-    def model_of(fit):
-        """(A, B, C, K, Re) of an N4SID fit (scaled outputs), or None if unstable."""
-        s_ = fit.sys
-        fA, fB, fC = (np.asarray(v, dtype=float) for v in (s_.A, s_.B, s_.C))
-        if _spectral_radius(fA) >= 1.0:
-            return None
-        K = fit.K if fit.K.shape == (fA.shape[0], p) else np.zeros((fA.shape[0], p))
-        return (fA, fB, fC, K, fit.innovation_cov)
+    wh = _Whitener(sys, Q, R)
+    wdy = wh.apply(dy)
 
-    def refined(part, data, sl):
-        """Output-error refinement of a delta model on the samples ``sl``, or None."""
-        fA, fB, fC, K, Re = part
+    def logdet(e):
+        # floor at 1e-12 of the mean variance: noise-free data give (near)
+        # singular covariances, whose -inf would tie every candidate
+        S = np.atleast_2d(np.cov(e, bias=True))
+        S = S + max(1e-12 * np.trace(S) / S.shape[0], np.finfo(float).tiny) * np.eye(S.shape[0])
+        sign, ld = np.linalg.slogdet(S)
+        return ld if sign > 0 else -np.inf
+
+    def score(poles, hold, fit_on=slice(None), score_on=None):
+        """(BIC, fit) of the fixed poles (and held integrators); with ``score_on``
+        the fit uses ``fit_on`` and the score is ``log det`` on ``score_on``."""
+        grams = {}
+        fit = _fit_delta(wh, poles, hold, u, wdy, sl=fit_on, grams=grams)
+        npar = fit.npar
+        if m > 1 and poles.size:
+            # one state per pole (rank-one residues, as in an order-k model):
+            # input directions from the full-residue fit's SVD, then refit
+            dirs = [np.linalg.svd(Rq)[2][:1].T for Rq in fit.residues]
+            fit = _fit_delta(wh, poles, hold, u, wdy, dirs, sl=fit_on, grams=grams)
+            npar = fit.npar + int(np.sum(np.where(poles.imag == 0.0, 1, 2))) * (m - 1)
+        if fit.cancels(u, dy):
+            return float("nan"), None
+        e = wh.apply(dy - fit.predict(u))
+        if score_on is not None:
+            return logdet(e[:, score_on]), fit
+        return Neff * logdet(e) + npar * np.log(Neff), fit
+
+    # effective sample size: the whitened errors of an imperfect noise model stay
+    # correlated (oversampled data); AR(1) correction N (1 - r1) / (1 + r1) with
+    # r1 the mean lag-1 autocorrelation of the initial model's whitened errors
+    r1 = float(np.mean(np.sum(wdy[:, 1:] * wdy[:, :-1], axis=1)
+                       / np.maximum(np.sum(wdy**2, axis=1), np.finfo(float).tiny)))
+    r1 = min(max(r1, 0.0), 0.999)
+    Neff = max(N * (1.0 - r1) / (1.0 + r1), 1.0)
+    crit, cands, origin = {("initial", 0): Neff * logdet(wdy)}, [], {}
+    horizons = [horizon] if horizon is not None else list(_HORIZONS)
+    for name, (data, hold) in variants.items():
+        starts = {}
+        if order is None and hold is not None and name == list(variants)[-1]:
+            starts[(name, 0)] = None  # held integrators only
+        for h in horizons:
+            try:
+                fits = _n4sid_fits(data, u, orders, float(sys.dt), h)
+            except GreyboxError:
+                continue  # horizon too long for these data
+            for k in orders:
+                key = (name if len(horizons) == 1 else f"{name} h{h}", k)
+                s_ = fits[k].sys if k in fits else None
+                fABC = None if s_ is None else tuple(np.asarray(v, dtype=float)
+                                                     for v in (s_.A, s_.B, s_.C))
+                if (fABC is None or not all(np.all(np.isfinite(v)) for v in fABC)
+                        or _spectral_radius(fABC[0]) >= 1.0):
+                    crit[key] = float("nan")
+                    continue
+                starts[key] = fABC
+        for key, fABC in starts.items():
+            poles = np.zeros(0, dtype=complex) if fABC is None else _upper_poles(fABC[0])
+            crit[key], fit = score(poles, hold)
+            if fit is not None:
+                cands.append((crit[key], key[1], name, fit))
+                origin[(name, key)] = (fABC, data, hold)
+    # the poles of N4SID on oversampled, noisy data can be far off: refine the
+    # best candidates' poles by output error (modal form, stable by
+    # construction) on the head of the variant's own data, and keep them
+    # only if, with residues fitted on the head too, they predict the
+    # held-out tail better than N4SID's poles (noise fitting shows there)
+    ranked = sorted(((b_, k, name, key) for (name, key), (b_, k) in
+                     ((nk, (crit[nk[1]], nk[1][1])) for nk in origin) if k > 0),
+                    key=lambda c: (c[0], c[1]))
+    for _, k, name, key in ranked[:nrefine if refine else 0]:
+        (fA, fB, fC), data, hold = origin[(name, key)]
         try:
-            ref = refine_output_error(fA, fB, fC, u[:, sl], data[:, sl], max_iter=refine_iter)
+            rsl = head if refine_window is None else slice(0, min(Ne, refine_window))
+            ref = refine_output_error(fA, fB, fC, u[:, rsl], data[:, rsl],
+                                      max_iter=refine_iter)
         except IdentificationError:
-            return None
+            continue
         if _spectral_radius(ref.A) > 1.0 - 1e-6:
-            return None  # driven to the parametrization's bound: not a real pole
-        return (ref.A, ref.B, ref.C, np.linalg.solve(ref.T, K), Re)
-
-    def tail_error(part, fac):
-        """Held-out criterion [%]: eq. (42) on the tail, in the selection coordinates."""
-        if part is None:
-            return float("nan")
-        dA, dB, dC, _, _ = _assemble(*part, fac)
-        with np.errstate(over="ignore", invalid="ignore"):
-            e = _difference(dys - _simulate(dA, dB, dC, u), factor)
-        if not np.all(np.isfinite(e)):
-            return float("nan")
-        return relative_error(ys_sel[:, tail], ys_sel[:, tail] - e[:, tail]).value
-
-    crit, cands = {}, []
-    for name, (data, fac) in variants.items():
-        fits = _n4sid_fits(data[:, head], u[:, head], orders, float(sys.dt), horizon)
-        for k in orders:
-            part = model_of(fits[k]) if k in fits else None
-            crit[(name, k)] = tail_error(part, fac)
-            if np.isfinite(crit[(name, k)]):
-                cands.append((crit[(name, k)], name, k, False, part))
-    se = {"initial_holdout": relative_error(
-        ys_sel[:, tail], _difference(y0 / w[:, None], factor)[:, tail]).value,
-        "initial_estimation": relative_error(y, y0).value}
+            continue  # driven to the parametrization's bound: not a real pole
+        new_poles = _upper_poles(ref.A)
+        t_new, _ = score(new_poles, hold, head, tail)
+        t_old, _ = score(_upper_poles(fA), hold, head, tail)
+        crit[(key[0] + "+oe tail", k)] = t_new - t_old
+        if not t_new < t_old:
+            continue
+        crit[(key[0] + "+oe", k)], fit = score(new_poles, hold)
+        if fit is not None:
+            cands.append((crit[(key[0] + "+oe", k)], k, name, fit))
+    se = {"initial_estimation": relative_error(y, y0).value}
 
     def no_improvement(why):
         delta = named_ss(np.zeros((0, 0)), np.zeros((0, m)), np.zeros((p, 0)),
@@ -723,129 +806,324 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
 
     if not cands:
         return no_improvement("no stable candidate")
-    best = min(cands, key=lambda c: (c[0], c[2]))
-    se_best, name, k, _, part = best
-    data, fac = variants[name]
-    rsl = head if refine_window is None else slice(0, min(Ne, refine_window))
-    rpart = refined(part, data, rsl) if refine else None
-    se_ref = tail_error(rpart, fac)
-    crit[(name + "+oe", k)] = se_ref
-    use_refine = bool(np.isfinite(se_ref) and se_ref < se_best)
-    if use_refine:
-        se_best, part = se_ref, rpart
-    se["delta_holdout"] = se_best
-    if not se_best < se["initial_holdout"]:
-        return no_improvement(f"best held-out error {se_best:.3g} % >= initial "
-                              f"{se['initial_holdout']:.3g} %")
-    if not use_refine:
-        # N4SID on the whole record; the estimation-part model if that is unstable
-        full = _n4sid_fits(data, u, [k], float(sys.dt), horizon)
-        fpart = model_of(full[k]) if k in full else None
-        part = fpart if fpart is not None else part
-    part = _balance(*part)
-    model = _assemble(*part, fac)
-    yh = y0 + _simulate(*model[:3], u) * w[:, None]
+    bic, k, name, fit = min(cands, key=lambda c: (c[0], c[1]))
+    if not bic < crit[("initial", 0)]:
+        return no_improvement(f"BIC {bic:.6g} >= initial model's {crit[('initial', 0)]:.6g}")
+    yh = y0 + fit.predict(u)
     se["delta_estimation"] = relative_error(y, yh).value
     e_est = relative_error(ys_sel, _difference(yh / w[:, None], factor)).value
     e0_est = relative_error(ys_sel, _difference(y0 / w[:, None], factor)).value
     if not e_est < e0_est:
         return no_improvement(f"estimation error {e_est:.3g} % >= initial {e0_est:.3g} %")
-    if not se["delta_estimation"] < se["initial_estimation"]:
-        return no_improvement(f"estimation SE {se['delta_estimation']:.3g} % >= initial "
-                              f"{se['initial_estimation']:.3g} %")
-    dA, dB, dC, Kd, Re = model
-    # unscale the outputs: dy = W dys
-    dC = dC * w[:, None]
-    Kd = Kd / w[None, :]
-    Re = Re * np.outer(w, w)
+    dA, dB, dC = fit.realize()
     nD = dA.shape[0]
-    dD = np.zeros((p, m))
-    merge = _merge_drive(A, C / w[:, None], fac) if fac is not None else None
-    if merge is None:
-        Aa = np.block([[A, np.zeros((n, nD))], [np.zeros((nD, n)), dA]])
-        Ba = np.vstack([B, dB])
-        Ca = np.hstack([C, dC])
-        Qa = np.block([[Q, np.zeros((n, nD))], [np.zeros((nD, n)), Kd @ Re @ Kd.T]])
-        nc = nD
-    else:
-        # the fixed integrators accumulate in the initial model's own integrators
-        fA, fB, fC, K, Re_r = part
-        rho = fac[2]
-        Aa = np.block([[A, merge @ fC[:rho]], [np.zeros((k, n)), fA]])
-        Ba = np.vstack([B, fB])
-        Ca = np.hstack([C, (fac[1] @ fC) * w[:, None]])
-        Kaug = np.vstack([np.hstack([merge, np.zeros((n, p - rho))]), K])
-        Qa = Kaug @ Re_r @ Kaug.T
-        Qa[:n, :n] += Q
-        nc = k
-    states = list(sys.state_labels) + [f"{state_prefix}[{i}]" for i in range(nc)]
-    combined = named_ss(Aa, Ba, Ca, D + dD, sys.dt, states=states, inputs=sys.input_labels,
+    Bm = B.copy()
+    hold = fit.held
+    rho = 0 if hold is None else hold[0].shape[1]
+    if rho:
+        U1, VM = hold
+        Bm = B + VM @ fit.R0
+    Aa = np.block([[A, np.zeros((n, nD))], [np.zeros((nD, n)), dA]])
+    Ba = np.vstack([Bm, dB])
+    Ca = np.hstack([C, dC])
+    Qa = np.zeros((n + nD, n + nD))
+    Qa[:n, :n] = Q
+    states = list(sys.state_labels) + [f"{state_prefix}[{i}]" for i in range(nD)]
+    combined = named_ss(Aa, Ba, Ca, D, sys.dt, states=states, inputs=sys.input_labels,
                         outputs=sys.output_labels, name=f"{sys.name or 'model'}_delta")
-    # output noise: the delta innovation covariance, kept positive definite
-    Rc = psd_part(Re) + 1e-12 * max(np.trace(R), 1e-300) * np.eye(sys.noutputs)
-    delta = named_ss(dA, dB, dC, dD, sys.dt,
-                     states=[f"{state_prefix}[{i}]" for i in range(nD)],
+    # the delta alone: identified modes, then the held integrators (exactly at 1)
+    if rho:
+        fA = np.block([[dA, np.zeros((nD, rho))], [np.zeros((rho, nD)), np.eye(rho)]])
+        fB, fC = np.vstack([dB, fit.R0]), np.hstack([dC, U1])
+    else:
+        fA, fB, fC = dA, dB, dC
+    delta = named_ss(fA, fB, fC, np.zeros((p, m)), sys.dt,
+                     states=[f"{state_prefix}[{i}]" for i in range(nD + rho)],
                      inputs=sys.input_labels,
                      outputs=[f"d{s}" for s in sys.output_labels], name="delta")
-    nfixed = nD - k
-    fixed = ""
-    if nfixed:
-        fixed = (f", with {nfixed} fixed unit-circle states"
-                 + (" merged into the initial model's integrators" if merge is not None else ""))
-    msg = (f"parallel model: order {n + nc} (delta order {nD}{fixed}), estimation SE "
-           f"{se['initial_estimation']:.3g} % -> {se['delta_estimation']:.3g} %")
-    return DeltaModel(updated=UpdatedModel(sys=combined, Q=0.5 * (Qa + Qa.T), R=Rc,
-                                           order=n + nc, kind="delta"),
-                      delta=delta, order=nc, improved=True, marginal=fac is not None,
-                      nfixed=nfixed, refined=use_refine, se=se, criterion=crit, message=msg)
+    fixed = (f", with {rho} held integrators driving the initial model's own"
+             if rho else "")
+    msg = (f"parallel model: order {n + nD} (delta order {nD}, {k} N4SID poles{fixed}), "
+           f"estimation SE {se['initial_estimation']:.3g} % -> {se['delta_estimation']:.3g} %")
+    return DeltaModel(updated=UpdatedModel(sys=combined, Q=Qa, R=R, order=n + nD, kind="delta"),
+                      delta=delta, order=nD, improved=True, marginal=name == "marginal",
+                      nfixed=rho, refined=True, se=se, criterion=crit, message=msg)
 
 
-def _balance(fA, fB, fC, K, Re):
-    """Diagonal similarity giving every state equal input-row and output-column norms."""
-    nb = np.linalg.norm(fB, axis=1)
-    nc = np.linalg.norm(fC, axis=0)
-    sc = np.sqrt(np.where((nb > 0) & (nc > 0), nb / np.where(nc > 0, nc, 1.0), 1.0))
-    return fA * (sc[None, :] / sc[:, None]), fB / sc[:, None], fC * sc[None, :], \
-        K / sc[:, None], Re
+def _upper_poles(A: NDArray) -> NDArray:
+    """Eigenvalues of A, one of each complex-conjugate pair (complex dtype)."""
+    lam = np.linalg.eigvals(A).astype(complex)
+    return lam[lam.imag >= 0.0]
 
 
-def _merge_drive(A: NDArray, Cs: NDArray, factor):
-    """Input matrix ``V M`` that accumulates the differenced delta output in ``A``'s own
-    integrators, or None if that realization does not apply.
+def _held_integrators(A: NDArray, C: NDArray):
+    """``(U1, V M)`` for the initial model's observed, semisimple eigenvalue 1, or None.
 
-    Applies when ``P(q) = 1 - q^-1`` and the eigenvalue 1 of ``A`` is semisimple
-    (``A V = V`` for a basis ``V`` of its eigenspace); ``M`` solves
-    ``Cs V M = U1`` (``U1`` lies in ``range(Cs V)`` by construction).
+    ``V`` spans ``null(A - I)`` (as many columns as eigenvalues at 1, else the
+    eigenvalue is defective and None is returned), ``U1 = orth(C V)`` and
+    ``C V M = U1``: a drive ``V M r`` accumulates in the integrators and
+    shows as ``U1 r`` in the outputs.
     """
     import scipy.linalg as sla
 
-    a, T, rho = factor
-    if a.shape != (1,) or abs(a[0] + 1.0) > 1e-12:
-        return None
     V = sla.null_space(A - np.eye(A.shape[0]), rcond=1e-9)
     lam = np.linalg.eigvals(A)
-    if V.shape[1] != int(np.sum(np.abs(lam - 1.0) <= 1e-6)):
-        return None  # a Jordan block at 1: keep the fixed states
-    CV = Cs @ V
-    M = np.linalg.lstsq(CV, T[:, :rho], rcond=1e-10)[0]
-    if np.linalg.norm(CV @ M - T[:, :rho]) > 1e-8 * max(1.0, np.linalg.norm(CV)):
+    if V.shape[1] == 0 or V.shape[1] != int(np.sum(np.abs(lam - 1.0) <= 1e-6)):
         return None
-    return V @ M
+    CV = C @ V
+    Uc, sv, _ = np.linalg.svd(CV, full_matrices=False)
+    rho = int(np.sum(sv > 1e-9 * max(sv[0], np.finfo(float).tiny)))
+    if rho == 0:
+        return None
+    U1 = Uc[:, :rho]
+    M = np.linalg.lstsq(CV, U1, rcond=1e-10)[0]
+    if np.linalg.norm(CV @ M - U1) > 1e-8:
+        return None
+    return U1, V @ M
 
 
-def _assemble(fA, fB, fC, K, Re, factor):
-    """The delta model in scaled output coordinates, with the fixed factor if any."""
-    p = fC.shape[0]
-    if factor is None:
-        return fA, fB, fC, K, Re
-    Aa, Ba, Ca, _, Ka, Rea = _series_marginal(fA, fB, fC, np.zeros((p, fB.shape[1])), K, Re,
-                                              *factor)
-    return Aa, Ba, Ca, Ka, Rea
+class _Whitener:
+    """Innovation filter of the initial model's steady-state Kalman predictor.
+
+    ``e = S^-1/2 (eps - C xt)``, ``xt[k+1] = (A - Kp C) xt[k] + Kp eps[k]``:
+    applied to ``eps = dy - dy_hat`` it gives the combined model's one-step
+    prediction errors, whitened by the predictor's innovation covariance S.
+    ``D`` lists the p x p matrices that weight the base signals of
+    :meth:`base` (a signal and its responses through the filter's modes);
+    without a well-conditioned modal form only the static part ``S^-1/2``
+    is used (``D = [S^-1/2]``).
+    """
+
+    def __init__(self, sys, Q, R):
+        A, C = (np.asarray(a, dtype=float) for a in (sys.A, sys.C))
+        p = C.shape[0]
+        Abar = None
+        try:
+            f = steady_state_filter(sys, Q=Q, R=R)
+            Kp, S = A @ f.L, np.asarray(f.innovation_cov)
+            Abar = A - Kp @ C
+        except GreyboxError:
+            Kp, S = np.zeros((A.shape[0], p)), np.asarray(R, dtype=float)
+        self.Sih = np.linalg.inv(np.linalg.cholesky(0.5 * (S + S.T)))
+        self.D, self.modes = [self.Sih], []
+        self.Abar, self.Kp, self.C = None, None, C
+        if Abar is None or not Abar.size:
+            return
+        lam, V = np.linalg.eig(Abar)
+        if np.max(np.abs(lam)) >= 1.0 or np.linalg.cond(V) > _MODAL_COND:
+            return
+        self.Abar, self.Kp = Abar, Kp
+        Wv = np.linalg.inv(V)
+        for t in range(len(lam)):
+            M = self.Sih @ C @ np.outer(V[:, t], Wv[t] @ Kp)
+            if lam[t].imag == 0.0:
+                self.modes.append(complex(lam[t].real))
+                self.D.append(-M.real)
+            elif lam[t].imag > 0:
+                self.modes.append(complex(lam[t]))
+                self.D += [-2.0 * M.real, 2.0 * M.imag]
+
+    def apply(self, eps: NDArray) -> NDArray:
+        """Whitened one-step prediction errors of the residual ``eps`` (p, N)."""
+        if self.Abar is None:
+            return self.Sih @ eps
+        xt = lti_states(self.Abar, self.Kp @ eps, np.zeros(self.Abar.shape[0]))
+        return self.Sih @ (eps - self.C @ xt)
+
+    def base(self, F: NDArray) -> NDArray:
+        """Base signals, shape (len(D), J, N): ``F`` and its mode responses."""
+        out = [F]
+        for mu in self.modes:
+            if mu.imag == 0.0:
+                out.append(lfilter([0.0, 1.0], [1.0, -mu.real], F, axis=1))
+            else:
+                h = lfilter([0.0, 1.0], [1.0, -mu], F.astype(complex), axis=1)
+                out += [h.real, h.imag]
+        return np.stack(out)
 
 
-def _simulate(A: NDArray, B: NDArray, C: NDArray, u: NDArray) -> NDArray:
-    """Output of ``(A, B, C)`` from rest."""
-    return C @ lti_states(A, B @ u, np.zeros(A.shape[0]))
+def _pole_signals(poles: NDArray, u: NDArray, directions=None):
+    """``q^-1 / (1 - pole q^-1) v^T u`` per pole (one of each complex pair) and
+    input direction ``v`` (the columns of ``directions[q]``, default: every input).
+
+    Returns (signals (J, N), meta): a complex pole gives the real then the
+    imaginary parts; ``meta[j] = (pole index, direction, part)``.
+    """
+    sig, meta = [], []
+    for q, lam in enumerate(poles):
+        Vq = np.eye(u.shape[0]) if directions is None else directions[q]
+        v = Vq.T @ u
+        r = Vq.shape[1]
+        if lam.imag == 0.0:
+            f = lfilter([0.0, 1.0], [1.0, -lam.real], v, axis=1)
+            if np.iscomplexobj(f):
+                raise AssertionError("real pole with a complex direction")
+            sig.append(f)
+            meta += [(q, j, 0) for j in range(r)]
+        else:
+            f = lfilter([0.0, 1.0], [1.0, -lam], v.astype(complex), axis=1)
+            sig += [f.real, f.imag]
+            meta += [(q, j, 0) for j in range(r)] + [(q, j, 1) for j in range(r)]
+    return (np.vstack(sig) if sig else np.zeros((0, u.shape[1]))), meta
+
+
+@dataclass(frozen=True)
+class _DeltaFit:
+    """Fixed-pole delta model: residues of every pole, and of the held integrators."""
+
+    poles: NDArray
+    residues: list   # per pole: (p, ninputs) real, or complex Rr - 1j Ri
+    held: tuple | None   # (U1, V M) or None
+    R0: NDArray      # (rho, ninputs) drive of the held integrators
+    npar: int
+
+    def predict(self, u: NDArray) -> NDArray:
+        out = np.zeros((self.residues[0].shape[0] if self.residues else
+                        self.held[0].shape[0], u.shape[1]))
+        for lam, Rq in zip(self.poles, self.residues):
+            if lam.imag == 0.0:
+                out += Rq @ lfilter([0.0, 1.0], [1.0, -lam.real], u, axis=1)
+            else:
+                f = lfilter([0.0, 1.0], [1.0, -lam], u.astype(complex), axis=1)
+                out += np.real(Rq @ f)
+        if self.held is not None:
+            out += self.held[0] @ (self.R0 @ lfilter([0.0, 1.0], [1.0, -1.0], u, axis=1))
+        return out
+
+    def cancels(self, u: NDArray, dy: NDArray, ratio: float = 1e3) -> bool:
+        """True if some pole's contribution exceeds ``ratio`` times the RMS of
+        ``dy``: nearly equal poles whose large residues cancel on these data
+        (ill-conditioned, and not to be trusted on other inputs)."""
+        lim = ratio * max(float(np.sqrt(np.mean(dy**2))), np.finfo(float).tiny)
+        for lam, Rq in zip(self.poles, self.residues):
+            f = lfilter([0.0, 1.0], [1.0, -lam], u.astype(complex), axis=1)
+            if not float(np.sqrt(np.mean(np.real(Rq @ f) ** 2))) <= lim:
+                return True
+        return False
+
+    def realize(self):
+        """(A, B, C) of the identified modes, minimal per pole (residue rank)."""
+        blocks = []
+        for lam, Rq in zip(self.poles, self.residues):
+            U, s, Vh = np.linalg.svd(Rq, full_matrices=False)
+            r = int(np.sum(s > 1e-9 * max(s[0] if s.size else 0.0, np.finfo(float).tiny)))
+            if r == 0:
+                continue
+            # balanced: input rows and output columns of equal norm
+            Bc = np.sqrt(s[:r, None]) * Vh[:r]
+            U = U * np.concatenate([np.sqrt(s[:r]), np.ones(U.shape[1] - r)])[None, :]
+            if lam.imag == 0.0:
+                blocks.append((lam.real * np.eye(r), np.real(Bc), np.real(U[:, :r])))
+            else:
+                a, b = lam.real, lam.imag
+                Ab = np.block([[a * np.eye(r), -b * np.eye(r)], [b * np.eye(r), a * np.eye(r)]])
+                blocks.append((Ab, np.vstack([Bc.real, Bc.imag]),
+                               np.hstack([U[:, :r].real, -U[:, :r].imag])))
+        p = self.held[0].shape[0] if self.held is not None else self.residues[0].shape[0]
+        mi = self.R0.shape[1]
+        if not blocks:
+            return np.zeros((0, 0)), np.zeros((0, mi)), np.zeros((p, 0))
+        import scipy.linalg as sla
+
+        return (sla.block_diag(*[b[0] for b in blocks]), np.vstack([b[1] for b in blocks]),
+                np.hstack([b[2] for b in blocks]))
+
+
+def _direction_map(poles: NDArray, directions, metaf, mi: int):
+    """Matrix P with ``F_dir = P^T F_full`` (signals of :func:`_pole_signals` with
+    and without input ``directions``), and the meta of ``F_dir``."""
+    index = {m_: j for j, m_ in enumerate(metaf)}
+    cols, meta = [], []
+    for q, (lam, Vq) in enumerate(zip(poles, directions)):
+        r = Vq.shape[1]
+        parts = (0,) if lam.imag == 0.0 else (0, 1)
+        for part in parts:
+            for i in range(r):
+                col = np.zeros(len(metaf))
+                for j in range(mi):
+                    vr, vi = Vq[j, i].real, Vq[j, i].imag
+                    if lam.imag == 0.0:
+                        col[index[(q, j, 0)]] = vr
+                    elif part == 0:   # Re(v^T f) = vr Re f - vi Im f
+                        col[index[(q, j, 0)]] = vr
+                        col[index[(q, j, 1)]] = -vi
+                    else:             # Im(v^T f) = vr Im f + vi Re f
+                        col[index[(q, j, 1)]] = vr
+                        col[index[(q, j, 0)]] = vi
+                cols.append(col)
+                meta.append((q, i, part))
+    return (np.array(cols).T if cols else np.zeros((len(metaf), 0))), meta
+
+
+def _fit_delta(wh: _Whitener, poles: NDArray, held, u: NDArray, wdy: NDArray,
+               directions=None, sl: slice = slice(None), grams: dict | None = None
+               ) -> _DeltaFit:
+    """Residues of the fixed poles (and held integrators) minimizing the whitened
+    one-step prediction errors ``wh.apply(dy - dy_hat)`` (``wdy = wh.apply(dy)``).
+
+    The regressors ``wh.apply(d F_j)`` (direction d, pole signal F_j) are never
+    formed: their Gram matrix comes from the Gram matrix of the base signals
+    (F and its responses through the whitening filter's modes). A fit with
+    every input (``directions`` None) stores those Gram matrices in
+    ``grams``; a fit with input ``directions`` on the same poles reuses them
+    (its signals are real linear combinations of the full fit's).
+    """
+    p, mi = wdy.shape[0], u.shape[0]
+    key = (sl.start, sl.stop)
+    if directions is not None and grams is not None and key in grams:
+        GSf, SLf, metaf, Jf = grams[key]
+        P, meta = _direction_map(poles, directions, metaf, mi)
+        J = P.shape[1]
+        if held is not None:
+            nh = GSf.shape[1] - Jf
+            P = sla.block_diag(P, np.eye(nh))
+        GS = np.einsum("ja,tjsk,kb->tasb", P, GSf, P, optimize=True)
+        SL = np.einsum("ja,tjp->tap", P, SLf, optimize=True)
+    else:
+        F, meta = _pole_signals(poles, u, directions)
+        J = F.shape[0]
+        if held is not None:
+            F = np.vstack([F, lfilter([0.0, 1.0], [1.0, -1.0], u, axis=1)])
+        base = wh.base(F)
+        T = base.shape[0]
+        Bs = base[:, :, sl].reshape(T * F.shape[0], -1)
+        GS = (Bs @ Bs.T).reshape(T, F.shape[0], T, F.shape[0])
+        SL = (Bs @ wdy[:, sl].T).reshape(T, F.shape[0], p)
+        if directions is None and grams is not None:
+            grams[key] = (GS, SL, meta, J)
+    T = GS.shape[0]
+    dirs = [np.eye(p)] * J
+    jr = [np.repeat(np.arange(J), p)]
+    rho = 0
+    if held is not None:
+        U1 = held[0]
+        rho = U1.shape[1]
+        dirs += [U1.T] * mi
+        jr.append(np.repeat(J + np.arange(mi), rho))
+    dirs = np.vstack(dirs) if dirs else np.zeros((0, p))
+    jr = np.concatenate(jr).astype(int)
+    E = [Dt @ dirs.T for Dt in wh.D]
+    nr = dirs.shape[0]
+    G = np.zeros((nr, nr))
+    b = np.zeros(nr)
+    for t in range(T):
+        b += np.einsum("pr,rp->r", E[t], SL[t, jr])
+        for t2 in range(T):
+            G += (E[t].T @ E[t2]) * GS[t][:, t2][np.ix_(jr, jr)]
+    s = np.sqrt(np.clip(np.diag(G), np.finfo(float).tiny, None))
+    ev, V = np.linalg.eigh(G / np.outer(s, s))
+    keep = ev > 1e-10 * max(ev[-1], np.finfo(float).tiny)
+    c = (V[:, keep] @ ((V[:, keep].T @ (b / s)) / ev[keep])) / s
+    dirs_in = [np.eye(mi)] * len(poles) if directions is None else directions
+    coef = [np.zeros((p, Vq.shape[1]), dtype=complex) for Vq in dirs_in]
+    for j, (q, i, part) in enumerate(meta):
+        # Re((Cr - 1j Ci) f) = Cr Re f + Ci Im f
+        coef[q][:, i] += c[j * p:(j + 1) * p] * (1.0 if part == 0 else -1j)
+    residues = [Cq @ Vq.T if lam.imag != 0.0 else np.real(Cq @ Vq.T)
+                for lam, Cq, Vq in zip(poles, coef, dirs_in)]
+    R0 = c[J * p:].reshape(mi, rho).T if rho else np.zeros((0, mi))
+    npar = len(c) + int(np.sum(np.where(poles.imag == 0.0, 1, 2)))
+    return _DeltaFit(poles=poles, residues=residues, held=held, R0=R0, npar=npar)
 
 
 def _difference(v: NDArray, factor) -> NDArray:
@@ -916,25 +1194,3 @@ def _poly_filter(a: NDArray, v: NDArray) -> NDArray:
     return out
 
 
-def _series_marginal(fA, fB, fC, fD, K, Re, a, T, rho):
-    """Realize ``T [1/P(q) I_rho, 0; 0, I] G_f`` (G_f in innovation form).
-
-    The fixed states hold the last ``r = deg P`` values of the first ``rho``
-    outputs ``w = v / P(q)``: ``w[k] = v[k] - sum a_i w[k-i]``.
-    """
-    nf, r, p = fA.shape[0], len(a), fC.shape[0]
-    C1, C2, D1 = fC[:rho], fC[rho:], fD[:rho]
-    Arow = np.kron(a[None, :], np.eye(rho))            # rho x rho*r: sum a_i w[k-i]
-    As = np.zeros((rho * r, rho * r))
-    As[rho:, :-rho] = np.eye(rho * (r - 1))
-    As[:rho] -= Arow
-    E1 = np.vstack([np.eye(rho), np.zeros((rho * (r - 1), rho))])   # writes w[k] into s
-    Aa = np.block([[fA, np.zeros((nf, rho * r))], [E1 @ C1, As]])
-    Ba = np.vstack([fB, E1 @ D1])
-    Ce = np.vstack([np.hstack([C1, -Arow]), np.hstack([C2, np.zeros((p - rho, rho * r))])])
-    Ca = T @ Ce
-    Da = T @ fD
-    Ia = np.hstack([np.eye(rho), np.zeros((rho, p - rho))])
-    Ka = np.vstack([K, E1 @ Ia])
-    # innovations in dy coordinates: e_dy = T e, so K_dy = Ka T^T, Re_dy = T Re T^T
-    return Aa, Ba, Ca, Da, Ka @ T.T, T @ Re @ T.T

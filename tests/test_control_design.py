@@ -38,8 +38,7 @@ def updated_models():
         static = identify_subsystem(t2.uif, order=0)
         dynamic = identify_subsystem(t2.uif, order=1)  # orders 2-3 (output-error) take minutes
         # a small delta order search: the full one (1..12) is reproduce_table3's
-        # job; any delta model exercises the same code paths here (orders <= 4
-        # find no improvement on this record since issue 9's stricter checks)
+        # job; any delta model exercises the same code paths here
         delta = delta_update(base, t2.uif.y, t2.uif.u, Q=Q, R=R, max_order=5)
         assert delta.improved, delta.message
     return {

@@ -12,8 +12,9 @@ Golub & Pereyra 1973); the poles and the input matrix are optimized by
 first-order recursion run by :func:`scipy.signal.lfilter`, so one cost
 evaluation, Jacobian included, is O(n (ninputs + noutputs) N).
 
-Used by :func:`greybox.update.delta_update` to refine the N4SID delta model
-(eqs. 21-24) on the simulated output error, starting from N4SID.
+Used by :func:`greybox.update.delta_update` to refine the poles of its best
+N4SID candidate (eqs. 21-24) on the simulated output error (the refined
+poles are kept only if they predict a held-out tail better).
 """
 
 from __future__ import annotations

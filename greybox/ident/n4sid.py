@@ -324,13 +324,23 @@ def _initial_states(A, B, C, D, K, ys, us, nmax: int = 1000) -> NDArray:
         Phi = np.zeros((M, l, n))
         Ak = C.copy()
         res = np.zeros((M, l))
-        for k in range(M):
-            uk, yk = ue[:, k], ye[:, k]
-            res[k] = yk - C @ x - D @ uk
-            Phi[k] = Ak
-            x = Abar @ x + Bbar @ uk + K @ yk
-            Ak = Ak @ Abar
-        out[:, e] = np.linalg.lstsq(Phi.reshape(M * l, n), res.reshape(-1), rcond=None)[0]
+        used = M
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k in range(M):
+                uk, yk = ue[:, k], ye[:, k]
+                res[k] = yk - C @ x - D @ uk
+                Phi[k] = Ak
+                if not (np.all(np.abs(res[k]) < _MAX_RMS) and np.all(np.abs(Ak) < _MAX_RMS)):
+                    # an unstable predictor overflows: fit on the rows before that
+                    # (LAPACK must never see NaN, inf, or numbers whose squares overflow)
+                    used = k
+                    break
+                x = Abar @ x + Bbar @ uk + K @ yk
+                Ak = Ak @ Abar
+        if used == 0:
+            continue
+        out[:, e] = np.linalg.lstsq(Phi[:used].reshape(used * l, n), res[:used].reshape(-1),
+                                    rcond=None)[0]
     return out
 
 
