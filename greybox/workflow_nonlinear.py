@@ -445,8 +445,10 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         # velocity equation through positions only): fit on the mean of consecutive
         # samples, as the linear trace does
         r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
-        law = _fit_static(d, x, u[:, SKIP:N - 1], lin_cont, nonlinear, labels, ch.units,
-                          r1 < _ALTERNATING, ch.relative)
+        alt = r1 < _ALTERNATING  # then the mean of two samples, terms weighted alike
+        law = _fit_static(0.5 * (d[:, 1:] + d[:, :-1]) if alt else d, x, u[:, SKIP:N - 1],
+                          lin_cont, nonlinear, labels, ch.units,
+                          np.full((d.shape[0], 2), 0.5) if alt else None, ch.relative)
         if r1 < _ALTERNATING:
             notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation {r1:.2f}): "
                          f"the static law is fitted on the mean of consecutive samples")
