@@ -547,7 +547,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     # and one force along the screen's direction, when it sees one
                     rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
                     g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
-                    fch = force_channel(sys, pair, g) if g is not None else None
+                    fch = force_channel(sys, pair, g) if g is not None and \
+                        not _kinematic_in(sys, pair) else None
                     if fch is not None and not _along_an_input(sys, fch):
                         keep.append(fch)
         return tuple(keep)
@@ -665,6 +666,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             g = tr_.static.direction(res_.x_filt[:, k0s:Ns], u[:, k0s:Ns])
             if g is None:
                 continue
+            if _kinematic_in(sys, tr_.channel):
+                continue  # a force acts on momentum equations, not on dp/dt = v
             fch = force_channel(sys, tr_.channel, g)
             if _along_an_input(sys, fch):
                 continue  # the input's own channel says the same, and names the input
@@ -912,6 +915,22 @@ def _delta_baseline(nominal, y, u, Q, R, max_order, x0):
     with single_thread_blas():  # thin and small products: a second thread only stalls
         return delta_update(nominal, y, u, Q=Q, R=R, max_order=max_order, x0=x0,
                             refine_window=win)
+
+
+def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:
+    """True if the channel enters a kinematic equation (dp/dt = v: one nonzero in A, none in B).
+
+    Only for a continuous model (a discrete one mixes the rows).
+    """
+    if ct.isdtime(sys, strict=True):
+        return False
+    A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
+    labels = list(sys.state_labels)
+    for e in ch.equations:
+        i = labels.index(e)
+        if np.count_nonzero(A[i]) == 1 and not np.any(B[i]):
+            return True
+    return False
 
 
 def _along_an_input(sys: ct.StateSpace, ch: Channel, tol: float = 0.02) -> bool:

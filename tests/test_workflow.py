@@ -223,6 +223,21 @@ def test_partial_measurement_still_finds_the_equation():
     assert se0 / se1 >= 3.0
 
 
+def test_no_force_channel_through_a_kinematic_equation():
+    """Step 2a builds "one force" channels only from momentum equations: a pair that enters
+    dp/dt = v (one nonzero in its A row, none in B) is not a force between bodies."""
+    from greybox.trace import resolve_channel_spec
+    from greybox.workflow import _kinematic_in
+    from plantlib import chain
+
+    sys = chain(2)
+    pv, vv = resolve_channel_spec(sys, [("p1", "v2"), ("v1", "v2")])
+    assert _kinematic_in(sys, pv) and not _kinematic_in(sys, vv)
+    # a discrete model mixes the rows: no equation is kinematic there
+    assert not _kinematic_in(gb.discretize(sys, 0.01), resolve_channel_spec(
+        gb.discretize(sys, 0.01), [("p1", "v2")])[0])
+
+
 def test_two_equation_law_is_one_internal_force():
     """The missing coupling spring k12 = 20 N/m: one force in the relative coordinate."""
     rep, _ = run_case("two_equations")
