@@ -881,11 +881,14 @@ def _light(tr: ChannelTrace) -> ChannelTrace:
     The choice, the pair-force step, the sparse laws and the gate read only those;
     x^[k|k-1], the innovations, var(d^) and the time axis (~50 MB per channel at 1e6
     samples of a 2-state model) are dropped (zero-length), and :func:`_whole_record`
-    recomputes them for the chosen channel.
+    recomputes them for the chosen channel. The delayed or smoothed estimate the
+    law was fitted on (``law_estimate``, with its covariance histories) is dropped
+    too: the law is already fitted, and nothing downstream reads it.
     """
     res = tr.filter_result
     if res is None:
         return tr
+    tr = replace(tr, law_estimate=None)
     def none(a):  # a fresh empty array: a view would keep the whole history alive
         return np.zeros(a.shape[:-1] + (0,))
 
