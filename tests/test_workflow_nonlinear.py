@@ -398,13 +398,22 @@ def test_cli_update_with_a_nonlinear_model_py(tmp_path, capsys):
     (MODEL_PY.replace("R = np.diag([1e-4, 1e-4])", "R = np.eye(3)"), "R"),
     (MODEL_PY.replace('name="pendulum")', 'name="pendulum", dt=0.02)'),
      "Ts = 0.01 s disagrees with the discrete model's dt = 0.02 s"),
-    ("def (", "syntax error at line 1"),
 ], ids=["raises", "not-a-model", "no-Q", "no-Ts", "bad-Ts", "nonlinear-h", "clash", "R-shape",
-        "dt-mismatch", "syntax"])
+        "dt-mismatch"])
 def test_model_py_errors_are_one_clear_line(tmp_path, text, match):
     from greybox.model_io import read_model
 
     path = tmp_path / "MODEL.py"
     path.write_text(text)
     with pytest.raises(ModelError, match=match):
+        read_model(path)
+
+
+def test_model_py_that_is_not_python_is_one_clear_line(tmp_path):
+    """A MODEL.py that does not parse: one ModelError naming the file and the line."""
+    from greybox.model_io import read_model
+
+    path = tmp_path / "MODEL.py"
+    path.write_text("import numpy as np\nmodel = (\n")
+    with pytest.raises(ModelError, match=r"MODEL.py: Python syntax error at line [23]"):
         read_model(path)
