@@ -26,13 +26,11 @@ from numpy.typing import NDArray
 from scipy.signal import lfilter
 
 from .._blas import single_thread_blas
-from .._lti import lti_states
 from ..ident.regression import forward_selection
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
-from .intervals import hac_covariance
-from .oe import noise_covariance, oe_window, zoh
+from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["DynamicLaw", "fit_sparse_dynamic"]
 
@@ -133,13 +131,9 @@ class _DynProblem:
 
     def resid(self, theta):
         Ad, Bd = self.disc(theta)
-        if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
-            return np.full(self.y[:, self.k0:].size, 1e6)
         Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 1))])
-        with np.errstate(all="ignore"):
-            x = lti_states(Ad, Bd @ self.u, self.x0)
-            r = ((self.y - Ca @ x - self.D @ self.u)[:, self.k0:] / self.scale[:, None]).ravel()
-        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+        return scaled_output_error(Ad, Bd, Ca, self.D, self.y, self.u, self.x0, self.k0,
+                                   self.scale)
 
     def fit(self, theta0):
         from scipy.optimize import least_squares
@@ -152,17 +146,11 @@ class _DynProblem:
             return self._halfwidths(sol, Q, R)
 
     def _halfwidths(self, sol, Q, R):
-        jac = np.asarray(sol.jac)
-        if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
-            return np.full(sol.x.size, np.nan)
-        var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
-        Ad, _ = self.disc(sol.x)
         Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 1))])
         Qa = np.zeros((self.n + 1, self.n + 1))
         Qa[:self.n, :self.n] = Q
-        Ji = np.linalg.pinv(jac.T @ jac)
-        vm = np.diag(Ji @ noise_covariance(Ad, Ca, jac, self.scale, self.k0, Qa, R) @ Ji)
-        return 1.96 * np.sqrt(np.clip(np.maximum(var, vm), 0, None))
+        return robust_halfwidths(sol, self.y.shape[0], self.disc(sol.x)[0], Ca, self.scale,
+                                 self.k0, Qa, R)
 
 
 def driver_weights(drv, n: int, m: int) -> NDArray[np.float64]:

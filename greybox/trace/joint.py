@@ -28,9 +28,8 @@ from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
 from .dynamic import DynamicLaw, _law_from, _problem
-from .intervals import hac_covariance
 from .laws import StaticLaw, _law_line, _one_direction, linear_part
-from .oe import noise_covariance, oe_window, zoh
+from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["JointEffect", "JointRefinement", "refine_jointly"]
 
@@ -152,13 +151,8 @@ class _Joint:
 
     def resid(self, theta, active):
         Ad, Bd = zoh(*self.cont(theta, active), self.dt)
-        if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
-            return np.full(self.y[:, self.k0:].size, 1e6)
-        with np.errstate(all="ignore"):
-            x = lti_states(Ad, Bd @ self.u, self.x0)
-            r = ((self.y - self.C @ x - self.D @ self.u)[:, self.k0:]
-                 / self.scale[:, None]).ravel()
-        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+        return scaled_output_error(Ad, Bd, self.C, self.D, self.y, self.u, self.x0, self.k0,
+                                   self.scale)
 
     def se(self, theta, active) -> float:
         r = self.resid(theta, active).reshape(self.y.shape[0], -1)
@@ -171,14 +165,8 @@ class _Joint:
                              max_nfev=60 * (len(active) + 1))
 
     def halfwidths(self, sol, active, Q, R):
-        jac = np.asarray(sol.jac)
-        if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
-            return np.full(sol.x.size, np.nan)
-        var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
         Ad, _ = zoh(*self.cont(sol.x, active), self.dt)
-        Ji = np.linalg.pinv(jac.T @ jac)
-        vm = np.diag(Ji @ noise_covariance(Ad, self.C, jac, self.scale, self.k0, Q, R) @ Ji)
-        return 1.96 * np.sqrt(np.clip(np.maximum(var, vm), 0, None))
+        return robust_halfwidths(sol, self.y.shape[0], Ad, self.C, self.scale, self.k0, Q, R)
 
 
 def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: NDArray,

@@ -81,6 +81,41 @@ def noise_covariance(A: NDArray, C: NDArray, jac: NDArray, scale: NDArray, k0: i
     return M1 + M2
 
 
+def scaled_output_error(Ad: NDArray, Bd: NDArray, C: NDArray, D: NDArray, y: NDArray,
+                        u: NDArray, x0: NDArray, k0: int, scale: NDArray) -> NDArray:
+    """Output error of ``(Ad, Bd, C, D)`` from ``x0`` on y after ``k0``, per-output scaled, flat.
+
+    A non-finite model (an optimizer's wild trial) or simulation counts as 1e6.
+    """
+    if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
+        return np.full(y[:, k0:].size, 1e6)
+    with np.errstate(all="ignore"):
+        x = lti_states(Ad, Bd @ u, x0)
+        r = ((y - C @ x - D @ u)[:, k0:] / scale[:, None]).ravel()
+    return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+
+
+def robust_halfwidths(sol, nout: int, Ad: NDArray, C: NDArray, scale: NDArray, k0: int,
+                      Q: NDArray | None, R: NDArray | None) -> NDArray[np.float64]:
+    """95 % half-widths of an output-error fit: the larger of two variances per coefficient.
+
+    The sandwich covariance under the noise model (Q, R) of the discrete model
+    (:func:`noise_covariance`; calibrated when Q and R are right; skipped when
+    Q is None) and the data-driven one robust to autocorrelation
+    (:func:`hac_covariance`; guards against an understated Q). NaN when the
+    fit diverged.
+    """
+    jac = np.asarray(sol.jac)
+    if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
+        return np.full(sol.x.size, np.nan)
+    var = np.diag(hac_covariance(jac, np.asarray(sol.fun), nout))
+    if Q is not None:
+        Ji = np.linalg.pinv(jac.T @ jac)
+        vm = np.diag(Ji @ noise_covariance(Ad, C, jac, scale, k0, Q, R) @ Ji)
+        var = np.maximum(var, vm)
+    return 1.96 * np.sqrt(np.clip(var, 0, None))
+
+
 class _OutputErrorLaw:
     """Simulation error on y of the model augmented with a linear static law.
 
@@ -130,13 +165,8 @@ class _OutputErrorLaw:
     def resid(self, theta, sel):
         """Scaled output error, flattened; a diverged simulation counts as 1e6."""
         Aa, Ba, _, _ = self.matrices(sel, theta)
-        if not (np.all(np.isfinite(Aa)) and np.all(np.isfinite(Ba))):
-            return np.full(self.y[:, self.k0:].size, 1e6)
-        with np.errstate(all="ignore"):
-            x = lti_states(Aa, Ba @ self.u, self.x0)
-            r = ((self.y - self.C @ x - self.D @ self.u)[:, self.k0:]
-                 / self.scale[:, None]).ravel()
-        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+        return scaled_output_error(Aa, Ba, self.C, self.D, self.y, self.u, self.x0, self.k0,
+                                   self.scale)
 
     def se(self, theta, sel) -> float:
         """Simulation error of eq. (42) [%] on the window."""
@@ -160,21 +190,12 @@ class _OutputErrorLaw:
         data-driven one robust to autocorrelation (:func:`hac_covariance`;
         guards against an understated Q).
         """
-        if sol.jac is None or not np.all(np.isfinite(sol.jac)) or np.max(np.abs(sol.fun)) >= 1e6:
+        if sol.jac is None:
             return np.full(sol.x.size, np.nan)
+        Q, R = self.noise if self.noise is not None else (None, None)
         with single_thread_blas():
-            return self._halfwidths(sol, sel)
-
-    def _halfwidths(self, sol, sel):
-        jac = np.asarray(sol.jac)
-        var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
-        if self.noise is not None:  # the noise model's covariance; keep the larger
-            Q, R = self.noise
-            Ji = np.linalg.pinv(jac.T @ jac)
-            A = self.matrices(sel, sol.x)[0]
-            vm = np.diag(Ji @ noise_covariance(A, self.C, jac, self.scale, self.k0, Q, R) @ Ji)
-            var = np.maximum(var, vm)
-        return 1.96 * np.sqrt(np.clip(var, 0, None))
+            return robust_halfwidths(sol, self.y.shape[0], self.matrices(sel, sol.x)[0],
+                                     self.C, self.scale, self.k0, Q, R)
 
     def law_with(self, sel, theta, labels, units, tscale=None, ci=None, **changes) -> StaticLaw:
         """The law with the terms ``sel`` at ``theta`` (all others zero), 95 % half-widths ``ci``."""
