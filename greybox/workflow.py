@@ -739,6 +739,20 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         best_se = min(s[0] for s in finite)
         near = [s for s in finite if s[0] <= parsimony * best_se]
         se_c, npar, tr, kind = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
+        if kind == "static" and tr.refined_G is not None:
+            # the chosen force's law contradicts its direction (taken from a noisy pair law):
+            # trace it again along the refitted one (law, filter and model then agree)
+            n_before = len(scored)
+            try:
+                rtr = trace_channel(sys, replace(tr.channel, G=tr.refined_G), y, u, Q=Q, R=R,
+                                    dt=dt, nonlinear=nonlinear, max_order=0)
+                if rtr.status == "ok":
+                    _score(rtr)
+            except (GreyboxError, np.linalg.LinAlgError) as e:
+                notes.append(f"{tr.channel.name} along its refitted direction: {e}")
+            better = [s for s in scored[n_before:] if s[3] == "static" and s[0] < se_c]
+            if better:
+                se_c, npar, tr, kind = better[0]
         dl_chosen = sparse.get(id(tr))
         tr = _whole_record(tr, y, u, Q, R)  # the report's trace (plots) has every history
         ch = tr.channel

@@ -36,7 +36,7 @@ from .laws import (
     aligned,
     output_terms,
 )
-from .oe import _refine_static_oe, _select_static_oe, zoh
+from .oe import _refine_static_oe, _select_static_oe, refine_force_direction, zoh
 
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
 # estimation noise and the static law is chosen by output error on y instead.
@@ -77,6 +77,11 @@ class ChannelTrace:
     dynamic_model : UpdatedModel or None
     notes : tuple of str
         Warnings met on the way (e.g. a failed dynamic identification).
+    refined_G : ndarray, shape (nstates, 1), or None
+        A force channel's G along the direction its law refitted by output
+        error (:func:`greybox.trace.oe.refine_force_direction`) when the data
+        contradict the given one (None otherwise); trace the channel again
+        along it to have a law, filter and model consistent with it.
     """
 
     channel: Channel
@@ -91,6 +96,7 @@ class ChannelTrace:
     dynamic: Subsystem | None = field(default=None, repr=False)
     dynamic_model: UpdatedModel | None = field(default=None, repr=False)
     notes: tuple[str, ...] = ()
+    refined_G: NDArray | None = field(default=None, repr=False)
 
 
 def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes, continuous=None):
@@ -179,6 +185,29 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
 def _aligned_rows(v, align, K):
     """``v`` (nrows, K + r - 1) weighted like the first component of d^: shape (nrows, K)."""
     return aligned(v, align[0])[:, :K]
+
+
+def _free_direction(sys, channel, model, cont, law, y, u, x0, k0, Q, R, notes):
+    """A force's G along its direction refitted with its law, or None (:func:`refine_force_direction`).
+
+    The smaller of the two entries of G is freed (``G[b] (1 + r)``); None
+    when the data do not contradict the given direction.
+    """
+    G = np.asarray(channel.G, dtype=float)[:, 0]
+    rows = [list(sys.state_labels).index(e) for e in channel.equations]
+    b = min(rows, key=lambda i: abs(G[i]))
+    dG = np.zeros_like(G)
+    dG[b] = G[b]
+    new, r, hr, se0, se1 = refine_force_direction(law, model, y, u, x0, k0, channel.labels,
+                                                  channel.units, cont, (Q, R), dG)
+    if new is law:
+        return None
+    a = next(i for i in rows if i != b)
+    old, now = G[b] / G[a], G[b] * (1 + r) / G[a]
+    notes.append(f"force direction refitted by output error: {sys.state_labels[b]}/"
+                 f"{sys.state_labels[a]} ratio {old:.4g} -> {now:.4g} "
+                 f"(+-{abs(G[b] / G[a]) * hr:.2g}); estimation SE {se0:.3g}% -> {se1:.3g}%")
+    return (G + r * dG)[:, None]
 
 
 def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, *,
@@ -339,6 +368,12 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         if se_y < se_d:
             notes.append(f"static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
+    if channel.kind == "force" and cont is not None and oe_ok and law.npar \
+            and not law.nonlinear and law.time_base == "continuous":
+        refined_G = _free_direction(sys, channel, model, cont, law, y, u, res.x_filt[:, 0], k0,
+                                    Q, R, notes)
+    else:
+        refined_G = None
     sub0 = _static_subsystem(law, replace(res, d_cov=dnoise), d, x, uu)
     static_model = augment_model(model, sub0, unknown=labels, Q=Q, R=R)
     if law.time_base == "continuous":  # fold the law in continuous time, discretize exactly
@@ -362,4 +397,4 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
             notes.append(f"dynamic fit failed: {e}")
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
                         law_estimate=est, relative_degree=r, static=law, static_model=static_model, dynamic=dyn,
-                        dynamic_model=dyn_model, notes=tuple(notes))
+                        dynamic_model=dyn_model, notes=tuple(notes), refined_G=refined_G)

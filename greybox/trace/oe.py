@@ -146,6 +146,14 @@ class _OutputErrorLaw:
         self.D = np.asarray(model.D, dtype=float)[:, :m]
         self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
         self.cont = cont
+        # with a direction dG (continuous models only), theta carries one more entry r
+        # after the law's coefficients and d enters through Gc + r dG (a force's direction)
+        self.dG = None
+
+    @property
+    def nextra(self) -> int:
+        """Entries of theta after the law's coefficients (1 with a free direction)."""
+        return 0 if self.dG is None else 1
 
     def matrices(self, sel, theta):
         """Discrete (A_aug, B_aug) and the law's (Ddx, Ddu) for the terms ``sel`` at ``theta``.
@@ -159,6 +167,8 @@ class _OutputErrorLaw:
         if self.cont is None:
             return self.A + self.G @ Ddx, self.B + self.G @ Ddu, Ddx, Ddu
         Ac, Bc, Gc, dt = self.cont
+        if self.dG is not None:
+            Gc = Gc + theta[-1] * self.dG
         Ad, Bd = zoh(Ac + Gc @ Ddx, Bc + Gc @ Ddu, dt)
         return Ad, Bd, Ddx, Ddu
 
@@ -223,17 +233,18 @@ def _prune(prob: _OutputErrorLaw, sel, sol):
     """Drop terms whose 95 % interval contains 0 (the weakest, or the weaker half of many); refit."""
     hw = prob.halfwidths(sol, sel)
     while sel:
-        t = np.abs(sol.x) / np.where(np.isfinite(hw) & (hw > 0), hw, np.inf)
+        k = len(sel)  # theta's entries after the k coefficients (a direction) are kept
+        t = np.abs(sol.x[:k]) / np.where(np.isfinite(hw[:k]) & (hw[:k] > 0), hw[:k], np.inf)
         weak = np.flatnonzero(t < 1.0)
         if not weak.size:
             break
         # drop the weakest; with many weak terms (a proxy-laden law) the weaker half at once
         drop = np.argsort(t)[:max(1, weak.size // 2)]
-        keep = [q for q in range(len(sel)) if q not in set(drop.tolist())]
+        keep = [q for q in range(k) if q not in set(drop.tolist())]
         sel = [sel[q] for q in keep]
         if not sel:
             return [], None, np.zeros(0)
-        sol = prob.fit(sel, sol.x[keep])
+        sol = prob.fit(sel, np.r_[sol.x[keep], sol.x[k:]])
         hw = prob.halfwidths(sol, sel)
     return sel, sol, hw
 
@@ -273,6 +284,58 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     theta = sol.x if sol is not None else np.zeros(0)
     se1 = prob.se(theta, sel)
     return (prob.law_with(sel, theta, labels, units, tscale, ci=hw, npar=len(sel)), se0, se1)
+
+
+
+def refine_force_direction(law: StaticLaw, model: ct.StateSpace, y: NDArray, u: NDArray,
+                           x0: NDArray, k0: int, labels, units, cont, noise, dG: NDArray):
+    """Refit a force's linear law with its direction free (PAPER_NOTES §9.6).
+
+    A force channel acts along the direction its pair law suggested (a ratio
+    a few per cent off when d^ is noisy, e.g. positions only); a law held to
+    a wrong direction needs extra terms to make up for it. Here d enters
+    ``dx/dt`` through ``Gc + r dG`` with r refitted by output error together
+    with the law's coefficients; terms whose 95 % interval then contains 0
+    are dropped. Returns ``(law, r, r_halfwidth, se_before, se_after)``;
+    the law is returned unchanged with r = 0 when the refit does not lower
+    the estimation SE or r's 95 % interval contains 0 (the data do not
+    contradict the given direction).
+
+    Parameters
+    ----------
+    law : StaticLaw
+        The force's linear law (md = 1), continuous time.
+    model : control.StateSpace
+        The channel model (discrete; d the last input).
+    y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
+    x0 : ndarray, shape (nstates,)
+    k0 : int
+        Samples skipped before the residual.
+    labels, units : sequence of str
+        Names and units of d.
+    cont : tuple
+        ``(Ac, Bc, Gc, dt)`` of the continuous nominal model and channel.
+    noise : tuple
+        ``(Q, R)`` of the discrete model, for the intervals.
+    dG : ndarray, shape (nstates,)
+        The direction's free part (continuous time).
+    """
+    sel = [(0, j) for j in range(len(law.spec)) if law.coef[0, j] != 0]
+    if not sel or cont is None:
+        return law, 0.0, np.nan, np.nan, np.nan
+    prob = _OutputErrorLaw(law, model, 1, y, u, x0, k0, cont, noise)
+    theta0 = np.array([law.coef[c, j] for c, j in sel])
+    se0 = prob.se(theta0, sel)
+    prob.dG = np.asarray(dG, dtype=float).reshape(-1, 1)
+    sel1, sol, hw = _prune(prob, sel, prob.fit(sel, np.r_[theta0, 0.0], max_nfev=100))
+    if sol is None:
+        return law, 0.0, np.nan, se0, se0
+    r, hr = float(sol.x[-1]), float(hw[-1])
+    se1 = prob.se(sol.x, sel1)
+    if not (se1 < se0 and np.isfinite(hr) and abs(r) > hr):
+        return law, 0.0, hr, se0, se0
+    new = prob.law_with(sel1, sol.x, labels, units, ci=hw, npar=len(sel1))
+    return new, r, hr, se0, se1
 
 
 # Above this many states, forward selection by output error fits only _SCORE_TOP
