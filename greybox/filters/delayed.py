@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
+from .._blas import single_thread_blas
 from .._validation import check_covariance, check_positive
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
 from .feedthrough import _unknown_feedthrough
@@ -345,7 +346,8 @@ def detect_relative_degree(sys: ct.StateSpace, *, unknown: int | str | Sequence[
     _, A, _, C, _, G, labels = _split_any(sys, unknown)
     Q = check_covariance(Q, sys.nstates, "Q", definite=False)
     R = check_covariance(R, sys.noutputs, "R", definite=True)
-    return _choose(A, C, G, Q, R, labels, max_degree, switch_ratio, maxiter)
+    with single_thread_blas():  # small products: a second thread only stalls (100x under load)
+        return _choose(A, C, G, Q, R, labels, max_degree, switch_ratio, maxiter)
 
 
 def _check_no_feedthrough(sys, labels):

@@ -66,8 +66,10 @@ def noise_covariance(A: NDArray, C: NDArray, jac: NDArray, scale: NDArray, k0: i
     T = jac.shape[0] // p
     J = jac.reshape(p, T, k)                      # J[o, t, :]
     Js = J / scale[:, None, None]                 # S^-1 J_t
-    M1 = np.einsum("otk,oq,qtl->kl", J, R / np.outer(scale, scale), J)
-    h = np.einsum("on,otk->tkn", C, Js)           # h_t = C^T S^-1 J_t, as (T, k, n)
+    # sum_t J_t^T S^-1 R S^-1 J_t, as matrix products (a 3-operand einsum loops in C)
+    RJ = ((R / np.outer(scale, scale)) @ J.reshape(p, T * k)).reshape(p, T, k)
+    M1 = J.reshape(p * T, k).T @ RJ.reshape(p * T, k)
+    h = (C.T @ Js.reshape(p, T * k)).reshape(n, T, k).transpose(1, 2, 0)  # h_t = C^T S^-1 J_t
     # backward: lam_s = A^T lam_{s+1} + h_{s+1}; lam over s = 0 .. k0+T-2
     hr = h[::-1]                                  # hr[i] = h at t = end - i
     lams = np.empty((k, n, T + k0))
@@ -77,7 +79,8 @@ def noise_covariance(A: NDArray, C: NDArray, jac: NDArray, scale: NDArray, k0: i
             start = A.T @ back[:, -1] + hr[-1, j, :]
             back = np.hstack([back, lti_states(A.T, np.zeros((n, k0)), start)])
         lams[j] = back
-    M2 = np.einsum("ans,nm,bms->ab", lams, Q, lams)
+    QL = np.matmul(Q, lams)                       # Q lam_s for every s, (k, n, T + k0)
+    M2 = lams.reshape(k, -1) @ QL.reshape(k, -1).T
     return M1 + M2
 
 
