@@ -343,9 +343,14 @@ def state_map(sys) -> StateMap:
         vec = False
     if vec:
         def batch(t, X, u):
-            u = np.asarray(u, dtype=float)
-            U = np.broadcast_to(u[:, None], (m, X.shape[1])) if u.ndim == 1 else u
-            return np.asarray(upd(t, X, U, par), dtype=float).reshape(X.shape)
+            if type(u) is not np.ndarray or u.ndim == 1 or u.dtype != np.float64:
+                u = np.asarray(u, dtype=float)
+                if u.ndim == 1:
+                    u = np.broadcast_to(u[:, None], (m, X.shape[1]))
+            r = upd(t, X, u, par)
+            if type(r) is not np.ndarray or r.shape != X.shape or r.dtype != np.float64:
+                r = np.asarray(r, dtype=float).reshape(X.shape)
+            return r
 
         return StateMap(batch, True, n, m)
     return StateMap(loop, False, n, m)
