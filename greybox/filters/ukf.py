@@ -290,12 +290,18 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     if fast_points:
         E = np.zeros((n, ncol))
         E[:, :npts] = points.offsets(n)
-    # one product gives the predicted mean and the probe differences F(+h) - F(-h)
-    Wm = np.zeros((ncol, 1 + (md if jac else 0)))
-    Wm[:npts, 0] = wm
-    for j in range(md if jac else 0):
-        Wm[npts + 2 * j, 1 + j], Wm[npts + 2 * j + 1, 1 + j] = 1.0, -1.0
-    sqrt_wc = np.sqrt(wc) if np.all(wc >= 0) else None  # P = Z Z' with Z = dX sqrt(wc)
+    # one product FX @ W gives the predicted mean, the probe differences F(+h) - F(-h)
+    # and, when the covariance weights are >= 0, Z = (FX - xp 1') diag(sqrt(wc)) with
+    # P[k|k-1] = Z Z' + Q (the columns of (I - wm 1') sum to zero: a common shift of
+    # the points, such as G d for a linear model, leaves Z unchanged)
+    nj = md if jac else 0
+    sqrt_wc = np.sqrt(wc) if np.all(wc >= 0) else None
+    W = np.zeros((ncol, 1 + nj + (npts if sqrt_wc is not None else 0)))
+    W[:npts, 0] = wm
+    for j in range(nj):
+        W[npts + 2 * j, 1 + j], W[npts + 2 * j + 1, 1 + j] = 1.0, -1.0
+    if sqrt_wc is not None:
+        W[:npts, 1 + nj:] = (np.eye(npts) - wm[:, None]) * sqrt_wc
     c_eye = C.shape == (n, n) and bool(np.array_equal(C, np.eye(n)))  # all states measured
     # inputs of the batch call: known rows once per step, unknown rows at d_lin (+-h probes)
     Ubuf = np.zeros((m if linear else pb.sys.ninputs, ncol))
@@ -357,23 +363,20 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
                                  f"member: {exc}") from exc
             if not isfinite(zeros_check @ FX.reshape(-1)):  # 0 * (nan or inf) is nan
                 raise _nonfinite_error(pb, k, FX, Xall, npts)
-            mean_probe = FX @ Wm
-            xp = mean_probe[:, 0]
+            out = FX @ W
+            xp = out[:, 0]
             if jac:
-                G = mean_probe[:, 1:] / h2  # central differences dF/dd
+                G = out[:, 1:1 + nj] / h2  # central differences dF/dd
                 F = G if c_eye else C @ G
-                FX = FX[:, :npts]
-            elif linear and md:
-                Gd = G @ dlin  # the split linear model takes the known inputs only
-                xp = xp + Gd
-                FX = FX + Gd[:, None]
             if sqrt_wc is not None:
-                Z = (FX - xp[:, None]) * sqrt_wc
+                Z = out[:, 1 + nj:]
                 Pp = Z @ Z.T + Q
             else:
-                dX = FX - xp[:, None]
+                dX = FX[:, :npts] - xp[:, None]
                 Pp = (dX * wc) @ dX.T + Q
                 Pp = 0.5 * (Pp + Pp.T)
+            if linear and md:
+                xp = xp + G @ dlin  # the split linear model takes the known inputs only
             if c_eye:
                 CP, Rt, e = Pp, Pp + R, yT[k] - xp
             else:
