@@ -321,13 +321,13 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     # k = 0: measurement update of the prior
     K, _, _, Rt, Pf = _measurement_gains(pb.P0, C, np.zeros((n, 0)), R)
     e = yT[0] - C @ pb.x0
-    xp_rows[0], e_rows[0] = pb.x0, e
     xf = pb.x0 + K @ e
-    x_filt[0] = xf
+    xp_rows[0], e_rows[0], x_filt[0] = pb.x0, e, xf
     if Phist is not None:
         Phist[:, :, 0] = Pf
     Pp, M, Pd = pb.P0, np.zeros((md, p)), np.zeros((md, md))
     dlin = np.zeros(md)
+    dlf = 0.0  # d_lin when md = 1, as a Python float
     G = pb.G if pb.G is not None else np.zeros((n, md))
     F = G if c_eye else C @ G
     h2 = np.ones(md)
@@ -345,7 +345,14 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
                 Xall = np.concatenate([X] + [xf[:, None]] * (ncol - npts), axis=1)
             if m:
                 Ubuf[krows] = u[:, k - 1:k]
-            if jac:
+            if jac and md == 1:
+                r = urows[0]
+                hj = 1e-4 * max(1.0, abs(dlf))  # central-difference step, units of d
+                Ubuf[r] = dlf
+                Ubuf[r, npts] = dlf + hj
+                Ubuf[r, npts + 1] = dlf - hj
+                h2[0] = 2 * hj
+            elif jac:
                 for j, r in enumerate(urows):
                     dj = float(dlin[j])
                     hj = 1e-4 * max(1.0, abs(dj))  # central-difference step, units of d
@@ -392,18 +399,21 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
             T = B.T @ Sol
             if md == 1:  # the common case in scalars: fewer numpy calls, same algebra
                 pd = 1.0 / float(T[n, n])  # (F' Rt^-1 F)^-1
-                dl = float(dlin[0])
                 dd1 = pd * float(T[n, -1])  # M e
-                dh1 = dl + dd1  # d^[k-1]
+                dh1 = dlf + dd1  # d^[k-1]
                 if not isfinite(dh1):
                     _check_d(np.array([dh1]), k, pb.labels)
                 g = G[:, 0]
                 GKF = g - T[:n, n]  # G - K F
                 xf = xp + GKF * dd1 + T[:n, -1]  # x^[k|k-1] + G dd + K (e - F dd)
-                Pf = Pp - T[:n, :n] + (pd * GKF)[:, None] * GKF  # lower triangle is used
-                d_est[k - 1, 0], d_var[k - 1, 0] = dh1, pd
+                Pf = np.multiply.outer(pd * GKF, GKF)  # (G - K F) Pd (G - K F)'
+                Pf -= T[:n, :n]  # - K C Pp
+                Pf += Pp  # lower triangle used only: not symmetrized in the loop
+                d_est[k - 1, 0] = dh1
+                d_var[k - 1, 0] = pd
                 g_rows[k] = g  # G d_lin is formed after the loop
                 if d_lin == "previous":
+                    dlf = dh1
                     dlin[0] = dh1
             elif md:
                 FRiF = T[n:n + md, n:n + md]
@@ -425,7 +435,9 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
             else:
                 xf = xp + T[:n, -1]
                 Pf = Pp - T[:n, :n]
-            xp_rows[k], e_rows[k], x_filt[k] = xp, e, xf
+            xp_rows[k] = xp
+            e_rows[k] = e
+            x_filt[k] = xf
             if Phist is not None:
                 Phist[:, :, k] = 0.5 * (Pf + Pf.T)
     Pf = 0.5 * (Pf + Pf.T)
