@@ -100,6 +100,8 @@ class MotorPump:
                                         u_op=[s.voltage, -s.load_mean * MOTOR_PUMP_X_OP[2]**2])
         one = _looped(gb.motor_pump_nominal(), "motor_pump_one_point")
         self.sys_loop = discretize_nonlinear(one, s.dt, substeps=int(self.sys.name.split("x")[-1]))
+        self.f_cont = gb.motor_pump_nominal().updfcn  # the continuous f inside F
+        self.f_calls = 4 * int(self.sys.name.split("x")[-1])
         self.x0 = np.array([5.9, 3.3, 0.9])
         sim = simulate_nonlinear(true, np.vstack([self.V[0], hr]), x0=self.x0,
                                  Q=gb.MOTOR_PUMP_Q, R=gb.MOTOR_PUMP_R, rng=rng)
@@ -258,12 +260,28 @@ def run_table(pb, rep):
     reps = 2000
     t1 = min(timeit.repeat(lambda: F(0, x1, u1, par), number=reps, repeat=5)) / reps
     t9 = min(timeit.repeat(lambda: F(0, X9, U9, par), number=reps, repeat=5)) / reps
+    t7 = min(timeit.repeat(lambda: F(0, X9[:, :7], U9[:, :7], par), number=reps,
+                           repeat=5)) / reps
     print(f"# one call of the discrete F: {1e6 * t1:.2f} us on one state, {1e6 * t9:.2f} us "
           f"on 9 points at once ({t9 / t1:.1f}x); filterpy calls it 7 times per sample")
+    f_cont = getattr(pb, "f_cont", None)
+    if f_cont is not None:  # F = RK4 of a continuous f: split F into f and RK4 arithmetic
+        c1 = min(timeit.repeat(lambda: f_cont(0, x1, u1, par), number=reps, repeat=5)) / reps
+        c9 = min(timeit.repeat(lambda: f_cont(0, X9, U9, par), number=reps, repeat=5)) / reps
+        ns = pb.f_calls
+        print(f"# of which f ({ns} calls): {1e6 * ns * c1:.2f} us on one state, "
+              f"{1e6 * ns * c9:.2f} us on 9 points; the rest is the RK4 stage arithmetic")
     if FP in best:
         print(f"# F alone (one batched call per sample) takes {N * t9:.3f} s for N = {N}: a "
               f"filter with no other cost would be at most {best[FP] / (N * t9):.1f}x "
               f"filterpy; filterpy spends {7 * N * t1:.3f} s of its {best[FP]:.3f} s in F")
+        for name, tF, npt in (("greybox ukf", t7, 7), ("greybox ui_ukf", t9, 9)):
+            if name in best:
+                print(f"# {name}: {1e6 * best[name] / N:.1f} us per sample = F on {npt} "
+                      f"points {1e6 * tF:.1f} us + the filter's own work "
+                      f"{1e6 * (best[name] / N - tF):.1f} us; filterpy: "
+                      f"{1e6 * best[FP] / N:.1f} us = F {1e6 * 7 * t1:.1f} us + "
+                      f"{1e6 * (best[FP] / N - 7 * t1):.1f} us")
     return best
 
 

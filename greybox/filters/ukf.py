@@ -311,7 +311,7 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     # rows per sample, transposed at the end; x_pred = xp - G d_lin and the innovations
     # e + C G d_lin are formed after the loop from the rows xp, e and G d_lin
     x_filt, xp_rows, e_rows = np.empty((N, n)), np.empty((N, n)), np.empty((N, p))
-    gd_rows = np.zeros((N, n))
+    gd_rows = np.zeros((N, n)) if md else None
     g_rows = np.zeros((N, n)) if md == 1 else None
     d_est, d_var = np.full((N, md), np.nan), np.full((N, md), np.nan)
     Phist = np.empty((n, n, N)) if store_covariances else None
@@ -443,8 +443,11 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     Pf = 0.5 * (Pf + Pf.T)
     if md == 1 and d_lin == "previous":  # d_lin at step k >= 2 was d^[k-2]
         gd_rows[2:] = g_rows[2:] * d_est[:N - 2]
-    x_pred = xp_rows - gd_rows  # f(x, u) without d, as uikf's x_pred
-    innov = e_rows + gd_rows @ C.T
+    if md:
+        x_pred = xp_rows - gd_rows  # f(x, u) without d, as uikf's x_pred
+        innov = e_rows + gd_rows @ C.T
+    else:
+        x_pred, innov = xp_rows, e_rows
     if Sol is not None:  # the gains of the last step, for the record
         K = Sol[:, :n].T
         if md == 1:
