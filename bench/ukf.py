@@ -55,7 +55,6 @@ import argparse
 import gc
 import platform
 import time
-import timeit
 import tracemalloc
 
 import control as ct
@@ -226,6 +225,24 @@ def run_table(pb, rep):
             methods.append((name, fn))
         except ImportError:
             continue
+    # F alone, timed in the same round-robin as the filters (a separate timing would see
+    # another load): the discrete map on one state (filterpy calls it 7 times per sample)
+    # and on the 7 / 9 points ukf / ui_ukf propagate at once; for an RK4 model also the
+    # continuous f alone (24 calls per F)
+    F, par = pb.sys.updfcn, pb.sys.params
+    x1 = pb.x0.copy()
+    u1 = np.array([pb.V[0, 0], 0.0])
+    X9, U9 = np.repeat(x1[:, None], 9, axis=1), np.repeat(u1[:, None], 9, axis=1)
+    X7, U7 = X9[:, :7].copy(), U9[:, :7].copy()
+    nF = min(N, 500)  # calls per timing; scaled to per call
+    parts = {"F 1": lambda: [F(0, x1, u1, par) for _ in range(nF)],
+             "F 7": lambda: [F(0, X7, U7, par) for _ in range(nF)],
+             "F 9": lambda: [F(0, X9, U9, par) for _ in range(nF)]}
+    f_cont = getattr(pb, "f_cont", None)
+    if f_cont is not None:
+        parts["f 1"] = lambda: [f_cont(0, x1, u1, par) for _ in range(nF)]
+        parts["f 9"] = lambda: [f_cont(0, X9, U9, par) for _ in range(nF)]
+    tp = {}
     for _ in range(rep):
         for name, fn in methods:
             gc.collect()
@@ -233,6 +250,10 @@ def run_table(pb, rep):
             fn(pb)
             dtm = time.perf_counter() - t0
             best[name] = min(best.get(name, np.inf), dtm)
+        for key, fn in parts.items():
+            t0 = time.perf_counter()
+            fn()
+            tp[key] = min(tp.get(key, np.inf), (time.perf_counter() - t0) / nF)
     for name, fn in methods:
         gc.collect()
         tracemalloc.start()
@@ -251,37 +272,27 @@ def run_table(pb, rep):
         print(f"{name:<32}{best[name]:>10.3f}{N / best[name]:>12.0f}{ratio:>12.1f}x"
               f"{peak[name]:>11.2f}{dx:>27.2e}"
               f"{(f'{derr:.3f}' if derr is not None else '-'):>14}")
-    # F alone: the discrete map on one state (filterpy: 7 calls per sample) and on the
-    # 9 points ui_ukf propagates at once (7 sigma points + 2 G probes)
-    F, par = pb.sys.updfcn, pb.sys.params
-    x1 = pb.x0.copy()
-    u1 = np.array([pb.V[0, 0], 0.0])
-    X9, U9 = np.repeat(x1[:, None], 9, axis=1), np.repeat(u1[:, None], 9, axis=1)
-    reps = 2000
-    t1 = min(timeit.repeat(lambda: F(0, x1, u1, par), number=reps, repeat=5)) / reps
-    t9 = min(timeit.repeat(lambda: F(0, X9, U9, par), number=reps, repeat=5)) / reps
-    t7 = min(timeit.repeat(lambda: F(0, X9[:, :7], U9[:, :7], par), number=reps,
-                           repeat=5)) / reps
-    print(f"# one call of the discrete F: {1e6 * t1:.2f} us on one state, {1e6 * t9:.2f} us "
-          f"on 9 points at once ({t9 / t1:.1f}x); filterpy calls it 7 times per sample")
-    f_cont = getattr(pb, "f_cont", None)
-    if f_cont is not None:  # F = RK4 of a continuous f: split F into f and RK4 arithmetic
-        c1 = min(timeit.repeat(lambda: f_cont(0, x1, u1, par), number=reps, repeat=5)) / reps
-        c9 = min(timeit.repeat(lambda: f_cont(0, X9, U9, par), number=reps, repeat=5)) / reps
+    print(f"# one call of the discrete F: {1e6 * tp['F 1']:.2f} us on one state, "
+          f"{1e6 * tp['F 7']:.2f} us on 7 points, {1e6 * tp['F 9']:.2f} us on 9 points at "
+          f"once; filterpy calls it 7 times per sample")
+    if f_cont is not None:
         ns = pb.f_calls
-        print(f"# of which f ({ns} calls): {1e6 * ns * c1:.2f} us on one state, "
-              f"{1e6 * ns * c9:.2f} us on 9 points; the rest is the RK4 stage arithmetic")
+        print(f"# of which f ({ns} calls): {1e6 * ns * tp['f 1']:.2f} us on one state, "
+              f"{1e6 * ns * tp['f 9']:.2f} us on 9 points; the rest is the RK4 stage "
+              f"arithmetic")
     if FP in best:
-        print(f"# F alone (one batched call per sample) takes {N * t9:.3f} s for N = {N}: a "
-              f"filter with no other cost would be at most {best[FP] / (N * t9):.1f}x "
-              f"filterpy; filterpy spends {7 * N * t1:.3f} s of its {best[FP]:.3f} s in F")
-        for name, tF, npt in (("greybox ukf", t7, 7), ("greybox ui_ukf", t9, 9)):
+        tf = 7 * tp["F 1"]
+        print(f"# F alone (one batched call of 7 points per sample) takes "
+              f"{N * tp['F 7']:.3f} s for N = {N}: a filter with no other cost would be at "
+              f"most {best[FP] / (N * tp['F 7']):.1f}x filterpy; filterpy spends "
+              f"{N * tf:.3f} s of its {best[FP]:.3f} s in F")
+        for name, tF, npt in (("greybox ukf", tp["F 7"], 7), ("greybox ui_ukf", tp["F 9"], 9)):
             if name in best:
                 print(f"# {name}: {1e6 * best[name] / N:.1f} us per sample = F on {npt} "
                       f"points {1e6 * tF:.1f} us + the filter's own work "
                       f"{1e6 * (best[name] / N - tF):.1f} us; filterpy: "
-                      f"{1e6 * best[FP] / N:.1f} us = F {1e6 * 7 * t1:.1f} us + "
-                      f"{1e6 * (best[FP] / N - 7 * t1):.1f} us")
+                      f"{1e6 * best[FP] / N:.1f} us = F {1e6 * tf:.1f} us + "
+                      f"{1e6 * (best[FP] / N - tf):.1f} us")
     return best
 
 
