@@ -28,10 +28,17 @@ continuous input vector times dt) keeps the part of the discrete model error
 that the sub-steps spread over other states inside range(G)
 (PAPER_NOTES §8.9).
 
-Loss of positive definiteness: every covariance is symmetrized after each
-step and factored by :func:`greybox.filters.sigma_points.robust_cholesky`
-(jitter from eps times the mean variance upward; a truly indefinite P
-raises :class:`CovarianceError`).
+Loss of positive definiteness: P[k|k] is factored by LAPACK's Cholesky
+(``dpotrf``, which reads its lower triangle only, so the loop does not
+symmetrize it); if that fails, by
+:func:`greybox.filters.sigma_points.robust_cholesky` (symmetrize, then jitter
+from eps times the mean variance upward; a truly indefinite P raises
+:class:`CovarianceError`). The recorded covariances are symmetrized.
+
+Speed (issue 10, item 6; ``bench/ukf.py``): inputs are validated once on
+entry; each sample then costs one batch call of F on the sigma points and
+the G probes, one Cholesky, one positive-definite solve and a few small
+products (see ``_run_ukf``).
 
 The record is the same :class:`FilterResult` as :func:`uikf`'s, with the
 same alignment (``d_est[:, j]`` estimates d[j]; the last column is NaN). Its
