@@ -278,8 +278,10 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     Per sample: one LAPACK Cholesky of P[k-1|k-1] (jitter path only on
     failure), the sigma points and ui_ukf's two G probes per unknown input as
     one array ``x + S E`` (E = the strategy's offsets plus zero columns), one
-    call of F on all of them with a preassembled input array, and one LAPACK
-    positive-definite solve ``Rt^-1 [C P, C G]`` for the gains (the algebra of
+    call of F on all of them with a preassembled input array, one product
+    ``FX W`` for the mean, G and the covariance square root, and one LAPACK
+    positive-definite solve ``Rt^-1 [C P, C G, e]`` whose product ``T`` with
+    ``[C P, C G, e]'`` holds every term of (8)-(10) (the algebra of
     :func:`greybox.filters.uikf._measurement_gains`). Inputs were validated
     once on entry; inside the loop only finiteness is checked (F's output and
     d^).
