@@ -40,3 +40,21 @@ def test_big_file_figures_are_the_measured_ones():
         for number in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?![\w.])", row.split("|", 2)[2]):
             assert re.search(rf"(?<![\w.]){re.escape(number)}(?![\w.])", raw), \
                 f"README quotes {number} ({row.strip()}) but bench/RESULTS_workflow.md has not"
+
+
+RESULTS_UKF = README.parent / "bench" / "RESULTS_ukf.md"
+
+
+def test_ukf_benchmark_figures_are_the_measured_ones():
+    """The README's unscented-filter table quotes bench/RESULTS_ukf.md (the raw output)."""
+    text = README.read_text()
+    m = re.search(r"<!-- ukf-bench -->(.*?)<!-- /ukf-bench -->", text, flags=re.S)
+    assert m, "README.md lost its marked table of bench/ukf.py"
+    rows = [ln for ln in m.group(1).splitlines() if ln.startswith("|") and "---" not in ln][1:]
+    assert len(rows) >= 8, "the table needs the rows of both models"
+    raw = RESULTS_UKF.read_text()
+    for row in rows:  # cells after "model | method"
+        for number in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?:e-\d+)?(?![\d.e])",
+                                 row.split("|", 3)[3]):  # "3.7x" counts as 3.7
+            assert re.search(rf"(?<![\w.]){re.escape(number)}(?![\d.e])", raw), \
+                f"README quotes {number} ({row.strip()}) but bench/RESULTS_ukf.md has not"

@@ -28,10 +28,17 @@ continuous input vector times dt) keeps the part of the discrete model error
 that the sub-steps spread over other states inside range(G)
 (PAPER_NOTES §8.9).
 
-Loss of positive definiteness: every covariance is symmetrized after each
-step and factored by :func:`greybox.filters.sigma_points.robust_cholesky`
-(jitter from eps times the mean variance upward; a truly indefinite P
-raises :class:`CovarianceError`).
+Loss of positive definiteness: P[k|k] is factored by LAPACK's Cholesky
+(``dpotrf``, which reads its lower triangle only, so the loop does not
+symmetrize it); if that fails, by
+:func:`greybox.filters.sigma_points.robust_cholesky` (symmetrize, then jitter
+from eps times the mean variance upward; a truly indefinite P raises
+:class:`CovarianceError`). The recorded covariances are symmetrized.
+
+Speed (issue 10, item 6; ``bench/ukf.py``): inputs are validated once on
+entry; each sample then costs one batch call of F on the sigma points and
+the G probes, one Cholesky, one positive-definite solve and a few small
+products (see ``_run_ukf``).
 
 The record is the same :class:`FilterResult` as :func:`uikf`'s, with the
 same alignment (``d_est[:, j]`` estimates d[j]; the last column is NaN). Its
@@ -44,11 +51,14 @@ be a ``StateSpace``; ``converged`` is False and ``period_converged`` None
 from __future__ import annotations
 
 from collections.abc import Sequence
+from math import isfinite
 from dataclasses import dataclass
 
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.linalg.lapack import dposv as _dposv
+from scipy.linalg.lapack import dpotrf as _dpotrf
 
 from .._validation import (
     check_covariance,
@@ -61,7 +71,7 @@ from .._validation import (
 from ..exceptions import DataError, DimensionError, ModelError
 from ..nonlinear import linear_output_map, state_map
 from ..system import named_ss
-from .sigma_points import MerweScaledSigmaPoints
+from .sigma_points import MerweScaledSigmaPoints, robust_cholesky
 from .uikf import FilterResult, _check_options, _measurement_gains, _split, check_rank_condition
 
 __all__ = ["ukf", "ui_ukf"]
@@ -241,69 +251,224 @@ def _linearized_record_sys(pb: _Problem, xf: NDArray) -> ct.StateSpace:
                     outputs=list(s.output_labels), name=f"{s.name}_linearized")
 
 
+def _nonfinite_error(pb: _Problem, k: int, FX: NDArray, Xall: NDArray, npts: int):
+    """The ModelError for a state update that returned NaN or inf (names state and step)."""
+    t = (k - 1) * pb.dt
+    bad = np.argwhere(~np.isfinite(FX))[0]
+    state = list(pb.sys.state_labels)[bad[0]]
+    which = f"point {bad[1]}" if bad[1] < npts else "the G Jacobian probe"
+    return ModelError(
+        f"the state update of {pb.sys.name} returned NaN or inf for state {state!r} at "
+        f"step {k} (time {t:g} s, {which} of {npts}); the model is not defined there. "
+        f"Check f near x = {np.array2string(Xall[:, bad[1]], precision=4)} or reduce the "
+        f"sigma-point spread (alpha) / P0")
+
+
+def _as_index(idx: tuple):
+    """A slice for contiguous indices (cheap row assignment), else the index list."""
+    if idx and list(idx) == list(range(idx[0], idx[-1] + 1)):
+        return slice(idx[0], idx[-1] + 1)
+    return list(idx)
+
+
 def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
              d_lin: str = "previous") -> FilterResult:
+    """The filter loop, written for small n: one batch call of F per sample.
+
+    Per sample: one LAPACK Cholesky of P[k-1|k-1] (jitter path only on
+    failure), the sigma points and ui_ukf's two G probes per unknown input as
+    one array ``x + S E`` (E = the strategy's offsets plus zero columns), one
+    call of F on all of them with a preassembled input array, one product
+    ``FX W`` for the mean, G and the covariance square root, and one LAPACK
+    positive-definite solve ``Rt^-1 [C P, C G, e]`` whose product ``T`` with
+    ``[C P, C G, e]'`` holds every term of (8)-(10) (the algebra of
+    :func:`greybox.filters.uikf._measurement_gains`). Inputs were validated
+    once on entry; inside the loop only finiteness is checked (F's output and
+    d^).
+    """
     n, N = pb.x0.size, pb.y.shape[1]
-    C, D, Q, R = pb.C, pb.D, pb.Q, pb.R
+    C, D, R = pb.C, pb.D, pb.R
+    Q = 0.5 * (pb.Q + pb.Q.T)
     p, m, md = C.shape[0], pb.u.shape[0], len(pb.unknown)
     wm, wc = points.weights(n)
-    x_filt, x_pred = np.empty((n, N)), np.empty((n, N))
-    innov = np.empty((p, N))
-    d_est, d_var = np.full((md, N), np.nan), np.full((md, N), np.nan)
+    npts = wm.size
+    linear = isinstance(pb.sys, ct.StateSpace)
+    jac = md > 0 and pb.G is None
+    ncol = npts + (2 * md if jac else 0)
+    fast_points = isinstance(points, MerweScaledSigmaPoints)
+    if fast_points:
+        E = np.zeros((n, ncol))
+        E[:, :npts] = points.offsets(n)
+    # one product FX @ W gives the predicted mean, the probe differences F(+h) - F(-h)
+    # and, when the covariance weights are >= 0, Z = (FX - xp 1') diag(sqrt(wc)) with
+    # P[k|k-1] = Z Z' + Q (the columns of (I - wm 1') sum to zero: a common shift of
+    # the points, such as G d for a linear model, leaves Z unchanged)
+    nj = md if jac else 0
+    sqrt_wc = np.sqrt(wc) if np.all(wc >= 0) else None
+    W = np.zeros((ncol, 1 + nj + (npts if sqrt_wc is not None else 0)))
+    W[:npts, 0] = wm
+    for j in range(nj):
+        W[npts + 2 * j, 1 + j], W[npts + 2 * j + 1, 1 + j] = 1.0, -1.0
+    if sqrt_wc is not None:
+        W[:npts, 1 + nj:] = (np.eye(npts) - wm[:, None]) * sqrt_wc
+    c_eye = C.shape == (n, n) and bool(np.array_equal(C, np.eye(n)))  # all states measured
+    # inputs of the batch call: known rows once per step, unknown rows at d_lin (+-h probes)
+    Ubuf = np.zeros((m if linear else pb.sys.ninputs, ncol))
+    krows = _as_index(tuple(range(m)) if linear else pb.known)
+    urows = [] if linear else list(pb.unknown)
+    zeros_check = np.zeros(n * ncol)
+    # rows per sample, transposed at the end; x_pred = xp - G d_lin and the innovations
+    # e + C G d_lin are formed after the loop from the rows xp, e and G d_lin
+    x_filt, xp_rows, e_rows = np.empty((N, n)), np.empty((N, n)), np.empty((N, p))
+    gd_rows = np.zeros((N, n)) if md else None
+    g_rows = np.zeros((N, n)) if md == 1 else None
+    d_est, d_var = np.full((N, md), np.nan), np.full((N, md), np.nan)
     Phist = np.empty((n, n, N)) if store_covariances else None
     has_D = m > 0 and bool(np.any(D))
     y, u = pb.y, pb.u
+    yT = np.ascontiguousarray(((y - D @ u) if has_D else y).T)  # y - D u, a row per sample
     # k = 0: measurement update of the prior
     K, _, _, Rt, Pf = _measurement_gains(pb.P0, C, np.zeros((n, 0)), R)
-    yk = y[:, 0] - D @ u[:, 0] if has_D else y[:, 0]
-    e = yk - C @ pb.x0
-    x_pred[:, 0], innov[:, 0] = pb.x0, e
+    e = yT[0] - C @ pb.x0
     xf = pb.x0 + K @ e
-    x_filt[:, 0] = xf
+    xp_rows[0], e_rows[0], x_filt[0] = pb.x0, e, xf
     if Phist is not None:
         Phist[:, :, 0] = Pf
     Pp, M, Pd = pb.P0, np.zeros((md, p)), np.zeros((md, md))
     dlin = np.zeros(md)
-    jac = md > 0 and pb.G is None
+    dlf = 0.0  # d_lin when md = 1, as a Python float
     G = pb.G if pb.G is not None else np.zeros((n, md))
-    for k in range(1, N):
-        X = points.points(xf, Pf)
-        FX, Gk = _propagate(pb, k, X, u[:, k - 1], dlin, xf, jac)
-        if Gk is not None:
-            G = Gk
-        xp = FX @ wm
-        dX = FX - xp[:, None]
-        Pp = (dX * wc) @ dX.T + Q
-        Pp = 0.5 * (Pp + Pp.T)
-        if md:
-            K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R)
-        else:
-            K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, np.zeros((n, 0)), R)
-        yk = y[:, k] - D @ u[:, k] if has_D else y[:, k]
-        e = yk - C @ xp
-        if md:
-            with np.errstate(over="ignore", invalid="ignore"):
-                dd = M @ e
+    F = G if c_eye else C @ G
+    h2 = np.ones(md)
+    Sol = None
+    fun, dt = pb.fun, pb.dt
+    with np.errstate(all="ignore"):  # non-finite values are checked and reported below
+        for k in range(1, N):
+            if fast_points:
+                S, info = _dpotrf(Pf, lower=1, clean=1)  # reads the lower triangle
+                if info:
+                    S = robust_cholesky(Pf)  # symmetrize + jitter, or CovarianceError
+                Xall = xf[:, None] + S @ E
+            else:
+                X = points.points(xf, Pf)
+                Xall = np.concatenate([X] + [xf[:, None]] * (ncol - npts), axis=1)
+            if m:
+                Ubuf[krows] = u[:, k - 1:k]
+            if jac and md == 1:
+                r = urows[0]
+                hj = 1e-4 * max(1.0, abs(dlf))  # central-difference step, units of d
+                Ubuf[r] = dlf
+                Ubuf[r, npts] = dlf + hj
+                Ubuf[r, npts + 1] = dlf - hj
+                h2[0] = 2 * hj
+            elif jac:
+                for j, r in enumerate(urows):
+                    dj = float(dlin[j])
+                    hj = 1e-4 * max(1.0, abs(dj))  # central-difference step, units of d
+                    Ubuf[r] = dj
+                    Ubuf[r, npts + 2 * j] = dj + hj
+                    Ubuf[r, npts + 2 * j + 1] = dj - hj
+                    h2[j] = 2 * hj
+            elif urows and d_lin == "previous":
+                Ubuf[urows] = dlin[:, None]
+            try:
+                FX = fun((k - 1) * dt, Xall, Ubuf)
+            except Exception as exc:  # a user function: report where it failed, chain it
+                raise ModelError(f"the state update of {pb.sys.name} failed at step {k} "
+                                 f"(time {(k - 1) * dt:g} s) on a sigma point or ensemble "
+                                 f"member: {exc}") from exc
+            if not isfinite(zeros_check @ FX.reshape(-1)):  # 0 * (nan or inf) is nan
+                raise _nonfinite_error(pb, k, FX, Xall, npts)
+            out = FX @ W
+            xp = out[:, 0]
+            if jac:
+                G = out[:, 1:1 + nj] / h2  # central differences dF/dd
+                F = G if c_eye else C @ G
+            if sqrt_wc is not None:
+                Z = out[:, 1 + nj:]
+                Pp = Z @ Z.T + Q
+            else:
+                dX = FX[:, :npts] - xp[:, None]
+                Pp = (dX * wc) @ dX.T + Q
+                Pp = 0.5 * (Pp + Pp.T)
+            if linear and md:
+                xp = xp + G @ dlin  # the split linear model takes the known inputs only
+            if c_eye:
+                CP, Rt, e = Pp, Pp + R, yT[k] - xp
+            else:
+                CP = C @ Pp
+                Rt = CP @ C.T + R
+                e = yT[k] - C @ xp
+            # one solve Rt^-1 [C Pp, C G, e] and one product give every term of (8)-(10):
+            # T = [C Pp, F, e]' Rt^-1 [C Pp, F, e] holds K C Pp, K F, K e, F' Rt^-1 F, ...
+            B = np.concatenate((CP, F, e[:, None]), axis=1)
+            _, Sol, info = _dposv(Rt, B, lower=1)
+            if info:  # Rt not positive definite in floating point: LU as uikf does
+                Sol = np.linalg.solve(Rt, B)
+            T = B.T @ Sol
+            if md == 1:  # the common case in scalars: fewer numpy calls, same algebra
+                pd = 1.0 / float(T[n, n])  # (F' Rt^-1 F)^-1
+                dd1 = pd * float(T[n, -1])  # M e
+                dh1 = dlf + dd1  # d^[k-1]
+                if not isfinite(dh1):
+                    _check_d(np.array([dh1]), k, pb.labels)
+                g = G[:, 0]
+                GKF = g - T[:n, n]  # G - K F
+                xf = xp + GKF * dd1 + T[:n, -1]  # x^[k|k-1] + G dd + K (e - F dd)
+                Pf = np.multiply.outer(pd * GKF, GKF)  # (G - K F) Pd (G - K F)'
+                Pf -= T[:n, :n]  # - K C Pp
+                Pf += Pp  # lower triangle used only: not symmetrized in the loop
+                d_est[k - 1, 0] = dh1
+                d_var[k - 1, 0] = pd
+                g_rows[k] = g  # G d_lin is formed after the loop
+                if d_lin == "previous":
+                    dlf = dh1
+                    dlin[0] = dh1
+            elif md:
+                FRiF = T[n:n + md, n:n + md]
+                Pd = np.linalg.inv(FRiF)
+                Pd = 0.5 * (Pd + Pd.T)
+                dd = Pd @ T[n:n + md, -1]  # M e
                 dh = dlin + dd
-            _check_d(dh, k, pb.labels)
-            d_est[:, k - 1] = dh
-            d_var[:, k - 1] = Pd.diagonal()
-            xs = xp + G @ dd
-            xf = xs + K @ (yk - C @ xs)
-            x0pred = xp - G @ dlin  # f(x, u) without d, as uikf's x_pred
-            if d_lin == "previous":
-                dlin = dh
-        else:
-            xf = xp + K @ e
-            x0pred = xp
-        x_pred[:, k] = x0pred
-        innov[:, k] = yk - C @ x0pred
-        x_filt[:, k] = xf
-        if Phist is not None:
-            Phist[:, :, k] = Pf
+                if not isfinite(dh @ dh):
+                    _check_d(dh, k, pb.labels)
+                GKF = G - T[:n, n:n + md]  # G - K F
+                xf = xp + GKF @ dd + T[:n, -1]  # x^[k|k-1] + G dd + K (e - F dd)
+                # not symmetrized: the next Cholesky reads the lower triangle only
+                Pf = Pp - T[:n, :n] + GKF @ Pd @ GKF.T
+                d_est[k - 1] = dh
+                d_var[k - 1] = Pd.diagonal()
+                gd_rows[k] = G @ dlin
+                if d_lin == "previous":
+                    dlin = dh
+            else:
+                xf = xp + T[:n, -1]
+                Pf = Pp - T[:n, :n]
+            xp_rows[k] = xp
+            e_rows[k] = e
+            x_filt[k] = xf
+            if Phist is not None:
+                Phist[:, :, k] = 0.5 * (Pf + Pf.T)
+    Pf = 0.5 * (Pf + Pf.T)
+    if md == 1 and d_lin == "previous":  # d_lin at step k >= 2 was d^[k-2]
+        gd_rows[2:] = g_rows[2:] * d_est[:N - 2]
+    if md:
+        x_pred = xp_rows - gd_rows  # f(x, u) without d, as uikf's x_pred
+        innov = e_rows + gd_rows @ C.T
+    else:
+        x_pred, innov = xp_rows, e_rows
+    if Sol is not None:  # the gains of the last step, for the record
+        K = Sol[:, :n].T
+        if md == 1:
+            Pd = np.array([[pd]])
+        if md:
+            M = Pd @ Sol[:, n:n + md].T
+    Rt = 0.5 * (Rt + Rt.T)
     return FilterResult(
-        t=np.arange(N) * pb.dt, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var,
-        d_cov=Pd, level=level, innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=Pp,
+        t=np.arange(N) * pb.dt, x_filt=np.ascontiguousarray(x_filt.T),
+        x_pred=np.ascontiguousarray(x_pred.T), d_est=np.ascontiguousarray(d_est.T),
+        d_var=np.ascontiguousarray(d_var.T), d_cov=Pd, level=level,
+        innovations=np.ascontiguousarray(innov.T), innovation_cov=Rt, P_filt=Pf, P_pred=Pp,
         P_filt_history=Phist, K=K, M=M, converged=False, period_converged=None,
         sys=_linearized_record_sys(pb, xf), G=G, unknown_labels=tuple(pb.labels), u=u, y=y)
 
