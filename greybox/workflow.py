@@ -805,6 +805,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                               f"({ch.name}, {kind}) failed the gate: {', '.join(failed)}; "
                               f"model unchanged", True, cands, notes, None, tr, None)
 
+        if kind == "static" and not effect.nonlinear:
+            model = _noise_by_likelihood(model, Q, y, u, skip, notes)
+
         # 4. before/after on validation data
         tick("validation", 0, 2 if delta else 1)
         table = {"nominal": val_nom}
@@ -870,6 +873,38 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
     from .workflow_nonlinear import nonlinear_update_of_linear  # a nonlinear law: its nlsys
     return nonlinear_update_of_linear(rep)
+
+
+def _noise_by_likelihood(model: UpdatedModel, Q, y, u, skip, notes) -> UpdatedModel:
+    """A static law's updated model with the likelier process noise: eq. (30)'s Q or the pass's.
+
+    Eq. (30) adds the law's residual variance G R_nu G^T to Q. With a law
+    that is right, that residual is mostly d^'s own estimation error, not
+    process noise, and the inflated Q makes the one-step innovations
+    coloured (the next pass of the several-effects loop then traces a
+    model that is already right). The Kalman filters of the updated model
+    under both noise models are compared by the Gaussian log-likelihood of
+    their (steady) innovations on the same estimation samples; the likelier
+    Q is kept and the choice noted.
+    """
+    Qa = np.asarray(model.Q, dtype=float)
+    Qp = np.asarray(Q, dtype=float)
+    if Qa.shape != Qp.shape or np.allclose(Qa, Qp):
+        return model
+    kfs = [kalman_filter(model.sys, y, u, Q=Qx, R=model.R) for Qx in (Qa, Qp)]
+    k0 = max(max(skip, kf.period_converged or skip) for kf in kfs)
+    ll = []
+    for kf in kfs:
+        S = np.atleast_2d(kf.innovation_cov)
+        e = kf.innovations[:, k0:]
+        ll.append(-0.5 * (e.shape[1] * np.linalg.slogdet(S)[1] +
+                          float(np.sum(e * np.linalg.solve(S, e)))))
+    if not ll[1] > ll[0]:
+        return model
+    notes.append(f"noise model: the law's residual variance (eq. 30) is left out of Q: the "
+                 f"innovations are likelier without it (log-likelihood {ll[0]:.6g} -> "
+                 f"{ll[1]:.6g}); that residual is d^'s estimation error, not process noise")
+    return replace(model, Q=Qp)
 
 
 def _static_is_enough(scored, y, u, Q, R, k0, lags, alpha) -> bool:
