@@ -301,3 +301,35 @@ def test_gate_over_seeds():
         rep = _run_seeded("spring", seed)
         assert rep.updated and rep.effect.equations == ("v2",) and rep.effect.kind == "static"
         assert rep.table["nominal"].se.value / rep.table["updated"].se.value >= 3.0
+
+
+@pytest.mark.parametrize("case", ["law right", "Q understated"])
+def test_static_update_keeps_the_likelier_process_noise(case):
+    """Eq. (30)'s Q + G R_nu G^T against the pass's Q, by the innovations' likelihood.
+
+    The model is the true one (nominal + the missing spring). "law right": the data have
+    the stated process noise, and the inflation (1e-6 on the velocity rows, 100x the true
+    1e-8) only blurs the filter: the stated Q must win. "Q understated": the data carry
+    100x more process noise on the velocities than the pass's Q says, and the inflated Q
+    is the right one: it must be kept.
+    """
+    from greybox.update import UpdatedModel
+    from greybox.workflow import _noise_by_likelihood
+    from plantlib import chain, draw
+
+    true = chain(2, k=20.0)
+    A, B = np.asarray(true.A), np.asarray(true.B)
+    q = np.array([0.0, 1e-4, 0.0, 1e-4]) * (10.0 if case == "Q understated" else 1.0)
+    d = draw(true, lambda x, u: A @ x + B @ u, n_true=4, dt=0.01,
+             rng=np.random.default_rng(5), q_std=q, r_std=1e-3)
+    Qp = np.diag(np.array([0.0, 1e-4, 0.0, 1e-4]) ** 2) + 1e-12 * np.eye(4)
+    Qa = Qp + np.diag([0.0, 1e-6, 0.0, 1e-6])
+    model = UpdatedModel(sys=gb.discretize(true, d.dt), Q=Qa, R=d.R, order=4, kind="static")
+    notes = []
+    out = _noise_by_likelihood(model, Qp, d.y, d.u, 20, notes)
+    if case == "law right":
+        np.testing.assert_array_equal(out.Q, Qp)
+        assert notes and "likelier without it" in notes[0]
+    else:
+        np.testing.assert_array_equal(out.Q, Qa)
+        assert not notes
