@@ -451,7 +451,10 @@ class DeltaModel:
     criterion : dict of (str, int) to float
         BIC of every candidate ``(variant, N4SID order)`` (variant "plain" or
         "marginal"; order 0: held integrators only) and of the initial model
-        ``("initial", 0)``; NaN for rejected (unstable) candidates.
+        ``("initial", 0)``; NaN for rejected (unstable) candidates. The pole
+        refinement of step 5 adds ``(variant + "+oe tail", k)`` (its held-out
+        gain) and ``(variant + "+oe", k)`` (its BIC; NaN when the refinement
+        failed or drove a pole to the unit circle).
     message : str
         One line for reports, e.g. "parallel model: no improvement found".
     """
@@ -853,9 +856,13 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
             ref = refine_output_error(fA, fB, fC, u[:, rsl], data[:, rsl],
                                       max_iter=refine_iter)
         except IdentificationError:
+            crit[(key[0] + "+oe", k)] = float("nan")
             continue
         if _spectral_radius(ref.A) > 1.0 - 1e-6:
-            continue  # driven to the parametrization's bound: not a real pole
+            # driven to the parametrization's bound: not a real pole (with process
+            # noise in the data a simulation-error fit follows its random walk)
+            crit[(key[0] + "+oe", k)] = float("nan")
+            continue
         new_poles = _upper_poles(ref.A)
         t_new, _ = score(new_poles, hold, head, tail)
         t_old, _ = score(_upper_poles(fA), hold, head, tail)
