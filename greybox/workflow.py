@@ -829,7 +829,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 dm = _delta_baseline(nominal, y, u, Q, R, delta_max_order, x0n)
                 notes.append(dm.message)
                 table["delta"] = validate_model(dm.updated.sys, y_val, u_val, Q=dm.updated.Q,
-                                                R=dm.updated.R, x0="estimate", name="delta",
+                                                R=dm.updated.R, name="delta",
+                                                x0=dm.initial_state(y_val, u_val),
                                                 lags=lags, alpha=alpha, skip=skip)
             except (GreyboxError, np.linalg.LinAlgError) as e:
                 notes.append(f"parallel delta baseline failed: {e}")
