@@ -480,6 +480,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     update gated, by the one-step prediction error PE on the estimation data
     and by the innovations' whiteness, and the before/after message compares
     PE ("SE n/a").
+
+    Long records: the search (channel traces, law and dynamic fits, the
+    candidates' estimation SE, the gate, the delta baseline) runs on the first
+    ``SEARCH_WINDOW`` (1e5) samples of the estimation record; the residual
+    test, the reported trace's filter record and the validation table use the
+    whole record. The laws' output-error refinement uses at most 1e4 samples
+    in any case, so a law and its intervals barely move; the BIC gains and
+    estimation SEs in ``gate`` and ``candidates`` are the window's.
     """
     if isinstance(sys, ct.NonlinearIOSystem) and not isinstance(sys, ct.StateSpace):
         from .workflow_nonlinear import close_the_loop_nonlinear  # issue 10: section IV
