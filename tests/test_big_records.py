@@ -217,3 +217,25 @@ def test_sensor_law_simulation_in_one_pass_equals_the_sample_loop():
     r2 = tr2.filter_result
     np.testing.assert_array_equal(_simulate_law(r2.sys, r2.G, tr2.static, u, x0),
                                   simulate_with_law(r2.sys, r2.G, tr2.static, u, x0))
+
+
+def test_delta_baseline_runs_on_the_search_window(monkeypatch):
+    import greybox.workflow as wf
+
+    seen = {}
+    real = wf.delta_update
+
+    def spy(sys, y, u, **kw):
+        seen["shapes"] = (y.shape, u.shape)
+        seen["x0"] = kw["x0"]
+        return real(sys, y, u, **kw)
+
+    monkeypatch.setattr(wf, "delta_update", spy)
+    monkeypatch.setattr(wf, "SEARCH_WINDOW", 2500)
+    y, u, yv, uv, Q, R = _records(3000)
+    rep = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, max_effects=1)
+    assert seen["shapes"] == ((2, 2500), (1, 2500))
+    # the initial state of its simulation is the whole record's (a prefix starts alike)
+    x0 = gb.estimate_initial_state(gb.discretize(_osc(), DT), y, u)
+    np.testing.assert_array_equal(seen["x0"], x0)
+    assert "delta" in rep.table and rep.table["delta"].y_sim.shape == (2, 2000)
