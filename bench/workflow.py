@@ -6,6 +6,10 @@ CSV of a 2-state model and the CSV readers side by side (issue 13).
 ``python bench/workflow.py stages [nsteps]``: the same run in a fresh process, one row
 per progress record (time per stage and the peak RSS so far).
 
+``--whole-record`` (after ``csv`` or ``stages``): the same run with the search on the
+whole estimation record (``greybox.workflow.SEARCH_WINDOW`` raised above its length, as
+before issue 13's search window), to compare results and cost.
+
 ``python bench/workflow.py chains [nsteps] [n ...]``: chains of n/2 masses with
 the coupling spring between the two middle masses missing from the model, all
 states measured and positions only (issue 8): time, peak memory (RSS of a
@@ -183,8 +187,11 @@ def bench_readers(path, repeat=3):
 # It also reports its CPU time (user + system, all threads): on the shared 2-core machine
 # the wall time swings 3x with the other sessions' load, the CPU time much less.
 _CLI_CHILD = """
-import resource, sys
+import os, resource, sys
+import greybox.workflow
 from greybox.cli import main
+if os.environ.get("BENCH_WHOLE_RECORD"):
+    greybox.workflow.SEARCH_WINDOW = 10**12
 try:
     rc = main(sys.argv[1:])
 finally:
@@ -197,13 +204,15 @@ sys.exit(rc)
 """
 
 
-def bench_cli(folder):
+def bench_cli(folder, whole=False):
     """The whole ``greybox update`` in a child process: wall time, peak RSS [MB], result."""
     import json
     import os
     import subprocess
 
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    if whole:
+        env["BENCH_WHOLE_RECORD"] = "1"
     t = time.perf_counter()
     p = subprocess.run([sys.executable, "-c", _CLI_CHILD, "update", f"{folder}/model.json",
                         f"{folder}/est.csv", "--validate", f"{folder}/val.csv", "--out",
@@ -218,19 +227,28 @@ def bench_cli(folder):
     return el, rss, json.loads(p.stdout), (cpu[-1] if cpu else float("nan"))
 
 
-def _stage_profile(folder):
+def _stage_profile(folder, whole=False):
     """In this (fresh) process: close_the_loop on the CSV case, one row per progress record.
 
-    Prints the stage, wall time since the start, the time since the previous record and
-    the process's peak RSS so far (ru_maxrss: the high-water mark, it never drops).
+    Prints the stage, wall time since the start, the time since the previous record, the
+    process's CPU time (user + system) in that step, its RSS at the record and its peak
+    RSS so far (ru_maxrss: the high-water mark, it never drops).
     """
     import os
     import resource
 
+    import greybox.workflow
     from greybox.model_io import read_csv, read_model
+
+    if whole:
+        greybox.workflow.SEARCH_WINDOW = 10**12
 
     def peak():
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    def rss():
+        with open("/proc/self/status") as f:
+            return float(next(ln.split()[1] for ln in f if ln.startswith("VmRSS"))) / 1024
 
     t0 = time.perf_counter()
     spec = read_model(f"{folder}/model.json")
@@ -238,24 +256,28 @@ def _stage_profile(folder):
     y, u = read_csv(f"{folder}/est.csv", inputs=ins, outputs=outs, Ts=spec.Ts)
     yv, uv = read_csv(f"{folder}/val.csv", inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
     print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} (2 cores shared)")
-    print(f"| stage (progress record) | at [s] | step [s] | peak RSS so far [MB] |")
-    print("|---|---|---|---|")
+    print("| stage (progress record) | at [s] | step [s] | step CPU [s] | RSS [MB] | "
+          "peak RSS so far [MB] |")
+    print("|---|---|---|---|---|---|")
     print(f"| imports + read_model + read_csv (est, val) | {time.perf_counter() - t0:.2f} | "
-          f"{time.perf_counter() - t0:.2f} | {peak():.0f} |")
-    last = [time.perf_counter()]
+          f"{time.perf_counter() - t0:.2f} | {time.process_time():.2f} | {rss():.0f} | "
+          f"{peak():.0f} |")
+    last = [time.perf_counter(), time.process_time()]
 
     def cb(p):
-        now = time.perf_counter()
-        print(f"| {p.stage} {p.k}/{p.K} | {now - t0:.2f} | {now - last[0]:.2f} | {peak():.0f} |",
-              flush=True)
-        last[0] = now
+        now, cpu = time.perf_counter(), time.process_time()
+        print(f"| {p.stage} {p.k}/{p.K} | {now - t0:.2f} | {now - last[0]:.2f} | "
+              f"{cpu - last[1]:.2f} | {rss():.0f} | {peak():.0f} |", flush=True)
+        last[:] = [now, cpu]
 
     close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
                    channels=spec.channels, progress=cb)
-    print(f"total {time.perf_counter() - t0:.2f} s, peak RSS {peak():.0f} MB")
+    print(f"total {time.perf_counter() - t0:.2f} s wall, {time.process_time():.2f} s CPU, "
+          f"peak RSS {peak():.0f} MB; load average "
+          f"{' '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
 
-def main_stages(N=1_000_000):
+def main_stages(N=1_000_000, whole=False):
     """``python bench/workflow.py stages [nsteps]``: where the 1e6-sample run spends."""
     import os
     import subprocess
@@ -263,10 +285,11 @@ def main_stages(N=1_000_000):
 
     with tempfile.TemporaryDirectory(dir=os.environ.get("TMPDIR")) as tmp:
         folder = write_csv_case(tmp, N)
-        subprocess.run([sys.executable, __file__, "_stages", str(folder)], check=True)
+        subprocess.run([sys.executable, __file__, "_stages", str(folder)] +
+                       (["--whole-record"] if whole else []), check=True)
 
 
-def main_csv(N=1_000_000):
+def main_csv(N=1_000_000, whole=False):
     import os
     import tempfile
 
@@ -274,7 +297,7 @@ def main_csv(N=1_000_000):
         folder = write_csv_case(tmp, N)
         size = os.path.getsize(f"{folder}/est.csv") / 2**20
         load0 = os.getloadavg()
-        el, rss, s, cpu = bench_cli(folder)  # first: the readers below grow this process
+        el, rss, s, cpu = bench_cli(folder, whole)  # first: the readers below grow this process
         load1 = os.getloadavg()
         rows, nvalues, nbytes = bench_readers(f"{folder}/est.csv")
     print(f"load average {' '.join(f'{v:.2f}' for v in os.getloadavg())} (2 cores shared)")
@@ -284,12 +307,15 @@ def main_csv(N=1_000_000):
     t0 = rows[0][1]
     for name, t, rate, peak in rows:
         print(f"{name:<28}{t:>9.3f}{rate:>12.3g}{peak:>14.2f}{t / t0:>11.2f}x")
-    print(f"\nwhole `greybox update --no-plots` at N = {N} (2-state model, spring missing): "
+    print(f"\nwhole `greybox update --no-plots` at N = {N} (2-state model, spring missing"
+          f"{'; search on the whole record' if whole else ''}): "
           f"{el:.2f} s wall, {cpu:.2f} s CPU, peak RSS {rss:.0f} MB (goal <= 10 s, <= 500 MB); "
           f"load average {load0[0]:.2f} before, {load1[0]:.2f} after")
     t = s["table"]
     print(f"  found {s['channel']} {s['effect']['kind']}: {s['effect']['formula']}; "
-          f"validation SE {t['nominal']['se']:.3g}% -> {t['updated']['se']:.3g}%")
+          f"validation SE {t['nominal']['se']:.3g}% -> {t['updated']['se']:.3g}%"
+          + (f" (delta baseline {t['delta']['se']:.3g}%)"
+             if t.get("delta", {}).get("se") is not None else ""))
 
 
 def _chain_case(n_masses, measured, N, seed=1):
@@ -348,6 +374,8 @@ def main_chains(N=100_000, sizes=(8, 16, 32, 64)):
 
 
 if __name__ == "__main__":
+    _whole = "--whole-record" in sys.argv
+    sys.argv = [a for a in sys.argv if a != "--whole-record"]
     if sys.argv[1:2] == ["_chain"]:
         _chain_case(int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))
     elif sys.argv[1:2] == ["chains"]:
@@ -355,10 +383,10 @@ if __name__ == "__main__":
         main_chains(*([int(args[0])] if args else [100_000]),
                     *([tuple(args[1:])] if args[1:] else []))
     elif sys.argv[1:2] == ["_stages"]:
-        _stage_profile(sys.argv[2])
+        _stage_profile(sys.argv[2], _whole)
     elif sys.argv[1:2] == ["stages"]:
-        main_stages(*(int(a) for a in sys.argv[2:3]))
+        main_stages(*(int(a) for a in sys.argv[2:3]), whole=_whole)
     elif sys.argv[1:2] == ["csv"]:
-        main_csv(*(int(a) for a in sys.argv[2:3]))
+        main_csv(*(int(a) for a in sys.argv[2:3]), whole=_whole)
     else:
         main(tuple(int(a) for a in sys.argv[1:]) or (10_000, 100_000))

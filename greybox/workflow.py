@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ._blas import single_thread_blas
+from ._lti import lti_states
 from ._validation import (
     check_covariance,
     check_positive,
@@ -90,8 +91,19 @@ SCREEN_REL = 0.25
 SPARSE_IF = 0.8
 # The parallel delta baseline refines its N4SID model by output error on at most this
 # many residuals (outputs x samples, like the trace's oe_window); its N4SID candidates
-# and the held-out choice still use the whole estimation record.
+# and the held-out choice use the search window below.
 DELTA_REFINE_RESIDUALS = 200_000
+# The search runs on the first SEARCH_WINDOW samples of the estimation record: the
+# equation screen, every candidate channel's trace and law fits, the sparse and
+# higher-order dynamic fits, the estimation SEs that rank the candidates and gate the
+# update (a nonlinear law is simulated sample by sample), the gate's BIC gain, and the
+# parallel delta baseline. The residual (whiteness) test, the chosen channel's reported
+# filter record and the validation table use the whole record. The static laws are
+# refined by output error on their first ``trace.oe.oe_window`` samples (<= 1e4) anyway;
+# beyond 1e5 samples the choice among channels and kinds no longer moves (issue 13: at
+# 1e6 samples of a 2-state model the same channel, law and validation SE as on the whole
+# record; bench/RESULTS_workflow.md).
+SEARCH_WINDOW = 100_000
 
 CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
              "among candidates within {pct:.0f}% of the lowest, the fewest parameters")
@@ -468,6 +480,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     update gated, by the one-step prediction error PE on the estimation data
     and by the innovations' whiteness, and the before/after message compares
     PE ("SE n/a").
+
+    Long records: the search (channel traces, law and dynamic fits, the
+    candidates' estimation SE, the gate, the delta baseline) runs on the first
+    ``SEARCH_WINDOW`` (1e5) samples of the estimation record; the residual
+    test, the reported trace's filter record and the validation table use the
+    whole record. The laws' output-error refinement uses at most 1e4 samples
+    in any case, so a law and its intervals barely move; the BIC gains and
+    estimation SEs in ``gate`` and ``candidates`` are the window's.
     """
     if isinstance(sys, ct.NonlinearIOSystem) and not isinstance(sys, ct.StateSpace):
         from .workflow_nonlinear import close_the_loop_nonlinear  # issue 10: section IV
@@ -519,9 +539,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     if not 0 < alpha < 1 or not 0 < min_se_drop <= 1 or not bic_factor > 0:
         raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
                         f"{alpha}, {min_se_drop}, {bic_factor}")
+    ys, us = _search_record(y, u)  # the search's window of the estimation record (views)
+
     def _screened_channels(sys, nominal, Q, chans, notes):
         """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs."""
-        scr = screen_equations(sys, y, u, Q=Q, R=R, dt=dt, skip=20)
+        scr = screen_equations(sys, ys, us, Q=Q, R=R, dt=dt, skip=20)
         if not scr.available:
             notes.append(f"equation screen unavailable ({scr.reason}): every single "
                          f"equation is traced (cost grows with n)")
@@ -561,12 +583,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         skip = 20
 
         def _fit_error(sys_, Q_, R_, ysim=None, ypred=None):
-            """SE (or PE, for an unstable nominal) of a model on the estimation data [%]."""
+            """SE (or PE, for an unstable nominal) of a model on the search window [%]."""
             if not unstable:
-                return _se(y, ysim() if ysim is not None else
-                           simulate_output(sys_, u, estimate_initial_state(sys_, y, u)), skip)
-            yp = ypred() if ypred is not None else kalman_filter(sys_, y, u, Q=Q_, R=R_).y_pred
-            return _se(y, yp, skip)
+                return _se(ys, ysim() if ysim is not None else
+                           simulate_output(sys_, us, estimate_initial_state(sys_, ys, us)), skip)
+            yp = ypred() if ypred is not None else kalman_filter(sys_, ys, us, Q=Q_, R=R_).y_pred
+            return _se(ys, yp, skip)
 
         # 1. residual of the nominal model
         tick("residual of the nominal model", 0, 1)
@@ -574,8 +596,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         k0 = max(skip, kf.period_converged or skip)
         white = whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha)
         x0n = estimate_initial_state(nominal, y, u)
-        se_nom = _se(y, kf.y_pred, skip) if unstable else \
-            _se(y, simulate_output(nominal, u, x0n), skip)
+        se_nom = _se(ys, kf.y_pred[:, :ys.shape[1]], skip) if unstable else \
+            _se(ys, simulate_output(nominal, us, x0n), skip)  # on the search window
         kf = None  # its histories (~60 MB at 1e6 samples) would stay alive through the pass
         nominal_model = UpdatedModel(sys=nominal, Q=Q, R=R, order=n, kind="nominal")
         val_nom = validate_model(nominal, y_val, u_val, Q=Q, R=R, x0="estimate", name="nominal",
@@ -618,12 +640,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 sm = tr.static_model
                 if tr.static.nonlinear:
                     res = tr.filter_result
-                    x0 = estimate_initial_state(sm.sys, y, u)
-                    K = kalman_filter(sm.sys, y, u, Q=sm.Q, R=sm.R).K if unstable else None
+                    x0 = estimate_initial_state(sm.sys, ys, us)
+                    K = kalman_filter(sm.sys, ys, us, Q=sm.Q, R=sm.R).K if unstable else None
                     se = _fit_error(sm.sys, sm.Q, sm.R,
-                                    ysim=lambda: simulate_with_law(res.sys, res.G, tr.static, u, x0),
-                                    ypred=lambda: predict_with_law(res.sys, res.G, tr.static, y, u,
-                                                                   K, x0))
+                                    ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us, x0),
+                                    ypred=lambda: predict_with_law(res.sys, res.G, tr.static, ys,
+                                                                   us, K, x0))
                 else:
                     se = _fit_error(sm.sys, sm.Q, sm.R)
                 cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
@@ -646,7 +668,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         for kc, ch in enumerate(chans):
             tick("trace candidate channels", kc, len(chans))
             try:
-                tr = trace_channel(sys, ch, y, u, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
+                tr = trace_channel(sys, ch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
                                    max_order=first_max)
             except (GreyboxError, np.linalg.LinAlgError) as e:
                 cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
@@ -672,7 +694,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             if _along_an_input(sys, fch):
                 continue  # the input's own channel says the same, and names the input
             try:
-                ftr = trace_channel(sys, fch, y, u, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
+                ftr = trace_channel(sys, fch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
                                     max_order=0)
             except (GreyboxError, np.linalg.LinAlgError) as e:
                 notes.append(f"{fch.name}: {e}")
@@ -689,7 +711,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 if ch.md > 1:
                     continue  # md = 2 already gives 2 states at order 1
                 try:
-                    tr = trace_channel(sys, ch, y, u, Q=Q, R=R, dt=dt, nonlinear=False,
+                    tr = trace_channel(sys, ch, ys, us, Q=Q, R=R, dt=dt, nonlinear=False,
                                        max_order=max_order, min_order=2)
                 except (GreyboxError, np.linalg.LinAlgError) as e:
                     notes.append(f"{ch.name}: dynamic order >= 2 failed: {e}")
@@ -754,11 +776,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             if better:
                 se_c, npar, tr, kind = better[0]
         dl_chosen = sparse.get(id(tr))
-        tr = _whole_record(tr, y, u, Q, R)  # the report's trace (plots) has every history
-        ch = tr.channel
+        res = tr.filter_result  # the gate's d^ and x^: the search window's, as the law's
+        ch = tr.channel  # (the report's trace gets its whole record at the end: _with_record)
 
         # 3. gate on the law's BIC gain and the SE drop
-        res = tr.filter_result
         Nf = res.d_est.shape[1] - 1
         k0f = max(20, res.period_converged or 20)
         d = res.d_est[:, k0f:Nf]
@@ -871,6 +892,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         return jr, row
 
     rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
+    rep = _with_record(rep, y, u, Q, R)
     tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
     from .workflow_nonlinear import nonlinear_update_of_linear  # a nonlinear law: its nlsys
     return nonlinear_update_of_linear(rep)
@@ -957,14 +979,56 @@ def _whole_record(tr: ChannelTrace, y, u, Q, R) -> ChannelTrace:
                                           Q=Q, R=R))
 
 
-def _delta_baseline(nominal, y, u, Q, R, max_order, x0):
-    """The parallel delta baseline, its output-error refinement on a window, one BLAS thread.
+def _simulate_law(model: ct.StateSpace, G, law: StaticLaw, u, x0):
+    """:func:`greybox.trace.simulate_with_law`, in one LTI pass when the law leaves x alone.
 
-    The refinement's dense Jacobian has ``noutputs x samples`` rows: on at most
-    ``DELTA_REFINE_RESIDUALS`` of them its cost no longer grows with the record (at
-    1e6 samples: 36 s and 2.4 GB on the whole estimation part).
+    A sensor law (``law.output``, G = 0, no hold) adds to one output and leaves the
+    state recursion linear: its states are then :func:`greybox._lti.lti_states`
+    (modal, vectorized) instead of a Python loop over the samples (~18 us each:
+    1.8 s per candidate on 1e5 samples). Otherwise simulate_with_law itself.
+    """
+    if law.output is None or law.hold is not None or np.any(np.asarray(G, dtype=float)):
+        return simulate_with_law(model, G, law, u, x0)
+    A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
+    x = lti_states(A, B @ u, np.asarray(x0, dtype=float))
+    with np.errstate(over="ignore", invalid="ignore"):  # diverged: _se gives inf
+        y = C @ x + D @ u
+        y[law.output] += law.evaluate(x, u)[0]
+    return y
+
+
+def _with_record(rep: LoopReport, y, u, Q, R) -> LoopReport:
+    """The report with its trace's whole filter record (:func:`_whole_record`).
+
+    Built once, at the end: the report's trace is the first pass's (under the
+    user's Q), and its histories (~130 MB at 1e6 samples of a 2-state model)
+    need not live through the delta baseline and the later passes.
+    """
+    if rep.trace is None:
+        return rep
+    return replace(rep, trace=_whole_record(rep.trace, y, u, Q, R))
+
+
+def _search_record(y, u):
+    """The first ``SEARCH_WINDOW`` samples of the estimation record (views, no copy).
+
+    A prefix: a causal filter's record on it is the prefix of its record on the
+    whole, and the initial state is the same.
+    """
+    return y[:, :SEARCH_WINDOW], u[:, :SEARCH_WINDOW]
+
+
+def _delta_baseline(nominal, y, u, Q, R, max_order, x0):
+    """The parallel delta baseline on the search window, refined on a window, one BLAS thread.
+
+    Its N4SID candidates, residue fits and order choice cost O(samples) each: on
+    the first ``SEARCH_WINDOW`` samples (at 1e6 samples of a 2-state model 12 s on
+    the whole record, 2 s on 1e5 samples; validation SE 0.159 % vs 0.166 %). The
+    refinement's dense Jacobian has ``noutputs x samples`` rows: on at most
+    ``DELTA_REFINE_RESIDUALS`` of them (36 s and 2.4 GB on the whole estimation part).
     """
     win = max(2000, DELTA_REFINE_RESIDUALS // max(y.shape[0], 1))
+    y, u = _search_record(y, u)  # x0: the record's first state, the same for its prefix
     with single_thread_blas():  # thin and small products: a second thread only stalls
         return delta_update(nominal, y, u, Q=Q, R=R, max_order=max_order, x0=x0,
                             refine_window=win)

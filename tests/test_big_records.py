@@ -8,6 +8,12 @@
   (``workflow._whole_record``): the report's record equals the filter's.
 * ``delta_update(refine_window=...)``: a window that covers the estimation
   part changes nothing; a bad one is refused.
+* ``close_the_loop`` searches on the first ``SEARCH_WINDOW`` samples of the
+  estimation record (``workflow._search_record``): on a record twice the
+  window the same channel and law as on the whole record, and the report's
+  trace still has the whole record (``workflow._with_record``).
+* ``workflow._simulate_law``: a sensor law's simulation in one LTI pass equals
+  ``simulate_with_law``'s sample loop.
 """
 
 from __future__ import annotations
@@ -161,3 +167,75 @@ def test_light_output_channel_is_rebuilt_with_its_own_filter():
         a = getattr(tr.filter_result, f.name)
         if isinstance(a, np.ndarray):
             np.testing.assert_array_equal(getattr(whole, f.name), a, err_msg=f.name)
+
+
+def test_search_window_gives_the_same_channel_and_law(monkeypatch):
+    """A record twice the search window: the same channel, law and validation SE.
+
+    The window is set to 3000 samples here (1e5 in the library); the gate's BIC
+    penalty says which d^ it was computed on (npar log Nd, Nd = samples used).
+    """
+    import greybox.workflow as wf
+
+    y, u, yv, uv, Q, R = _records(6000, seed=2)
+    whole = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, delta=False, max_effects=1)
+    monkeypatch.setattr(wf, "SEARCH_WINDOW", 3000)
+    win = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, delta=False, max_effects=1)
+    for rep in (whole, win):
+        assert rep.updated and rep.channel.name == "eq(v)" and rep.effect.kind == "static"
+        assert rep.effect.law.npar == 1  # one spring term
+    # Nd = N - 1 - k0 samples of d^ (k0: the filter's transient, the same on a prefix)
+    nd = [np.exp(r.gate["bic_penalty"] / r.effect.law.npar) for r in (whole, win)]
+    assert round(nd[0] - nd[1]) == 3000, nd
+    # the law is refined by output error on the first oe_window samples in both: the same
+    # terms and, within a part in 1e4 (the least-squares starts differ), the same values
+    np.testing.assert_array_equal(win.effect.law.coef != 0, whole.effect.law.coef != 0)
+    np.testing.assert_allclose(win.effect.law.coef, whole.effect.law.coef, rtol=1e-4)
+    assert win.message == whole.message
+    # the report's trace is the whole record's (built at the end)
+    assert win.trace.filter_result.t.shape == (6000,)
+    assert win.trace.filter_result.innovations.shape == (2, 6000)
+
+
+def test_sensor_law_simulation_in_one_pass_equals_the_sample_loop():
+    from greybox.trace import simulate_with_law
+    from greybox.trace.channels import output_channel
+    from greybox.workflow import _simulate_law
+
+    y, u, _, _, Q, R = _records(3000)
+    sys = gb.discretize(_osc(), DT)
+    tr = trace_channel(sys, output_channel(sys, 0), y, u, Q=Q, R=R)
+    res, law = tr.filter_result, tr.static
+    assert law.output == 0 and not np.any(res.G)  # the fast path applies
+    x0 = res.x_filt[:, 0]
+    ref = simulate_with_law(res.sys, res.G, law, u, x0)
+    # a modal recursion vs the sample loop: round-off only
+    np.testing.assert_allclose(_simulate_law(res.sys, res.G, law, u, x0), ref, rtol=1e-10,
+                               atol=1e-12 * np.abs(ref).max())
+    # a law in a state equation feeds back: the sample loop itself
+    tr2 = trace_channel(sys, resolve_channel_spec(sys, None)[1], y, u, Q=Q, R=R, max_order=0)
+    r2 = tr2.filter_result
+    np.testing.assert_array_equal(_simulate_law(r2.sys, r2.G, tr2.static, u, x0),
+                                  simulate_with_law(r2.sys, r2.G, tr2.static, u, x0))
+
+
+def test_delta_baseline_runs_on_the_search_window(monkeypatch):
+    import greybox.workflow as wf
+
+    seen = {}
+    real = wf.delta_update
+
+    def spy(sys, y, u, **kw):
+        seen["shapes"] = (y.shape, u.shape)
+        seen["x0"] = kw["x0"]
+        return real(sys, y, u, **kw)
+
+    monkeypatch.setattr(wf, "delta_update", spy)
+    monkeypatch.setattr(wf, "SEARCH_WINDOW", 2500)
+    y, u, yv, uv, Q, R = _records(3000)
+    rep = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, max_effects=1)
+    assert seen["shapes"] == ((2, 2500), (1, 2500))
+    # the initial state of its simulation is the whole record's (a prefix starts alike)
+    x0 = gb.estimate_initial_state(gb.discretize(_osc(), DT), y, u)
+    np.testing.assert_array_equal(seen["x0"], x0)
+    assert "delta" in rep.table and rep.table["delta"].y_sim.shape == (2, 2000)
