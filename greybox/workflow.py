@@ -766,7 +766,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             # trace it again along the refitted one (law, filter and model then agree)
             n_before = len(scored)
             try:
-                rtr = trace_channel(sys, replace(tr.channel, G=tr.refined_G), y, u, Q=Q, R=R,
+                rtr = trace_channel(sys, replace(tr.channel, G=tr.refined_G), ys, us, Q=Q, R=R,
                                     dt=dt, nonlinear=nonlinear, max_order=0)
                 if rtr.status == "ok":
                     _score(rtr)
@@ -827,7 +827,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                               f"model unchanged", True, cands, notes, None, tr, None)
 
         if kind == "static" and not effect.nonlinear:
-            model = _noise_by_likelihood(model, Q, y, u, skip, notes)
+            model = _noise_by_likelihood(model, Q, ys, us, skip, notes)
 
         # 4. before/after on validation data
         tick("validation", 0, 2 if delta else 1)
