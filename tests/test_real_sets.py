@@ -35,18 +35,6 @@ needs_data = pytest.mark.skipif(not HAVE_DATA, reason=f"measured data {DATA}/{{{
 
 
 # --------------------------------------------------------------------- the bilinear term
-def test_law_terms_offer_the_bilinear_state_input_products():
-    x = np.array([[1.0, 2.0, 3.0], [0.5, -1.0, 2.0]])
-    u = np.array([[2.0, -1.0, 0.5]])
-    terms, spec, _ = law_terms(x, u, ["T", "w"], ["q"])
-    names = [s[0] for s in spec]
-    assert names[-1] == "1" and names[-3:-1] == ["T*q", "w*q"]
-    np.testing.assert_array_equal(terms[names.index("T*q")], x[0] * u[0])  # exact products
-    np.testing.assert_array_equal(terms[names.index("w*q")], x[1] * u[0])
-    _, spec_lin, _ = law_terms(x, u, ["T", "w"], ["q"], nonlinear=False)
-    assert all(s[1] != "x*u" for s in spec_lin)  # only with the nonlinear terms
-
-
 def test_trace_finds_a_flow_dependent_time_constant_as_the_product_term():
     """dT/dt = -a T + b q - c q T: the nominal lag lacks -c q T; the law names T*q."""
     a, b, c, dt = 0.2, -3.0, 0.5, 1.0
