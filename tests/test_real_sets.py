@@ -184,3 +184,12 @@ def test_cli_on_the_written_files_reaches_the_same_verdict(summary, name):
     for f in (model, f"{name}_estimation.csv", f"{name}_test.csv",
               f"{name}_report/summary.json", f"{name}_report/updated_model.json"):
         assert (summary["_out"] / f).is_file(), f
+
+
+@needs_data
+@pytest.mark.slow
+def test_tutorial_saves_a_figure_per_set(summary):
+    for name in ("fig9_exchanger.png", "fig10_drives_low.png", "fig10_drives_high.png",
+                 "fig11_tanks.png"):
+        path = summary["_out"] / name
+        assert path.is_file() and path.stat().st_size > 1000, name

@@ -20,7 +20,10 @@ the benchmark's official estimation/test split. For each set:
    (every row's simulation starts from the filter's state there);
 5. ``greybox update`` on MODEL.json / MODEL.py and CSV files written here,
    so that the command line runs on real files (its verdict must equal the
-   one call's).
+   one call's); the exchanger's files hold the deviations from the
+   estimation means (q - q0, T - T0, the flow advanced as below);
+6. a figure per set: the measured test output beside each model's
+   simulation (fig9_exchanger.png, fig10_drives_*.png, fig11_tanks.png).
 
 Set-by-set choices (the README of each data folder is the source):
 
@@ -119,6 +122,30 @@ def show(rep, y_val, units):
     return table
 
 
+def figure(rep, y_val, dt, units, title, name):
+    """Measured test output beside every row of the report's table; saved under OUT."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 3.2))
+    t = np.arange(y_val.shape[1]) * dt
+    ax.plot(t, y_val[0], "k", lw=1.2, label="measured (test)")
+    for row, v in rep.table.items():
+        if row == "updated" and not rep.updated:
+            continue
+        ax.plot(t[SKIP:], v.y_sim[0, SKIP:], lw=0.9, label=f"{row} (SE {v.se.value:.3g} %)")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(units)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(OUT / name, dpi=100)
+    plt.close(fig)
+    print("   saved", OUT / name)
+
+
 def write_csv(path, names, signals):
     """A measurement CSV: a header naming the signals, one row per sample."""
     np.savetxt(path, np.asarray(signals).T, delimiter=",", header=",".join(names), comments="",
@@ -195,6 +222,8 @@ rep = gb.close_the_loop(hx, dT[None, est], dq[None, est], dT[None, val], dq[None
                         Q=Q_hx, R=R_hx, dt=dt)
 print(f"close_the_loop ({time.time() - t0:.1f} s):")
 table = show(rep, dT[None, val], "degC")
+figure(rep, dT[None, val], dt, "T - T0 [degC]", "heat exchanger, test [2800:4000]",
+       "fig9_exchanger.png")
 ch = [c for c in resolve_channel_spec(hx, None) if c.name == "eq(T)"][0]
 tr = trace_channel(hx, ch, dT[None, est], dq[None, est], Q=Q_hx, R=R_hx, dt=dt, max_order=0)
 law_terms_hx = terms_of(tr.static)
@@ -251,6 +280,9 @@ for rec, (u, z) in {"low (u11)": (d[:, 0], d[:, 2]), "high (u12)": (d[:, 1], d[:
                             Q=Q_ced, R=R_ced)
     print(f"close_the_loop ({time.time() - t0:.1f} s):")
     table = show(rep, z[None, val], "(sensor units)")
+    figure(rep, z[None, val], dt, "pulley speed z (sensor units)",
+           f"coupled electric drives, record {rec}, test [400:500]",
+           f"fig10_drives_{rec.split()[0]}.png")
     out = {"message": rep.message, "updated": rep.updated, "detected": rep.model_error_detected,
            "channel": rep.channel.name if rep.channel is not None else None,
            "kind": rep.channel.kind if rep.channel is not None else None,
@@ -348,6 +380,8 @@ t0 = time.time()
 rep = gb.close_the_loop(tanks, yE[None], uE[None], yV[None], uV[None], Q=Q_t, R=R_t, dt=dt)
 print(f"close_the_loop ({time.time() - t0:.1f} s):")
 table = show(rep, yV[None], "V")
+figure(rep, yV[None], dt, "lower tank level y [V]", "cascaded tanks, test (uVal, yVal)",
+       "fig11_tanks.png")
 write_csv(paths[1], ["u", "y"], [uE, yE])
 write_csv(paths[2], ["u", "y"], [uV, yV])
 SUMMARY["tanks"] = {"message": rep.message, "updated": rep.updated,
