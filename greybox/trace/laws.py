@@ -419,7 +419,8 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
     Bu = B @ u
     for k in range(N):
         x[:, k] = xk
-        xk = _step(A, xk, Bu[:, k], G, law, u[:, k:k + 1])
+        with np.errstate(over="ignore", invalid="ignore"):  # a diverging law: inf, caught below
+            xk = _step(A, xk, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xk)) or np.max(np.abs(xk)) > 1e100:
             x[:, k + 1:] = np.nan
             break
@@ -442,7 +443,8 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
         if law.output is not None:
             yp[law.output, k] += law.evaluate(xp[:, None], u[:, k:k + 1])[0, 0]
         xf = xp + K @ (y[:, k] - yp[:, k])
-        xp = _step(A, xf, Bu[:, k], G, law, u[:, k:k + 1])
+        with np.errstate(over="ignore", invalid="ignore"):  # a diverging law: inf, caught below
+            xp = _step(A, xf, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xp)) or np.max(np.abs(xp)) > 1e100:
             yp[:, k + 1:] = np.nan
             break
