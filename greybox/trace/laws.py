@@ -28,13 +28,16 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
 
     Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
     list of ``(display name, kind, index)`` with kind in
-    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs", "const"},
+    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs", "x*u", "const"},
     and the eps of each ``tanh(v/eps)`` (5 % of v's RMS unless given; one per
     state, then one per relative coordinate). ``relative`` lists state pairs
     (i, j): the relative coordinate ``x_j - x_i`` (a force between two
     bodies depends on it, PAPER_NOTES §9.6) is offered like a state, with
     index ``(i, j, k)`` where k indexes its eps. The linear terms (x, u,
-    rel) come first; with ``nonlinear`` the constant term "1" (an offset) comes last.
+    rel) come first; with ``nonlinear`` the bilinear products ``x_i*u_j`` (a
+    flow times a temperature, a field current times a speed: index ``(i, j)``)
+    follow the other nonlinear terms and the constant term "1" (an offset)
+    comes last.
     """
     n, m = x.shape[0], u.shape[0]
     rel = [x[j] - x[i] for i, j in relative]
@@ -69,6 +72,10 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
             spec.append((f"sign{nm}", "rel_sign", (i, j, n + r)))
             rows.append(np.abs(v))
             spec.append((f"|{nm}|", "rel_abs", (i, j, n + r)))
+        for i in range(n):
+            for j in range(m):
+                rows.append(x[i] * u[j])
+                spec.append((f"{state_labels[i]}*{input_labels[j]}", "x*u", (i, j)))
         rows.append(np.ones(x.shape[1]))  # an offset (a constant force, a biased sensor)
         spec.append(("1", "const", 0))
     N = x.shape[1]
@@ -108,6 +115,9 @@ def _eval_terms(spec, eps, x, u):
         if kind.startswith("yhat"):
             v = np.asarray(i[0]) @ x + (np.asarray(i[1]) @ u if len(i[1]) else 0.0)
             out[r] = v if kind == "yhat" else v**3 if kind == "yhat^3" else np.abs(v)
+            continue
+        if kind == "x*u":
+            out[r] = x[i[0]] * u[i[1]]
             continue
         if kind.startswith("rel"):
             a, b, e = i
@@ -409,7 +419,8 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
     Bu = B @ u
     for k in range(N):
         x[:, k] = xk
-        xk = _step(A, xk, Bu[:, k], G, law, u[:, k:k + 1])
+        with np.errstate(over="ignore", invalid="ignore"):  # a diverging law: inf, caught below
+            xk = _step(A, xk, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xk)) or np.max(np.abs(xk)) > 1e100:
             x[:, k + 1:] = np.nan
             break
@@ -432,7 +443,8 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
         if law.output is not None:
             yp[law.output, k] += law.evaluate(xp[:, None], u[:, k:k + 1])[0, 0]
         xf = xp + K @ (y[:, k] - yp[:, k])
-        xp = _step(A, xf, Bu[:, k], G, law, u[:, k:k + 1])
+        with np.errstate(over="ignore", invalid="ignore"):  # a diverging law: inf, caught below
+            xp = _step(A, xf, Bu[:, k], G, law, u[:, k:k + 1])
         if not np.all(np.isfinite(xp)) or np.max(np.abs(xp)) > 1e100:
             yp[:, k + 1:] = np.nan
             break

@@ -1,0 +1,195 @@
+"""Three real measured sets (tutorials/06_real_data_sets.py): what greybox says, before/after.
+
+The tutorial runs once (a subprocess, as a user runs it) and writes a JSON
+summary; the tests assert on it: the channel named, the law's terms and
+their 95 % intervals, the before/after errors on each benchmark's official
+test split, and that ``greybox update`` on the written MODEL.json / MODEL.py
+and CSV files reaches the one call's verdict. The goals the current code does
+not reach are strict xfails (they fail, as XPASS, the day they are reached,
+so that the README table is updated). Skipped when ``../shared/data`` is
+absent. The bilinear ``x*u`` law term the heat exchanger needs is tested on
+a simulated plant first.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import greybox as gb
+from greybox.system import named_ss
+from greybox.trace import law_terms
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+SETS = ("daisy_exchanger", "coupled_electric_drives", "cascaded_tanks")
+HAVE_DATA = all((DATA / s).is_dir() for s in SETS)
+needs_data = pytest.mark.skipif(not HAVE_DATA, reason=f"measured data {DATA}/{{{','.join(SETS)}}}"
+                                " not present (see ../shared/data/INDEX.md)")
+
+
+# --------------------------------------------------------------------- the bilinear term
+def test_trace_finds_a_flow_dependent_time_constant_as_the_product_term():
+    """dT/dt = -a T + b q - c q T: the nominal lag lacks -c q T; the law names T*q."""
+    a, b, c, dt = 0.2, -3.0, 0.5, 1.0
+    rng = np.random.default_rng(12)
+    N = 3000
+    q = np.repeat(rng.uniform(-0.3, 0.3, N // 5), 5)
+    T = np.zeros(N)
+    for k in range(N - 1):  # RK4 of the true bilinear model, q held over the sample
+        f = lambda x: -a * x + b * q[k] - c * q[k] * x  # noqa: E731
+        k1 = f(T[k]); k2 = f(T[k] + k1 / 2); k3 = f(T[k] + k2 / 2); k4 = f(T[k] + k3)
+        T[k + 1] = T[k] + (k1 + 2 * k2 + 2 * k3 + k4) / 6
+    y = T + 0.01 * rng.standard_normal(N)
+    nom = named_ss([[-a]], [[b]], [[1]], [[0]], 0, states=["T"], inputs=["q"], outputs=["T"])
+    rep = gb.close_the_loop(nom, y[None, :2000], q[None, :2000], y[None, 2000:],
+                            q[None, 2000:], Q=[[1e-4]], R=[[1e-4]], dt=dt, max_order=0,
+                            delta=False)
+    assert rep.updated and rep.effect.equations == ("T",), rep.message
+    law = rep.effect.law
+    names = [s[0] for s in law.spec]
+    j = names.index("T*q")
+    # the product is the law's dominant term, its coefficient -c within its interval plus
+    # 5 % (measured -0.478 +- 0.003: d^ averages the bilinear force over a sample in which T
+    # moves by ~20 %, which also brings in small T and offset terms, checked below)
+    assert abs(law.coef[0, j] - (-c)) <= law.ci[0, j] + 0.05 * c, law.formula
+    x_e = np.array([y[:2000]])
+    terms, spec, _ = law_terms(x_e, q[None, :2000], ["T"], ["q"], eps=law.eps)
+    contrib = np.sqrt(np.mean((law.coef[0][:, None] * terms) ** 2, axis=1))
+    others = np.delete(contrib, j)
+    # the offset's contribution is 0.10 of the product's (q*T has a nonzero mean: T
+    # follows -q); the product dominates the law
+    assert contrib.argmax() == j and others.max() < 0.25 * contrib[j], law.formula
+    assert rep.table["updated"].se.value < 0.2 * rep.table["nominal"].se.value
+
+
+# ---------------------------------------------------------------------- the real sets
+@pytest.fixture(scope="module")
+def summary(tmp_path_factory):
+    if not HAVE_DATA:
+        pytest.skip("measured data not present")
+    out = tmp_path_factory.mktemp("tutorial06")
+    env = dict(os.environ, GREYBOX_TUTORIAL_OUT=str(out), MPLBACKEND="Agg",
+               PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in
+                                                         [os.environ.get("PYTHONPATH")] if p]))
+    proc = subprocess.run([sys.executable, str(ROOT / "tutorials" / "06_real_data_sets.py")],
+                          env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    s = json.loads((out / "real_sets_summary.json").read_text())
+    s["_out"], s["_stdout"] = out, proc.stdout
+    return s
+
+
+@needs_data
+@pytest.mark.slow
+def test_exchanger_law_contains_the_bilinear_q_T_term(summary):
+    hx = summary["exchanger"]
+    assert hx["detected"]
+    coef, half = hx["eq_terms"]["T*q"]
+    # negative (more flow: faster, smaller response) and its 95 % interval excludes 0
+    # (measured -0.141 +- 0.075 per s and flow unit)
+    assert coef < 0 and abs(coef) > half > 0, hx["eq_law"]
+
+
+@needs_data
+@pytest.mark.slow
+def test_exchanger_before_after(summary):
+    hx = summary["exchanger"]
+    t = hx["table"]
+    # the nominal lag on the test split (deterministic code and data): SE 35.1 %,
+    # RMS 0.545 degC; 2 % covers BLAS/platform rounding in the filter's initial state
+    np.testing.assert_allclose([t["nominal"]["se"], t["nominal"]["rms"]], [35.1, 0.545],
+                               rtol=0.02)
+    # greybox leaves the model unchanged: the best candidate (eq(T), order-1 subsystem)
+    # lowers the estimation SE only to 0.84 of the nominal (gate: 0.8)
+    assert not hx["updated"] and hx["passed"] == {"whiteness": True, "bic": True,
+                                                  "se_drop": False}
+    assert t["updated"]["se"] == t["nominal"]["se"]
+    # the static law with T*q, added anyway: 34.1 % on the test split (no real gain)
+    assert hx["forced_static"]["se"] < t["nominal"]["se"]
+
+
+@needs_data
+@pytest.mark.slow
+def test_drives_error_is_named_on_the_sensor_side_with_a_rectifier(summary):
+    low = summary["drives"]["low"]
+    assert low["updated"] and low["channel"] == "output(z)" and low["kind"] == "output"
+    coef, half = low["terms"]["|z_model|"]
+    # |.| of the model's own speed, positive, its 95 % interval excluding 0; a pure
+    # rectifier is d = |z| - z (+1 and -1): measured +0.86 +- 0.28 and -0.82 +- 0.10
+    # (refit by least squares on the nominal simulation; the d^ fit gave 0.48 and -0.94)
+    assert coef > half > 0 and abs(coef - 1.0) <= half
+    c_lin, h_lin = low["terms"]["z_model"]
+    assert c_lin < 0 and abs(c_lin) > h_lin
+
+
+@needs_data
+@pytest.mark.slow
+def test_drives_before_after(summary):
+    t = summary["drives"]["low"]["table"]
+    # nominal (reference linear part, gain rescaled on the estimation data): SE 50.0 %,
+    # RMS 0.218 sensor units; with the sensor law: SE 26.2 %, RMS 0.114; 2 %: rounding
+    np.testing.assert_allclose([t["nominal"]["se"], t["nominal"]["rms"]], [50.0, 0.218],
+                               rtol=0.02)
+    np.testing.assert_allclose([t["updated"]["se"], t["updated"]["rms"]], [26.2, 0.114],
+                               rtol=0.02)
+    # high-amplitude record: only 13 % of its model speed samples are < 0; the sensor
+    # channel is the best candidate but its law's BIC gain on d^ fails the gate: unchanged
+    high = summary["drives"]["high"]
+    assert high["detected"] and not high["updated"]
+    assert high["passed"] == {"whiteness": True, "bic": False, "se_drop": True}
+
+
+@needs_data
+@pytest.mark.slow
+def test_tanks_before_after_and_why_the_upper_tank_is_not_traced(summary):
+    tk = summary["tanks"]
+    assert tk["detected"] and not tk["updated"]
+    t = tk["table"]
+    # Torricelli nominal on the test split: RMS 0.70 V from sample 20 (0.694 V over all
+    # 1024 samples from the fitted initial state); 3 %: the UKF's initial state, rounding
+    np.testing.assert_allclose(t["nominal"]["rms"], 0.70, rtol=0.03)
+    np.testing.assert_allclose(tk["rms_nominal_all_samples"], 0.694, rtol=0.03)
+    up = [c for c in tk["candidates"] if c["channel"] == "eq(x1)"][0]
+    # only the lower tank is measured: the overflow's equation has relative degree 2,
+    # and the nonlinear pipeline has no delayed unknown-input estimate
+    assert up["status"] == "skipped" and "rank(C @ G) = 0" in up["reason"]
+
+
+@needs_data
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the upper tank's equation is not observable in the next "
+                   "lower-tank sample (relative degree 2; the UI-UKF has no delayed estimate): "
+                   "the overflow is not traced and the test RMS stays 0.70 V (goal <= 0.5 V)")
+def test_tanks_goal_test_rms(summary):
+    tk = summary["tanks"]
+    assert tk["updated"] and tk["table"]["updated"]["rms"] <= 0.5
+
+
+@needs_data
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["exchanger", "drives", "tanks"])
+def test_cli_on_the_written_files_reaches_the_same_verdict(summary, name):
+    one = summary[name] if name != "drives" else summary["drives"]["low"]
+    cli = one["cli"]
+    assert cli["exit_code"] == 0
+    assert cli["message"] == one["message"] and cli["updated"] == one["updated"]
+    model = "tanks_MODEL.py" if name == "tanks" else f"{name}_MODEL.json"
+    for f in (model, f"{name}_estimation.csv", f"{name}_test.csv",
+              f"{name}_report/summary.json", f"{name}_report/updated_model.json"):
+        assert (summary["_out"] / f).is_file(), f
+
+
+@needs_data
+@pytest.mark.slow
+def test_tutorial_saves_a_figure_per_set(summary):
+    for name in ("fig9_exchanger.png", "fig10_drives_low.png", "fig10_drives_high.png",
+                 "fig11_tanks.png"):
+        path = summary["_out"] / name
+        assert path.is_file() and path.stat().st_size > 1000, name
