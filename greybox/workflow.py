@@ -912,7 +912,7 @@ def _noise_by_likelihood(model: UpdatedModel, Q, y, u, skip, notes) -> UpdatedMo
     """
     Qa = np.asarray(model.Q, dtype=float)
     Qp = np.asarray(Q, dtype=float)
-    if Qa.shape != Qp.shape or np.allclose(Qa, Qp):
+    if Qa.shape != Qp.shape or np.allclose(Qa, Qp, rtol=1e-9, atol=0.0):  # Q may be ~1e-12
         return model
     kfs = [kalman_filter(model.sys, y, u, Q=Qx, R=model.R) for Qx in (Qa, Qp)]
     k0 = max(max(skip, kf.period_converged or skip) for kf in kfs)
