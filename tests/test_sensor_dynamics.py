@@ -76,7 +76,7 @@ def test_lagging_sensor_is_traced_to_the_output():
         rep.message
     assert not rep.channel.equations  # not a state equation
     tau, half = _lag(rep.trace)
-    # the 95 % interval covers the truth and is informative (measured 0.1000 +- 0.0004 s)
+    # the 95 % interval covers the truth and is informative (measured 0.1000 +- 0.00096 s)
     assert abs(tau - TAU) <= half and half < 0.05 * TAU, (tau, half)
     assert any("first-order lag" in s for s in rep.effect.parameter_notes)
     assert list(rep.model.sys.state_labels) == ["pos", "vel", "pos_sensor"]
