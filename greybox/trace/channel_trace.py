@@ -46,6 +46,7 @@ from .oe import (
     _refine_static_oe,
     _select_static_oe,
     noise_covariance,
+    oe_window,
     refine_force_direction,
     zoh,
 )
@@ -159,7 +160,8 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
     The law is static (gain, offset, |.|, cube: :func:`_refit_sensor_law`) or a
     first-order sensor lag ``1/(tau s + 1)`` (:func:`_fit_sensor_lag`),
     whichever has the lower BIC of the output error of that output on the
-    estimation data; a lag's updated model carries the reading as one more state.
+    estimation data (its first ``oe_window(1)`` samples); a lag's updated
+    model carries the reading as one more state.
     """
     labels = list(channel.labels)
     res = feedthrough_uikf(model, y, u, unknown=labels, Q=Q, R=R)
@@ -199,13 +201,14 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
     static_model = UpdatedModel(sys=upd, Q=Q, R=R, order=model.nstates, kind="static")
     notes.append("a sensor-error channel: static law on the model's own output "
                  "(gain, offset, |.|, cube) or a first-order sensor lag")
-    if not unstable_reason(model, N):
+    if not unstable_reason(model, N):  # the lag by output error, on an output-error window
         ks = min(k0, 20)
-        lag = _fit_sensor_lag(sys, model, i, y[i, ks:], u[:, ks:], res.x_filt[:, ks],
-                              (d, x, uu), (Q, R))
+        ke = ks + oe_window(1)
+        yw, uw = y[i, ks:ke], u[:, ks:ke]
+        lag = _fit_sensor_lag(sys, model, i, yw, uw, res.x_filt[:, ks], (d, x, uu), (Q, R))
         if lag is not None:
-            xs = _nominal_states(A, B, res.x_filt[:, ks], u[:, ks:])
-            e_st = y[i, ks:] - C[i] @ xs - D[i] @ u[:, ks:] - law.evaluate(xs, u[:, ks:])[0]
+            xs = _nominal_states(A, B, res.x_filt[:, ks], uw)
+            e_st = yw - C[i] @ xs - D[i] @ uw - law.evaluate(xs, uw)[0]
             Ne = e_st.size
             bic_st = Ne * np.log(max(e_st @ e_st, 1e-300) / Ne) + law.npar * np.log(Ne)
             bic_lag = Ne * np.log(max(lag.sse, 1e-300) / Ne) + np.log(Ne)
