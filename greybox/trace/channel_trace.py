@@ -237,12 +237,7 @@ def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
     sel = np.flatnonzero(law.coef[0])
     if not sel.size:
         return law
-    N = y.shape[0]
-    x = np.empty((A.shape[0], N))
-    xk = np.asarray(x0, dtype=float).copy()
-    for k in range(N):
-        x[:, k] = xk
-        xk = A @ xk + B @ u[:, k]
+    x = _nominal_states(A, B, x0, u)
     if not np.all(np.isfinite(x)):
         return law
     r = y - c @ x - dd @ u
