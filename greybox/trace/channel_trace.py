@@ -8,7 +8,10 @@ from dataclasses import dataclass, field, replace
 import control as ct
 import numpy as np
 from numpy.typing import NDArray
+from scipy.optimize import minimize_scalar
+from scipy.signal import lfilter
 
+from .._lti import lti_states
 from .._validation import check_discrete, check_positive
 from ..exceptions import DataError, GreyboxError, GreyboxWarning, RankConditionError
 from ..filters import (
@@ -39,7 +42,14 @@ from .laws import (
     output_terms,
 )
 from .intervals import hac_covariance
-from .oe import _refine_static_oe, _select_static_oe, refine_force_direction, zoh
+from .oe import (
+    _refine_static_oe,
+    _select_static_oe,
+    noise_covariance,
+    oe_window,
+    refine_force_direction,
+    zoh,
+)
 
 # Below this excess of var(d^) over the filter's Pd, d^ is treated as mostly
 # estimation noise and the static law is chosen by output error on y instead.
@@ -145,7 +155,14 @@ def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes, continuous=None
 
 
 def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> ChannelTrace:
-    """A sensor-error channel: the filter with direct feedthrough and a law on the model output."""
+    """A sensor-error channel: the filter with direct feedthrough and a law on the model output.
+
+    The law is static (gain, offset, |.|, cube: :func:`_refit_sensor_law`) or a
+    first-order sensor lag ``1/(tau s + 1)`` (:func:`_fit_sensor_lag`),
+    whichever has the lower BIC of the output error of that output on the
+    estimation data (its first ``oe_window(1)`` samples); a lag's updated
+    model carries the reading as one more state.
+    """
     labels = list(channel.labels)
     res = feedthrough_uikf(model, y, u, unknown=labels, Q=Q, R=R)
     notes = []
@@ -183,7 +200,24 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
                    name=f"{sys.name or 'model'}_updated")
     static_model = UpdatedModel(sys=upd, Q=Q, R=R, order=model.nstates, kind="static")
     notes.append("a sensor-error channel: static law on the model's own output "
-                 "(gain, offset, |.|, cube); sensor dynamics are not fitted")
+                 "(gain, offset, |.|, cube) or a first-order sensor lag")
+    if not unstable_reason(model, N):  # the lag by output error, on an output-error window
+        ks = min(k0, 20)
+        ke = ks + oe_window(1)
+        yw, uw = y[i, ks:ke], u[:, ks:ke]
+        lag = _fit_sensor_lag(sys, model, i, yw, uw, res.x_filt[:, ks], (d, x, uu), (Q, R))
+        if lag is not None:
+            xs = _nominal_states(A, B, res.x_filt[:, ks], uw)
+            e_st = yw - C[i] @ xs - D[i] @ uw - law.evaluate(xs, uw)[0]
+            Ne = e_st.size
+            bic_st = Ne * np.log(max(e_st @ e_st, 1e-300) / Ne) + law.npar * np.log(Ne)
+            bic_lag = Ne * np.log(max(lag.sse, 1e-300) / Ne) + np.log(Ne)
+            notes.append(f"sensor lag tau = {lag.tau:.4g} +- {lag.half:.2g} s against the static "
+                         f"sensor law, by output error on the estimation data: BIC "
+                         f"{bic_lag:.6g} vs {bic_st:.6g}")
+            if bic_lag < bic_st:
+                law, static_model = _lag_law_and_model(lag, law, model, Q, R, m, channel,
+                                                       f"{sys.name or 'model'}_updated")
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
                         law_estimate=est, relative_degree=0, static=law,
                         static_model=static_model, notes=tuple(notes))
@@ -203,12 +237,7 @@ def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
     sel = np.flatnonzero(law.coef[0])
     if not sel.size:
         return law
-    N = y.shape[0]
-    x = np.empty((A.shape[0], N))
-    xk = np.asarray(x0, dtype=float).copy()
-    for k in range(N):
-        x[:, k] = xk
-        xk = A @ xk + B @ u[:, k]
+    x = _nominal_states(A, B, x0, u)
     if not np.all(np.isfinite(x)):
         return law
     r = y - c @ x - dd @ u
@@ -239,6 +268,162 @@ def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
     return replace(law, coef=coef, ci=ci, Ddx=Ddx, Ddu=Ddu,
                    residual_var=np.array([float(np.mean(e_new**2))]),
                    formula=_law_line(label, th, names, unit, ci[0, sel]))
+
+
+def _nominal_states(A, B, x0, u):
+    """States (n, N) of the nominal ``x[k+1] = A x + B u`` from ``x0`` (vectorized)."""
+    return lti_states(A, B @ u, np.asarray(x0, dtype=float))
+
+
+@dataclass(frozen=True)
+class _SensorLag:
+    """A first-order sensor lag fitted by output error (see :func:`_fit_sensor_lag`).
+
+    ``tau`` [s] and its 95 % half-width ``half``; ``sse`` of the output error
+    on the fitted samples; ``Ad, Bd`` (n + 1) the discrete model with the
+    sensor state last; ``bic_gain`` and ``residual_var`` on d^ (as a static law's).
+    """
+
+    tau: float
+    half: float
+    sse: float
+    Ad: NDArray
+    Bd: NDArray
+    bic_gain: float
+    residual_var: float
+
+
+def _lag_row(sys, model, i, tau):
+    """``(a, cz (n,), dz (m,))``: the sensor state's row ``z[k+1] = a z + cz x + dz u``.
+
+    With a continuous nominal ``sys`` the augmented model ``[dx/dt; dz/dt] =
+    [A 0; c/tau -1/tau] [x; z] + [B; dd/tau] u`` is discretized exactly (ZOH:
+    the lag sees c x between the samples); with a discrete one ``s = c x + dd
+    u`` is taken linear between the samples (first-order hold: ``z[k+1] = a
+    z + b0 s[k] + b1 s[k+1]``, ``s[k+1] = c (A x + B u) + dd u``, the input held).
+    """
+    n, m = sys.nstates, sys.ninputs
+    h = float(model.dt)
+    c, dd = np.asarray(sys.C, dtype=float)[i], np.asarray(sys.D, dtype=float)[i]
+    if ct.isdtime(sys, strict=True):
+        a = float(np.exp(-h / tau))
+        b1 = 1.0 - tau / h * (1.0 - a)
+        b0 = 1.0 - a - b1
+        cA, cB = c @ np.asarray(sys.A, dtype=float), c @ np.asarray(sys.B, dtype=float)
+        return a, b0 * c + b1 * cA, (b0 + b1) * dd + b1 * cB
+    Aa = np.zeros((n + 1, n + 1))
+    Aa[:n, :n] = np.asarray(sys.A, dtype=float)
+    Aa[n, :n], Aa[n, n] = c / tau, -1.0 / tau
+    Ba = np.vstack([np.asarray(sys.B, dtype=float), dd[None, :] / tau])
+    Ad, Bd = zoh(Aa, Ba, h)
+    return float(Ad[n, n]), Ad[n, :n], Bd[n, :m]
+
+
+def _lag_output(row, x, u, y):
+    """(z, e): the lagged output along (x, u) with the initial reading fitted, and ``y - z``.
+
+    The reading's initial value enters as ``a^k z0``: linear, fitted by least squares.
+    """
+    a, cz, dz = row
+    s = cz @ x + dz @ u
+    z = lfilter([0.0, 1.0], [1.0, -a], s)
+    ak = a ** np.arange(s.size)
+    z0 = float(ak @ (y - z)) / max(float(ak @ ak), 1e-300)
+    z = z + z0 * ak
+    return z, y - z
+
+
+def _fit_sensor_lag(sys, model, i, y, u, x0, dxu, noise=None) -> _SensorLag | None:
+    """Output ``i`` read through ``1/(tau s + 1)``: tau by output error on the nominal simulation.
+
+    The lag does not feed back into the states: the nominal simulation from
+    ``x0`` (the filter's state where y, u start) is run once, and tau
+    minimizes ``sum (y - z)^2`` over a log-spaced grid from dt/5 to 1/20 of
+    the record, then a bounded scalar search around the best grid point. The
+    95 % interval of tau comes from the output-error Jacobian (central
+    difference): the larger of the HAC variance of the residual and, with
+    ``noise = (Q, R)``, the sandwich under that noise model
+    (:func:`greybox.trace.oe.noise_covariance`, as
+    :func:`greybox.trace.oe.robust_halfwidths`). None when the best
+    tau is at the grid's short end (no lag) or the simulation is not finite.
+    ``dxu = (d^, x^, u)`` (the law's estimation samples) give ``bic_gain``
+    as for a static law: BIC of "d = 0" minus that of the lag on d^.
+    """
+    m = model.ninputs - 1
+    A = np.asarray(model.A, dtype=float)
+    B = np.asarray(model.B, dtype=float)[:, :m]
+    x = _nominal_states(A, B, x0, u)
+    if not np.all(np.isfinite(x)):
+        return None
+    h, N = float(model.dt), y.size
+
+    def sse(lt):
+        return float(np.sum(_lag_output(_lag_row(sys, model, i, np.exp(lt)), x, u, y)[1] ** 2))
+
+    grid = np.linspace(np.log(h / 5), np.log(max(N * h / 20, h)), 25)
+    f = np.array([sse(g) for g in grid])
+    j = int(np.argmin(f))
+    if j == 0 or not np.isfinite(f[j]):
+        return None
+    opt = minimize_scalar(sse, bounds=(grid[j - 1], grid[min(j + 1, grid.size - 1)]),
+                          method="bounded", options={"xatol": 1e-6})
+    tau = float(np.exp(opt.x))
+    z, e = _lag_output(_lag_row(sys, model, i, tau), x, u, y)
+    step = 1e-4 * tau
+    jac = (_lag_output(_lag_row(sys, model, i, tau + step), x, u, y)[0] -
+           _lag_output(_lag_row(sys, model, i, tau - step), x, u, y)[0]) / (2 * step)
+    sj = np.sqrt(np.mean(jac**2)) + 1e-300
+    cov = hac_covariance(jac[:, None] / sj, e, 1)[0, 0] / sj**2
+    row = _lag_row(sys, model, i, tau)
+    n = A.shape[0]
+    Ad = np.zeros((n + 1, n + 1))
+    Ad[:n, :n], Ad[n, :n], Ad[n, n] = A, row[1], row[0]
+    if noise is not None:  # the sandwich under (Q, R): process noise colours e through the plant
+        Qa = np.zeros((n + 1, n + 1))
+        Qa[:n, :n] = noise[0]
+        ca = np.zeros((1, n + 1))
+        ca[0, n] = 1.0
+        jj = float(jac @ jac)
+        vm = noise_covariance(Ad, ca, jac[:, None], np.ones(1), 0, Qa,
+                              np.atleast_2d(noise[1][i, i]))[0, 0] / max(jj, 1e-300) ** 2
+        cov = max(cov, vm)
+    d, xh, uh = dxu
+    dpred = _lag_output(row, xh, uh, d[0] + np.asarray(sys.C, dtype=float)[i] @ xh +
+                        np.asarray(sys.D, dtype=float)[i] @ uh)[0] - \
+        (np.asarray(sys.C, dtype=float)[i] @ xh + np.asarray(sys.D, dtype=float)[i] @ uh)
+    r1, K = d[0] - dpred, d.shape[1]
+    gain = K * np.log(max(float(d[0] @ d[0]), 1e-300) / max(float(r1 @ r1), 1e-300)) - np.log(K)
+    Bd = np.vstack([B, row[2][None, :]])
+    return _SensorLag(tau=tau, half=1.96 * float(np.sqrt(max(cov, 0.0))), sse=float(e @ e),
+                      Ad=Ad, Bd=Bd, bic_gain=float(gain), residual_var=float(np.mean(r1**2)))
+
+
+def _lag_law_and_model(lag, law, model, Q, R, m, channel, name):
+    """(StaticLaw, UpdatedModel) of a sensor lag: the reading is one more state, output ``i``.
+
+    The law's single term has kind "yhat_lag" and coefficient tau [s] (it is
+    not a function of the current sample: only the updated model, with the
+    sensor state ``<output>_sensor`` last, simulates it).
+    """
+    i, out = law.output, channel.output
+    n = model.nstates
+    C = np.hstack([np.asarray(model.C, dtype=float), np.zeros((model.noutputs, 1))])
+    D = np.asarray(model.D, dtype=float)[:, :m].copy()
+    C[i], D[i] = 0.0, 0.0
+    C[i, n] = 1.0
+    upd = named_ss(lag.Ad, lag.Bd, C, D, model.dt,
+                   states=list(model.state_labels) + [f"{out}_sensor"],
+                   inputs=list(model.input_labels)[:m], outputs=model.output_labels, name=name)
+    Qa = np.zeros((n + 1, n + 1))
+    Qa[:n, :n] = Q
+    Qa[n, n] = 1e-12 * max(float(np.max(np.diag(Q))), 1e-300)  # the lag itself is deterministic
+    spec = ((f"{out}_model lag", "yhat_lag", i),)
+    lg = StaticLaw(spec=spec, eps=np.zeros(1), coef=np.array([[lag.tau]]),
+                   Ddx=np.zeros((1, n)), Ddu=np.zeros((1, m)), nonlinear=False,
+                   residual_var=np.array([lag.residual_var]), bic_gain=lag.bic_gain, npar=1,
+                   formula=f"{out} = {out}_model / (tau s + 1), tau = ({lag.tau:.4g} ± "
+                           f"{lag.half:.2g}) [s]", ci=np.array([[lag.half]]), output=i)
+    return lg, UpdatedModel(sys=upd, Q=Qa, R=R, order=n + 1, kind="static")
 
 
 def _aligned_rows(v, align, K):

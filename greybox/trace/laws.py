@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from scipy.linalg import solve_toeplitz
 from scipy.signal import lfilter
 
+from ..exceptions import ModelError
 from ..filters import FilterResult
 from ..ident.regression import SparseLaw, forward_selection
 from ..update import Subsystem, psd_part
@@ -112,6 +113,10 @@ def _eval_terms(spec, eps, x, u):
         if kind == "const":
             out[r] = 1.0
             continue
+        if kind == "yhat_lag":
+            raise ModelError("a first-order sensor lag is not a function of the current sample; "
+                             "found a 'yhat_lag' term; expected a static term. Hint: simulate "
+                             "the trace's static_model (the sensor reading is its last state)")
         if kind.startswith("yhat"):
             v = np.asarray(i[0]) @ x + (np.asarray(i[1]) @ u if len(i[1]) else 0.0)
             out[r] = v if kind == "yhat" else v**3 if kind == "yhat^3" else np.abs(v)
@@ -195,7 +200,10 @@ class StaticLaw:
     output : int or None
         Index of the output a sensor-error law adds to (``y_i = C_i x + D_i u
         + d``; Ddx, Ddu are then its linear part in the output equation);
-        None: the law enters the state equations.
+        None: the law enters the state equations. A first-order sensor lag
+        (one term of kind "yhat_lag", coefficient tau [s]) is not static: the
+        trace's updated model carries the reading as one more state, and
+        :meth:`evaluate` raises ModelError for it.
     """
 
     spec: tuple
@@ -471,6 +479,10 @@ def _sensor_notes(channel: Channel, law: StaticLaw) -> tuple[str, ...]:
                        f"the sensor reads |{nm}|)")
         elif kind == "yhat^3":
             out.append(f"sensor {nm}: {c:.4g}{pm} * {nm}^3 (negative: saturation)")
+        elif kind == "yhat_lag":
+            out.append(f"sensor {nm}: first-order lag 1/(tau s + 1), tau = {c:.4g}{pm} s "
+                       f"(none in the model: the reading is the updated model's state "
+                       f"{nm}_sensor)")
     return tuple(out)
 
 
