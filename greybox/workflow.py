@@ -866,9 +866,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             g = np.asarray(ch.G)[[list(nominal.state_labels).index(e) for e in ch.equations], 0]
             where = (f"one force between {' and '.join(ch.equations)} (it enters {where} as "
                      f"{np.array2string(g, precision=3)})")
-        msg = (f"model error found in {where}: "
-               f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}; "
-               f"{describe_before_after(table)}")
+        what = f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}"
+        if kind == "static" and any(sp[1] == "yhat_lag" for sp in effect.law.spec):
+            what = "sensor dynamics, a first-order lag (one sensor state)"
+        msg = f"model error found in {where}: {what}; {describe_before_after(table)}"
         return LoopReport(model_error_detected=True, updated=True, message=msg, residual=white,
                           effect=effect, channel=ch, candidates=tuple(cands), gate=gate,
                           criterion=crit, nominal=nominal, model=model, table=table, trace=tr,

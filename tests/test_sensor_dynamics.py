@@ -75,6 +75,7 @@ def test_lagging_sensor_is_traced_to_the_output():
     assert rep.updated and rep.channel.kind == "output" and rep.channel.output == "pos", \
         rep.message
     assert not rep.channel.equations  # not a state equation
+    assert "sensor dynamics, a first-order lag" in rep.message, rep.message
     tau, half = _lag(rep.trace)
     # the 95 % interval covers the truth and is informative (measured 0.1000 +- 0.00096 s)
     assert abs(tau - TAU) <= half and half < 0.05 * TAU, (tau, half)
