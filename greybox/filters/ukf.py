@@ -200,14 +200,7 @@ def _propagate(pb: _Problem, k: int, X: NDArray, uk: NDArray, dlin: NDArray, xc:
         raise ModelError(f"the state update of {pb.sys.name} failed at step {k} (time "
                          f"{t:g} s) on a sigma point or ensemble member: {e}") from e
     if not np.all(np.isfinite(FX)):
-        bad = np.argwhere(~np.isfinite(FX))[0]
-        state = list(pb.sys.state_labels)[bad[0]]
-        which = f"point {bad[1]}" if bad[1] < npts else "the G Jacobian probe"
-        raise ModelError(
-            f"the state update of {pb.sys.name} returned NaN or inf for state {state!r} at "
-            f"step {k} (time {t:g} s, {which} of {npts}); the model is not defined there. "
-            f"Check f near x = {np.array2string(Xall[:, bad[1]], precision=4)} or reduce the "
-            f"sigma-point spread (alpha) / P0")
+        raise _nonfinite_error(pb, k, FX, Xall, npts)
     if isinstance(pb.sys, ct.StateSpace) and md:
         FX = FX + (pb.G @ dlin)[:, None]  # the split linear model takes known inputs only
     if jac and md:

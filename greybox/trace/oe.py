@@ -232,6 +232,12 @@ class _OutputErrorLaw:
                        **changes)
 
 
+def _selected(law: StaticLaw):
+    """The law's nonzero terms as (component, term) pairs and their coefficients."""
+    sel = [(c, j) for c, j in zip(*np.nonzero(law.coef))]
+    return [(int(c), int(j)) for c, j in sel], np.array([law.coef[c, j] for c, j in sel])
+
+
 def _prune(prob: _OutputErrorLaw, sel, sol):
     """Drop terms whose 95 % interval contains 0 (the weakest, or the weaker half of many); refit."""
     hw = prob.halfwidths(sol, sel)
@@ -268,11 +274,10 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     with the law's ``ci`` set; the law is unchanged (no intervals) when the
     refinement does not lower the simulation error.
     """
-    sel = [(c, j) for c in range(md) for j in range(len(law.spec)) if law.coef[c, j] != 0]
+    sel, theta0 = _selected(law)
     if not sel:
         return law, np.nan, np.nan
     prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
-    theta0 = np.array([law.coef[c, j] for c, j in sel])
     se0 = prob.se(theta0, sel)
     start = theta0.copy()
     for _ in range(30):  # shrink towards the (stable) nominal model
@@ -323,11 +328,10 @@ def refine_force_direction(law: StaticLaw, model: ct.StateSpace, y: NDArray, u: 
     dG : ndarray, shape (nstates,)
         The direction's free part (continuous time).
     """
-    sel = [(0, j) for j in range(len(law.spec)) if law.coef[0, j] != 0]
+    sel, theta0 = _selected(law)
     if not sel or cont is None:
         return law, 0.0, np.nan, np.nan, np.nan
     prob = _OutputErrorLaw(law, model, 1, y, u, x0, k0, cont, noise)
-    theta0 = np.array([law.coef[c, j] for c, j in sel])
     se0 = prob.se(theta0, sel)
     prob.dG = np.asarray(dG, dtype=float).reshape(-1, 1)
     sel1, sol, hw = _prune(prob, sel, prob.fit(sel, np.r_[theta0, 0.0], max_nfev=100))
