@@ -82,9 +82,9 @@ __all__ = ["Effect", "EffectStep", "CandidateScore", "LoopReport", "close_the_lo
 SCREEN_ABOVE = 4
 SCREEN_TOP = 4
 # ... and only those scoring at least this fraction of the best equation's score (the
-# score saturates near 150-400 for any strong effect, so two effects of one pass score
-# alike; the coupled neighbours of one missing force score 3-20 % of it and cost a pair
-# each; a weaker effect is left to the next pass of the several-effects loop).
+# score grows with N and the effect's strength: two effects of one pass score alike; a
+# much weaker one is left to the next pass of the several-effects loop; equations the
+# model gets right score below 5, see trace/screen.py).
 SCREEN_REL = 0.25
 # A sparse first-order law is fitted for a channel only when its unstructured dynamic
 # fit beats its static law's estimation SE by this factor (evidence of dynamics).
