@@ -2,12 +2,23 @@
 
 from __future__ import annotations
 
+import os
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from greybox import named_ss
+
+# The suite runs on every core (pytest-xdist, `-n auto` in pyproject.toml): each worker
+# then keeps BLAS to one thread, and so do the subprocesses it starts (tutorials, the
+# CLI), or two workers' BLAS pools would fight over the same cores.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    from threadpoolctl import threadpool_limits
+
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[_var] = "1"
+    _BLAS_LIMIT = threadpool_limits(limits=1, user_api="blas")
 
 
 @pytest.fixture
