@@ -566,7 +566,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     # (a force between them); step 2a then traces one force along the
                     # pair law's direction (the screen's own direction is too rough)
                     keep.append(replace(pair, relative=relative_coordinates(sys, pair)))
-                    # and one force along the screen's direction, when it sees one
+                    # and one force along the screen's direction, when it sees one (traced
+                    # after step 2a, and only when the pair law gives no force of its own)
                     rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
                     g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
                     fch = force_channel(sys, pair, g) if g is not None and \
@@ -665,8 +666,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             # unstructured subsystems (driven by all n + m signals) cost O(n) each and read
             # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
             first_max = 0
+        screen_forces = [c for c in chans if c.kind == "force"] if big else []
         for kc, ch in enumerate(chans):
             tick("trace candidate channels", kc, len(chans))
+            if ch in screen_forces:
+                continue
             try:
                 tr = trace_channel(sys, ch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
                                    max_order=first_max)
@@ -680,6 +684,16 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         tick("trace candidate channels", len(chans), len(chans))
         # 2a. one force inside a pair of equations: md = 1 along the law's direction, with
         #     the bodies' relative coordinates offered to the law (PAPER_NOTES §9.6)
+        def _trace_force(fch):
+            try:
+                ftr = trace_channel(sys, fch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
+                                    max_order=0)
+            except (GreyboxError, np.linalg.LinAlgError) as e:
+                notes.append(f"{fch.name}: {e}")
+                return
+            if ftr.status == "ok":
+                _score(ftr)
+
         for se_, _, tr_, kind_ in list(scored):
             if kind_ != "static" or tr_.channel.md != 2 or tr_.channel.kind != "equation":
                 continue
@@ -693,14 +707,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             fch = force_channel(sys, tr_.channel, g)
             if _along_an_input(sys, fch):
                 continue  # the input's own channel says the same, and names the input
-            try:
-                ftr = trace_channel(sys, fch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
-                                    max_order=0)
-            except (GreyboxError, np.linalg.LinAlgError) as e:
-                notes.append(f"{fch.name}: {e}")
-                continue
-            if ftr.status == "ok":
-                _score(ftr)
+            _trace_force(fch)
+        # ... and along the screen's direction (rougher) where the pair law gave no force
+        for fch in screen_forces:
+            if not any(t[2].channel.kind == "force" and
+                       set(t[2].channel.equations) == set(fch.equations) for t in scored):
+                _trace_force(fch)
         if max_order >= 2 and scored and not big:
             ranked = []
             for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):

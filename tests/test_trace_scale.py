@@ -38,6 +38,10 @@ def test_chain_all_measured_one_force_in_relative_coordinate(n_masses):
     rep, eqs, (pa, pb), floor = _case(n_masses, "all")
     assert rep.updated and rep.channel.kind == "force", rep.message
     assert set(rep.effect.equations) == set(eqs), rep.message
+    # each candidate is traced once (the screen's and the pair law's force directions
+    # agree within 0.5 degree here: one force channel, not two)
+    traced = [(c.channel, c.kind, c.order) for c in rep.candidates]
+    assert len(traced) == len(set(traced)), traced
     law = rep.effect.law
     names = [law.spec[j][0] for j in np.flatnonzero(law.coef[0])]
     assert names == [f"({pb}-{pa})"], rep.effect.formula     # one term, relative coordinate
