@@ -147,3 +147,24 @@ def chain(n_masses=2, k=20.0, c=0.5, m=1.0, k_wall=10.0, missing=(), measured=No
     C = np.eye(n)[[states.index(s) for s in measured]]
     return named_ss(A, B, C, np.zeros((len(measured), 1)), 0, states=states, inputs=["F"],
                     outputs=measured, name=f"chain{n_masses}")
+
+
+def thermal_pair(seed, n_est=20000):
+    """Two bodies (1, 2 J/K; losses 0.5, 0.4 W/K; heaters Q1, Q2 [W]) with temperatures T1,
+    T2 [K] measured, and a hidden thermal mass Tm (4 J/K) the model lacks, coupled to both
+    (1.0, 0.8 W/K): one shared state drives eq(T1) and eq(T2) along no fixed direction
+    (d1 = (Tm - T1)/1, d2 = 0.8 (Tm - T2)/2). Returns (nominal, case, true discrete model)."""
+    c1, c2, cm, l1, l2, g1, g2 = 1.0, 2.0, 4.0, 0.5, 0.4, 1.0, 0.8
+    A = np.array([[-l1 / c1, 0.0], [0.0, -l2 / c2]])
+    B = np.diag([1 / c1, 1 / c2])
+    nom = named_ss(A, B, np.eye(2), np.zeros((2, 2)), 0, states=["T1", "T2"],
+                   inputs=["Q1", "Q2"], outputs=["T1", "T2"], name="thermal_pair")
+    At = np.array([[-(l1 + g1) / c1, 0, g1 / c1], [0, -(l2 + g2) / c2, g2 / c2],
+                   [g1 / cm, g2 / cm, -(g1 + g2) / cm]])
+    Bt = np.vstack([B, np.zeros((1, 2))])
+    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=3, dt=0.05,
+             rng=np.random.default_rng(seed), q_std=np.array([1e-3, 1e-3]), r_std=1e-2,
+             n_est=n_est, n_val=4000, sub=2, bandwidth=0.2)
+    true = named_ss(At, Bt, np.eye(3)[:2], np.zeros((2, 2)), 0, states=["T1", "T2", "Tm"],
+                    inputs=["Q1", "Q2"], outputs=["T1", "T2"], name="thermal_pair_true")
+    return nom, d, gb.discretize(true, 0.05)
