@@ -543,8 +543,12 @@ def _fit_sensor_saturation(model, i, y, u, xs, noise, dxu, out, name):
     L minimizes the output error on the nominal simulation ``xs`` over a grid
     of quantiles of |y_model| (5 % .. 99.9 %), then a bounded scalar search
     around the best grid point; None when the best L is at the grid's top
-    (nothing clipped). Its 95 % interval: :func:`_sandwich_halfwidths` with the
-    output-error Jacobian ``sign(y_model) 1{|y_model| > L}``. L is identifiable
+    (nothing clipped). Its 95 % interval: the HAC variance
+    (:func:`greybox.trace.intervals.hac_covariance`) with the output-error
+    Jacobian ``sign(y_model) 1{|y_model| > L}`` and the residual on the
+    clipped samples (there the right model's output error is the
+    measurement noise alone; the plant's wander under process noise, which
+    colours the residual elsewhere, is clipped away). L is identifiable
     only from samples the model drives beyond it. The law is nonlinear: the
     updated StateSpace holds its best linear surrogate (a gain on y_model, a
     least-squares fit on the simulation), the law itself the clip.
@@ -573,7 +577,11 @@ def _fit_sensor_saturation(model, i, y, u, xs, noise, dxu, out, name):
     jac = np.sign(yh) * (a > L)
     if not np.any(jac):
         return None
-    half = float(_sandwich_halfwidths(jac[None, :], e, A, C[i], noise, i)[0])
+    # the score jac * e lives on the clipped samples only, where the right model's output
+    # error is the measurement noise alone (the clip removes the plant's wander, which
+    # colours e elsewhere): the HAC variance of the masked residual
+    cov = hac_covariance(jac[:, None], e * (jac != 0), 1)[0, 0]
+    half = 1.96 * float(np.sqrt(max(cov, 0.0)))
     yidx = (tuple(float(v) for v in C[i]), tuple(float(v) for v in D[i]))
     spec = ((f"{out}_model", "yhat", yidx), (f"sat({out}_model)", "yhat_sat", yidx + (L,)))
     s = float(yh @ clipped) / max(float(yh @ yh), 1e-300)  # the best linear surrogate
