@@ -113,7 +113,8 @@ def test_a_right_sensor_gets_no_drift_nor_saturation():
     # and the drifting plant's other (correct) sensor gets none either
     nom, y, u, _, _, Q, R, _ = _case()
     tr = trace_channel(nom, output_channel(nom, "vel"), y, u, Q=Q, R=R, dt=DT, max_order=0)
-    assert "drift" not in _terms(tr.static), tr.static.formula
+    kinds = _terms(tr.static)
+    assert "drift" not in kinds and "yhat_sat" not in kinds, tr.static.formula
 
 
 def test_a_drift_law_is_not_evaluated_pointwise():
