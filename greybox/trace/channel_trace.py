@@ -315,6 +315,13 @@ class _SensorLag:
     residual_var: float
 
 
+def _dhat_bic_gain(d: NDArray, r: NDArray, npar: int) -> float:
+    """BIC of "d = 0" minus that of a sensor law with ``npar`` parameters leaving ``r`` of d^ (K,)."""
+    K = d.size
+    return float(K * np.log(max(float(d @ d), 1e-300) / max(float(r @ r), 1e-300)) -
+                 npar * np.log(K))
+
+
 def _lag_row(sys, model, i, tau):
     """``(a, cz (n,), dz (m,))``: the sensor state's row ``z[k+1] = a z + cz x + dz u``.
 
@@ -413,8 +420,8 @@ def _fit_sensor_lag(sys, model, i, y, u, x0, dxu, noise=None) -> _SensorLag | No
     dpred = _lag_output(row, xh, uh, d[0] + np.asarray(sys.C, dtype=float)[i] @ xh +
                         np.asarray(sys.D, dtype=float)[i] @ uh)[0] - \
         (np.asarray(sys.C, dtype=float)[i] @ xh + np.asarray(sys.D, dtype=float)[i] @ uh)
-    r1, K = d[0] - dpred, d.shape[1]
-    gain = K * np.log(max(float(d[0] @ d[0]), 1e-300) / max(float(r1 @ r1), 1e-300)) - np.log(K)
+    r1 = d[0] - dpred
+    gain = _dhat_bic_gain(d[0], r1, 1)
     Bd = np.vstack([B, row[2][None, :]])
     return _SensorLag(tau=tau, half=1.96 * float(np.sqrt(max(cov, 0.0))), sse=float(e @ e),
                       Ad=Ad, Bd=Bd, bic_gain=float(gain), residual_var=float(np.mean(r1**2)))
@@ -510,9 +517,8 @@ def _fit_sensor_drift(law, model, i, y, u, xs, ks, noise, dxu, label, unit, out,
     d, xh, uh, k0 = dxu
     dpred = (g * (C[i] @ xh + D[i] @ uh) if gain else 0.0) + th[-2] + \
         th[-1] * (k0 + np.arange(d.shape[1])) * h
-    r1, K = d[0] - dpred, d.shape[1]
-    bic_gain = K * np.log(max(float(d[0] @ d[0]), 1e-300) / max(float(r1 @ r1), 1e-300)) - \
-        len(th) * np.log(K)
+    r1 = d[0] - dpred
+    bic_gain = _dhat_bic_gain(d[0], r1, len(th))
     formula = _law_line(label, th, [sp[0] for sp in spec], unit, half) + \
         f"; t [s] from the record's first sample, the drift rate in {unit}/s"
     lg = StaticLaw(spec=tuple(spec), eps=np.zeros(1), coef=th[None, :], Ddx=Ddx, Ddu=Ddu,
@@ -587,9 +593,8 @@ def _fit_sensor_saturation(model, i, y, u, xs, noise, dxu, out, name):
     s = float(yh @ clipped) / max(float(yh @ yh), 1e-300)  # the best linear surrogate
     d, xh, uh = dxu
     yhh = C[i] @ xh + D[i] @ uh
-    r1, K = d[0] - (np.clip(yhh, -L, L) - yhh), d.shape[1]
-    bic_gain = K * np.log(max(float(d[0] @ d[0]), 1e-300) / max(float(r1 @ r1), 1e-300)) - \
-        np.log(K)
+    r1 = d[0] - (np.clip(yhh, -L, L) - yhh)
+    bic_gain = _dhat_bic_gain(d[0], r1, 1)
     lg = StaticLaw(spec=spec, eps=np.zeros(1), coef=np.array([[0.0, L]]),
                    Ddx=s * C[i][None, :], Ddu=s * D[i][None, :], nonlinear=True,
                    residual_var=np.array([float(np.mean(r1**2))]), bic_gain=float(bic_gain),
