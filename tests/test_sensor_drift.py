@@ -175,3 +175,14 @@ def test_rate_and_level_interval_coverage_over_seeds():
         hits_l += abs(law.coef[0, -1] - LEVEL) <= law.ci[0, -1]
     # P(>= 5 of 6) = 0.967 for an exact 95 % interval
     assert hits_r >= 5 and hits_l >= 5, (hits_r, hits_l)
+
+
+@pytest.mark.parametrize("rate, level", [(RATE, np.inf), (0.0, LEVEL)], ids=["drift", "clip"])
+def test_discrete_nominal_model(rate, level):
+    """A discrete nominal: the same drift rate, or clipping level, within its interval."""
+    nom, y, u, _, _, Q, R, _ = _case(rate, level)
+    nd = discretize(nom, DT)
+    law = trace_channel(nd, output_channel(nd, "pos"), y, u, Q=Q, R=R, max_order=0).static
+    truth = RATE if rate else LEVEL
+    assert _terms(law)[-1] == ("drift" if rate else "yhat_sat"), law.formula
+    assert abs(law.coef[0, -1] - truth) <= law.ci[0, -1], law.formula
