@@ -218,7 +218,7 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
         best = bic(float(e_st @ e_st), law.npar)
         name = f"{sys.name or 'model'}_updated"
         unit = channel.units[0] if channel.units else ""
-        alts = []  # (BIC, law, model)
+        alts = []  # (BIC, what, its parameters, law, updated model)
         lag = _fit_sensor_lag(sys, model, i, yw, uw, res.x_filt[:, ks], (d, x, uu), (Q, R))
         if lag is not None:
             alts.append((bic(lag.sse, 1), "sensor lag", f"tau = {lag.tau:.4g} +- "
@@ -236,10 +236,8 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
         for b, what, txt, _, _ in alts:
             notes.append(f"{what} ({txt}) against the static sensor law, by output error on "
                          f"the estimation data: BIC {b:.6g} vs {best:.6g}")
-        for b, _, _, law_a, model_a in sorted(alts, key=lambda a: a[0]):
-            if b < best:
-                law, static_model = law_a, model_a
-            break
+        if alts and min(a[0] for a in alts) < best:
+            _, _, _, law, static_model = min(alts, key=lambda a: a[0])
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
                         law_estimate=est, relative_degree=0, static=law,
                         static_model=static_model, notes=tuple(notes))
