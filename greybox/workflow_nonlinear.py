@@ -553,7 +553,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
 
 
 def _add_sensor_law(sys, law, name: str) -> ct.NonlinearIOSystem:
-    """``sys`` with the sensor law added to output ``law.output``: ``y_i = h_i(x, u) + law(x, u)``."""
+    """``sys`` with a sensor law on output ``i = law.output``: ``y_i = h_i(x, u) + law(x, u)``."""
     base = as_nonlinear(sys)
     e = np.zeros(base.noutputs)
     e[law.output] = 1.0
@@ -608,9 +608,9 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
             "(report.nonlinear.model, a NonlinearIOSystem: " +
             ("A x + B u + G law(x, u)" if eff.law.output is None else
              f"A x + B u, output {rep.nominal.output_labels[eff.law.output]} + law(x, u)") +
-            " in discrete time); 'updated (linearized)' is report.model.sys, the StateSpace holding the "
-            "law's best linear least-squares surrogate (a fit over the record, not a local "
-            "linearization); report.nonlinear.linearization is the local linearization at "
+            " in discrete time); 'updated (linearized)' is report.model.sys, the StateSpace "
+            "holding the law's best linear least-squares surrogate (a fit over the record, not "
+            "a local linearization); report.nonlinear.linearization is the local linearization at "
             "the mean filtered state and input" +
             (" (a sign(x) term, smoothed as tanh(x/eps), has slope 1/eps there when x is "
              "near 0: use greybox.linearize_at at your own operating point)"

@@ -314,7 +314,7 @@ class _SensorLag:
 
 
 def _dhat_bic_gain(d: NDArray, r: NDArray, npar: int) -> float:
-    """BIC of "d = 0" minus that of a sensor law with ``npar`` parameters leaving ``r`` of d^ (K,)."""
+    """BIC of "d = 0" minus that of a sensor law of ``npar`` parameters leaving ``r`` of d^ (K,)."""
     K = d.size
     return float(K * np.log(max(float(d @ d), 1e-300) / max(float(r @ r), 1e-300)) -
                  npar * np.log(K))
