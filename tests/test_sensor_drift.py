@@ -156,13 +156,15 @@ def test_saturating_sensor_is_traced_to_the_output():
 
 @pytest.mark.slow
 def test_rate_and_level_interval_coverage_over_seeds():
-    """Six seeds each: the 95 % intervals cover the drift rate and the clipping level.
+    """Five seeds each: the 95 % intervals cover the drift rate and the clipping level;
+    three right sensors get no drift (seed 101's rate is 2.1 sigma from 0: a 95 % test
+    alone would keep it; the drift must pass BIC's z^2 > ln N under the robust variance).
 
-    (Measured on 40 seeds: the rate's interval covered 37, the spread of r^ equal
-    to the reported sigma, 3.5e-05 m/s; the offset's 39; on 30 seeds L's 28.)
+    (bench/sensor_laws.py, 40 seeds: the rate's interval covered 37, the spread of r^
+    equal to the reported sigma, 3.5e-05 m/s; L's covered 38.)
     """
     hits_r, hits_l = 0, 0
-    for seed in range(20, 26):
+    for seed in range(20, 25):
         nom, y, u, _, _, Q, R, _ = _case(RATE, np.inf, seed)
         law = trace_channel(nom, output_channel(nom, "pos"), y, u, Q=Q, R=R, dt=DT,
                             max_order=0).static
@@ -173,8 +175,13 @@ def test_rate_and_level_interval_coverage_over_seeds():
                             max_order=0).static
         assert _terms(law) == ["yhat_sat"], law.formula
         hits_l += abs(law.coef[0, -1] - LEVEL) <= law.ci[0, -1]
-    # P(>= 5 of 6) = 0.967 for an exact 95 % interval
-    assert hits_r >= 5 and hits_l >= 5, (hits_r, hits_l)
+    # P(>= 4 of 5) = 0.977 for an exact 95 % interval
+    assert hits_r >= 4 and hits_l >= 4, (hits_r, hits_l)
+    for seed in (100, 101, 102):
+        nom, y, u, _, _, Q, R, _ = _case(0.0, np.inf, seed)
+        law = trace_channel(nom, output_channel(nom, "pos"), y, u, Q=Q, R=R, dt=DT,
+                            max_order=0).static
+        assert not {"drift", "yhat_sat"} & set(_terms(law)), (seed, law.formula)
 
 
 @pytest.mark.parametrize("rate, level", [(RATE, np.inf), (0.0, LEVEL)], ids=["drift", "clip"])
