@@ -508,8 +508,8 @@ def _fit_sensor_drift(law, model, i, y, u, xs, ks, noise, dxu, label, unit, out,
     half = _sandwich_halfwidths(X, e, A, C[i], noise, i)
     # the rate's z-statistic under that robust variance against BIC's threshold for one
     # parameter: the white-noise BIC of the output error overstates the evidence (the
-    # residual is coloured by the plant's wander), and a 95 % test alone would give a
-    # right sensor a drift in 1 record of 20
+    # residual is coloured by the plant's wander), and a 95 % test alone would keep a
+    # drift on a right sensor in 1 record of 20
     if not (1.96 * th[-1] / half[-1]) ** 2 > np.log(y.size):
         return None
     yidx = (tuple(float(v) for v in C[i]), tuple(float(v) for v in D[i]))
