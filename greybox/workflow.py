@@ -62,7 +62,7 @@ from .trace import (
 from .trace.dynamic import DynamicLaw, fit_sparse_dynamic
 from .trace.joint import joint_effect, refine_jointly
 from .trace.channels import force_channel, relative_coordinates
-from .trace.laws import direction
+from .trace.laws import direction, sensor_states
 from .trace.screen import screen_equations
 from .update import Subsystem, UpdatedModel, delta_update
 from .validate import (
@@ -119,9 +119,13 @@ class Effect:
     Attributes
     ----------
     kind : str
-        "static", "dynamic" or "none".
+        "static", "dynamic", "sensor" or "none". "sensor": a sensor-error law
+        the updated model carries as sensor states (a first-order lag: the
+        reading; a drift: offset and drift rate); a static sensor law (gain,
+        offset, |.|, saturation) is "static".
     order : int
-        Subsystem order (0 for a static law or none).
+        Subsystem order (0 for a static law or none; the number of sensor
+        states for "sensor").
     formula : str
         Readable law in the physical names.
     channel : str
@@ -720,8 +724,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     ranked.append(tr_.channel)
             for kc, ch in enumerate(ranked[:2]):
                 tick("higher-order subsystems", kc, min(2, len(ranked)))
-                if ch.md > 1:
-                    continue  # md = 2 already gives 2 states at order 1
+                if ch.md > 1 or ch.kind == "output":
+                    continue  # md = 2 already gives 2 states at order 1; a sensor law has no
+                    # subsystem (traced again, its notes would be listed twice)
                 try:
                     tr = trace_channel(sys, ch, ys, us, Q=Q, R=R, dt=dt, nonlinear=False,
                                        max_order=max_order, min_order=2)
@@ -804,7 +809,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             model = tr.static_model
             formula = law.formula
             pnotes = parameter_notes(sys, ch, law)
-            effect = Effect(kind="static", order=0, formula=formula, channel=ch.name,
+            nsens = sensor_states(law)  # a lag or a drift: sensor states, not a static law
+            effect = Effect(kind="sensor" if nsens else "static", order=nsens,
+                            formula=formula, channel=ch.name,
                             equations=ch.equations, nonlinear=law.nonlinear,
                             linearized=law.nonlinear, parameter_notes=pnotes, law=law)
         elif kind == "sparse":
@@ -879,8 +886,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             where = (f"one force between {' and '.join(ch.equations)} (it enters {where} as "
                      f"{np.array2string(g, precision=3)})")
         what = f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}"
-        if kind == "static" and any(sp[1] == "yhat_lag" for sp in effect.law.spec):
-            what = "sensor dynamics, a first-order lag (one sensor state)"
+        if effect.kind == "sensor":
+            what = ("sensor dynamics, a first-order lag (one sensor state)"
+                    if any(sp[1] == "yhat_lag" for sp in effect.law.spec) else
+                    "a drifting sensor (offset and drift rate: two sensor states)")
         msg = f"model error found in {where}: {what}; {describe_before_after(table)}"
         return LoopReport(model_error_detected=True, updated=True, message=msg, residual=white,
                           effect=effect, channel=ch, candidates=tuple(cands), gate=gate,

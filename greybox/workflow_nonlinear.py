@@ -552,6 +552,24 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                    nl=nl)
 
 
+def _add_sensor_law(sys, law, name: str) -> ct.NonlinearIOSystem:
+    """``sys`` with a sensor law on output ``i = law.output``: ``y_i = h_i(x, u) + law(x, u)``."""
+    base = as_nonlinear(sys)
+    e = np.zeros(base.noutputs)
+    e[law.output] = 1.0
+    h = base.outfcn
+
+    def out(t, x, u, params):
+        x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+        y = np.asarray(h(t, x, u, params), dtype=float)
+        d = np.asarray(law.evaluate(x.reshape(x.shape[0], -1), u.reshape(u.shape[0], -1)))[0]
+        return y + (np.outer(e, d) if y.ndim > 1 else e * d[0])
+
+    return ct.nlsys(base.updfcn, out, states=list(base.state_labels),
+                    inputs=list(base.input_labels), outputs=list(base.output_labels),
+                    dt=base.dt, params=dict(base.params or {}), name=name)
+
+
 def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
     """Attach the exact nonlinear model to a linear nominal's report with a nonlinear law.
 
@@ -575,7 +593,10 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
             and tr.filter_result is not None) or rep.nonlinear is not None:
         return rep
     res = tr.filter_result
-    model = add_law(res.sys, res.G, eff.law.evaluate, name=f"{rep.nominal.name}_updated")
+    if eff.law.output is not None:  # a sensor law adds to one output, not to the states
+        model = _add_sensor_law(res.sys, eff.law, f"{rep.nominal.name}_updated")
+    else:
+        model = add_law(res.sys, res.G, eff.law.evaluate, name=f"{rep.nominal.name}_updated")
     k0 = max(SKIP, res.period_converged or SKIP)
     x_op = res.x_filt[:, k0:].mean(axis=1)
     u = np.asarray(res.u, dtype=float)
@@ -584,10 +605,12 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
     nl = NonlinearUpdate(model=model, discrete=model, linearization=lin, x_op=x_op, u_op=u_op,
                          operating_point=_OP_TEXT.format(what="unknown-input filter's"))
     note = ("which row is which: 'updated' simulates the full nonlinear law "
-            "(report.nonlinear.model, a NonlinearIOSystem: A x + B u + G law(x, u) in discrete "
-            "time); 'updated (linearized)' is report.model.sys, the StateSpace holding the "
-            "law's best linear least-squares surrogate (a fit over the record, not a local "
-            "linearization); report.nonlinear.linearization is the local linearization at "
+            "(report.nonlinear.model, a NonlinearIOSystem: " +
+            ("A x + B u + G law(x, u)" if eff.law.output is None else
+             f"A x + B u, output {rep.nominal.output_labels[eff.law.output]} + law(x, u)") +
+            " in discrete time); 'updated (linearized)' is report.model.sys, the StateSpace "
+            "holding the law's best linear least-squares surrogate (a fit over the record, not "
+            "a local linearization); report.nonlinear.linearization is the local linearization at "
             "the mean filtered state and input" +
             (" (a sign(x) term, smoothed as tanh(x/eps), has slope 1/eps there when x is "
              "near 0: use greybox.linearize_at at your own operating point)"

@@ -8,6 +8,7 @@ channel, not a state equation) and report tau with its 95 % interval.
 
 from __future__ import annotations
 
+import json
 from functools import lru_cache
 
 import numpy as np
@@ -76,6 +77,9 @@ def test_lagging_sensor_is_traced_to_the_output():
         rep.message
     assert not rep.channel.equations  # not a state equation
     assert "sensor dynamics, a first-order lag" in rep.message, rep.message
+    assert rep.effect.kind == "sensor" and rep.effect.order == 1, rep.effect  # one sensor state
+    doc = json.loads(json.dumps(rep.as_dict()))  # the --json document says so too
+    assert doc["effect"]["kind"] == "sensor" and doc["effect"]["order"] == 1
     tau, half = _lag(rep.trace)
     # the 95 % interval covers the truth and is informative (measured 0.1000 +- 0.00096 s)
     assert abs(tau - TAU) <= half and half < 0.05 * TAU, (tau, half)

@@ -157,11 +157,14 @@ def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes, continuous=None
 def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> ChannelTrace:
     """A sensor-error channel: the filter with direct feedthrough and a law on the model output.
 
-    The law is static (gain, offset, |.|, cube: :func:`_refit_sensor_law`) or a
-    first-order sensor lag ``1/(tau s + 1)`` (:func:`_fit_sensor_lag`),
-    whichever has the lower BIC of the output error of that output on the
-    estimation data (its first ``oe_window(1)`` samples); a lag's updated
-    model carries the reading as one more state.
+    The law is static (gain, offset, |.|, cube: :func:`_refit_sensor_law`), a
+    first-order sensor lag ``1/(tau s + 1)`` (:func:`_fit_sensor_lag`), a
+    drift (offset and drift rate: :func:`_fit_sensor_drift`) or a saturation
+    ``clip(y, -L, L)`` (:func:`_fit_sensor_saturation`), whichever has the
+    lowest BIC of the output error of that output on the estimation data
+    (its first ``oe_window(1)`` samples; never the validation data). A lag's
+    updated model carries the reading as one more state, a drift's the
+    offset and the drift rate as two.
     """
     labels = list(channel.labels)
     res = feedthrough_uikf(model, y, u, unknown=labels, Q=Q, R=R)
@@ -200,24 +203,41 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
                    name=f"{sys.name or 'model'}_updated")
     static_model = UpdatedModel(sys=upd, Q=Q, R=R, order=model.nstates, kind="static")
     notes.append("a sensor-error channel: static law on the model's own output "
-                 "(gain, offset, |.|, cube) or a first-order sensor lag")
-    if not unstable_reason(model, N):  # the lag by output error, on an output-error window
+                 "(gain, offset, |.|, cube), a first-order sensor lag, a drift or a saturation")
+    if not unstable_reason(model, N):  # the alternatives by output error, on an OE window
         ks = min(k0, 20)
         ke = ks + oe_window(1)
         yw, uw = y[i, ks:ke], u[:, ks:ke]
+        xs = _nominal_states(A, B, res.x_filt[:, ks], uw)
+        e_st = yw - C[i] @ xs - D[i] @ uw - law.evaluate(xs, uw)[0]
+        Ne = e_st.size
+
+        def bic(sse, npar):
+            return Ne * np.log(max(sse, 1e-300) / Ne) + npar * np.log(Ne)
+
+        best = bic(float(e_st @ e_st), law.npar)
+        name = f"{sys.name or 'model'}_updated"
+        unit = channel.units[0] if channel.units else ""
+        alts = []  # (BIC, what, its parameters, law, updated model)
         lag = _fit_sensor_lag(sys, model, i, yw, uw, res.x_filt[:, ks], (d, x, uu), (Q, R))
         if lag is not None:
-            xs = _nominal_states(A, B, res.x_filt[:, ks], uw)
-            e_st = yw - C[i] @ xs - D[i] @ uw - law.evaluate(xs, uw)[0]
-            Ne = e_st.size
-            bic_st = Ne * np.log(max(e_st @ e_st, 1e-300) / Ne) + law.npar * np.log(Ne)
-            bic_lag = Ne * np.log(max(lag.sse, 1e-300) / Ne) + np.log(Ne)
-            notes.append(f"sensor lag tau = {lag.tau:.4g} +- {lag.half:.2g} s against the static "
-                         f"sensor law, by output error on the estimation data: BIC "
-                         f"{bic_lag:.6g} vs {bic_st:.6g}")
-            if bic_lag < bic_st:
-                law, static_model = _lag_law_and_model(lag, law, model, Q, R, m, channel,
-                                                       f"{sys.name or 'model'}_updated")
+            alts.append((bic(lag.sse, 1), "sensor lag", f"tau = {lag.tau:.4g} +- "
+                         f"{lag.half:.2g} s", *_lag_law_and_model(lag, law, model, Q, R, m,
+                                                                 channel, name)))
+        drift = _fit_sensor_drift(law, model, i, yw, uw, xs, ks, (Q, R), (d, x, uu, k0),
+                                  labels[0], unit, channel.output, name)
+        if drift is not None:
+            alts.append((bic(drift[2], drift[0].npar), "sensor drift",
+                         drift[0].formula, drift[0], drift[1]))
+        sat = _fit_sensor_saturation(model, i, yw, uw, xs, (Q, R), (d, x, uu),
+                                     channel.output, name)
+        if sat is not None:
+            alts.append((bic(sat[2], 1), "sensor saturation", sat[0].formula, sat[0], sat[1]))
+        for b, what, txt, _, _ in alts:
+            notes.append(f"{what} ({txt}) against the static sensor law, by output error on "
+                         f"the estimation data: BIC {b:.6g} vs {best:.6g}")
+        if alts and min(a[0] for a in alts) < best:
+            _, _, _, law, static_model = min(alts, key=lambda a: a[0])
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
                         law_estimate=est, relative_degree=0, static=law,
                         static_model=static_model, notes=tuple(notes))
@@ -291,6 +311,13 @@ class _SensorLag:
     Bd: NDArray
     bic_gain: float
     residual_var: float
+
+
+def _dhat_bic_gain(d: NDArray, r: NDArray, npar: int) -> float:
+    """BIC of "d = 0" minus that of a sensor law of ``npar`` parameters leaving ``r`` of d^ (K,)."""
+    K = d.size
+    return float(K * np.log(max(float(d @ d), 1e-300) / max(float(r @ r), 1e-300)) -
+                 npar * np.log(K))
 
 
 def _lag_row(sys, model, i, tau):
@@ -391,8 +418,8 @@ def _fit_sensor_lag(sys, model, i, y, u, x0, dxu, noise=None) -> _SensorLag | No
     dpred = _lag_output(row, xh, uh, d[0] + np.asarray(sys.C, dtype=float)[i] @ xh +
                         np.asarray(sys.D, dtype=float)[i] @ uh)[0] - \
         (np.asarray(sys.C, dtype=float)[i] @ xh + np.asarray(sys.D, dtype=float)[i] @ uh)
-    r1, K = d[0] - dpred, d.shape[1]
-    gain = K * np.log(max(float(d[0] @ d[0]), 1e-300) / max(float(r1 @ r1), 1e-300)) - np.log(K)
+    r1 = d[0] - dpred
+    gain = _dhat_bic_gain(d[0], r1, 1)
     Bd = np.vstack([B, row[2][None, :]])
     return _SensorLag(tau=tau, half=1.96 * float(np.sqrt(max(cov, 0.0))), sse=float(e @ e),
                       Ad=Ad, Bd=Bd, bic_gain=float(gain), residual_var=float(np.mean(r1**2)))
@@ -424,6 +451,167 @@ def _lag_law_and_model(lag, law, model, Q, R, m, channel, name):
                    formula=f"{out} = {out}_model / (tau s + 1), tau = ({lag.tau:.4g} ± "
                            f"{lag.half:.2g}) [s]", ci=np.array([[lag.half]]), output=i)
     return lg, UpdatedModel(sys=upd, Q=Qa, R=R, order=n + 1, kind="static")
+
+
+def _sandwich_halfwidths(X, e, A, c, noise, i):
+    """95 % half-widths of the least-squares fit ``e = r - th @ X`` on a nominal simulation.
+
+    The larger, per coefficient, of the HAC variance of the residual and the
+    sandwich under the noise model ``noise = (Q, R)`` (process noise colours the
+    output error through the plant: :func:`greybox.trace.oe.noise_covariance`),
+    as :func:`_fit_sensor_lag` does. ``X`` (k, T), ``c`` the output row, ``i`` its index.
+    """
+    sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (1, t, y)
+    Xs = X / sx[:, None]
+    cov = hac_covariance(Xs.T, e, 1) / np.outer(sx, sx)
+    Ji = np.linalg.pinv(Xs @ Xs.T)
+    Q, R = noise
+    vm = Ji @ noise_covariance(A, c[None, :], Xs.T, np.ones(1), 0, Q,
+                               np.atleast_2d(R[i, i])) @ Ji / np.outer(sx, sx)
+    return 1.96 * np.sqrt(np.maximum(np.clip(np.diag(cov), 0, None),
+                                     np.clip(np.diag(vm), 0, None)))
+
+
+def _fit_sensor_drift(law, model, i, y, u, xs, ks, noise, dxu, label, unit, out, name):
+    """A drifting sensor ``y_i = C_i x + D_i u + g y_model + b0 + r t``: (law, model, sse) or None.
+
+    Output-error least squares on the nominal simulation ``xs`` (the sensor
+    error does not feed back into the states) of the offset ``b0`` [output
+    units] and the drift rate ``r`` [output units/s], with the static law's
+    gain term ``g`` when it has one. ``t`` [s] is counted from the record's
+    first sample (y, u, xs start at sample ``ks``), so ``b0`` is the offset
+    there. 95 % intervals: :func:`_sandwich_halfwidths`. None unless the
+    rate's z-statistic under that variance passes BIC's threshold for one
+    parameter, ``z^2 > ln N`` (|z| > 2.9 at N = 4000).
+
+    The updated model carries the drift as two sensor states, ``<out>_offset``
+    (b) and ``<out>_drift`` (r), with ``db/dt = r``, ``dr/dt = 0`` (exact in
+    discrete time: ``b[k+1] = b[k] + dt r[k]``) and ``y_i += b``: a linear
+    StateSpace, so a Kalman filter tracks the sensor on line. A record that
+    starts later (validation data) has its own offset and rate at its first
+    sample: both are states, estimated with the initial state (a sensor keeps
+    drifting between records; the reported b0 and r are the estimation
+    record's). Their process noise is negligible (1e-12 of the largest of Q).
+    ``dxu = (d^, x^, u, k0)`` give ``bic_gain`` and ``residual_var`` on d^.
+    """
+    m = model.ninputs - 1
+    A = np.asarray(model.A, dtype=float)
+    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
+    h, n = float(model.dt), A.shape[0]
+    yh = C[i] @ xs + D[i] @ u
+    r = y - yh
+    t = (ks + np.arange(y.size)) * h
+    gain = any(sp[1] == "yhat" and law.coef[0, j] for j, sp in enumerate(law.spec))
+    X = np.vstack(([yh] if gain else []) + [np.ones_like(yh), t])
+    th = np.linalg.lstsq(X.T, r, rcond=None)[0]
+    e = r - th @ X
+    half = _sandwich_halfwidths(X, e, A, C[i], noise, i)
+    # the rate's z-statistic under that robust variance against BIC's threshold for one
+    # parameter: the white-noise BIC of the output error overstates the evidence (the
+    # residual is coloured by the plant's wander), and a 95 % test alone would keep a
+    # drift on a right sensor in 1 record of 20
+    if not (1.96 * th[-1] / half[-1]) ** 2 > np.log(y.size):
+        return None
+    yidx = (tuple(float(v) for v in C[i]), tuple(float(v) for v in D[i]))
+    spec = ([(f"{out}_model", "yhat", yidx)] if gain else []) + \
+        [("1", "const", 0), ("t", "drift", i)]
+    g = th[0] if gain else 0.0
+    Ddx, Ddu = g * C[i][None, :], g * D[i][None, :]
+    d, xh, uh, k0 = dxu
+    dpred = (g * (C[i] @ xh + D[i] @ uh) if gain else 0.0) + th[-2] + \
+        th[-1] * (k0 + np.arange(d.shape[1])) * h
+    r1 = d[0] - dpred
+    bic_gain = _dhat_bic_gain(d[0], r1, len(th))
+    formula = _law_line(label, th, [sp[0] for sp in spec], unit, half) + \
+        f"; t [s] from the record's first sample, the drift rate in {unit}/s"
+    lg = StaticLaw(spec=tuple(spec), eps=np.zeros(1), coef=th[None, :], Ddx=Ddx, Ddu=Ddu,
+                   nonlinear=False, residual_var=np.array([float(np.mean(r1**2))]),
+                   bic_gain=float(bic_gain), npar=len(th), formula=formula, ci=half[None, :],
+                   output=i)
+    Q, R = noise
+    B = np.asarray(model.B, dtype=float)[:, :m]
+    Ad = np.zeros((n + 2, n + 2))
+    Ad[:n, :n], Ad[n:, n:] = A, [[1.0, h], [0.0, 1.0]]
+    Ca = np.hstack([C, np.zeros((C.shape[0], 2))])
+    Dn = D.copy()
+    Ca[i, :n] += Ddx[0]
+    Dn[i] += Ddu[0]
+    Ca[i, n] = 1.0
+    upd = named_ss(Ad, np.vstack([B, np.zeros((2, m))]), Ca, Dn, model.dt,
+                   states=list(model.state_labels) + [f"{out}_offset", f"{out}_drift"],
+                   inputs=list(model.input_labels)[:m], outputs=model.output_labels, name=name)
+    Qa = np.zeros((n + 2, n + 2))
+    Qa[:n, :n] = Q
+    Qa[n, n] = Qa[n + 1, n + 1] = 1e-12 * max(float(np.max(np.diag(Q))), 1e-300)
+    return lg, UpdatedModel(sys=upd, Q=Qa, R=R, order=n + 2, kind="static"), float(e @ e)
+
+
+def _fit_sensor_saturation(model, i, y, u, xs, noise, dxu, out, name):
+    """A sensor clipping at +-L, ``y_i = clip(C_i x + D_i u, -L, L)``: (law, model, sse) or None.
+
+    L minimizes the output error on the nominal simulation ``xs`` over a grid
+    of quantiles of |y_model| (5 % .. 99.9 %), then a bounded scalar search
+    around the best grid point; None when the best L is at the grid's top
+    (nothing clipped). Its 95 % interval: the HAC variance
+    (:func:`greybox.trace.intervals.hac_covariance`) with the output-error
+    Jacobian ``sign(y_model) 1{|y_model| > L}`` and the residual on the
+    clipped samples (there the right model's output error is the
+    measurement noise alone; the plant's wander under process noise, which
+    colours the residual elsewhere, is clipped away). L is identifiable
+    only from samples the model drives beyond it. The law is nonlinear: the
+    updated StateSpace holds its best linear surrogate (a gain on y_model, a
+    least-squares fit on the simulation), the law itself the clip.
+    """
+    m = model.ninputs - 1
+    A = np.asarray(model.A, dtype=float)
+    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
+    yh = C[i] @ xs + D[i] @ u
+    r, a = y - yh, np.abs(yh)
+
+    def sse(L):
+        return float(np.sum((r - np.clip(yh, -L, L) + yh) ** 2))
+
+    grid = np.unique(np.quantile(a, np.linspace(0.05, 0.999, 40)))
+    if grid.size < 3 or not grid[0] > 0:
+        return None
+    f = np.array([sse(L) for L in grid])
+    j = int(np.argmin(f))
+    if j == grid.size - 1:
+        return None
+    opt = minimize_scalar(sse, bounds=(grid[max(j - 1, 0)], grid[j + 1]), method="bounded",
+                          options={"xatol": 1e-9 * grid[-1]})
+    L = float(opt.x)
+    clipped = np.clip(yh, -L, L) - yh
+    e = r - clipped
+    jac = np.sign(yh) * (a > L)
+    if not np.any(jac):
+        return None
+    # the score jac * e lives on the clipped samples only, where the right model's output
+    # error is the measurement noise alone (the clip removes the plant's wander, which
+    # colours e elsewhere): the HAC variance of the masked residual
+    cov = hac_covariance(jac[:, None], e * (jac != 0), 1)[0, 0]
+    half = 1.96 * float(np.sqrt(max(cov, 0.0)))
+    yidx = (tuple(float(v) for v in C[i]), tuple(float(v) for v in D[i]))
+    spec = ((f"{out}_model", "yhat", yidx), (f"sat({out}_model)", "yhat_sat", yidx + (L,)))
+    s = float(yh @ clipped) / max(float(yh @ yh), 1e-300)  # the best linear surrogate
+    d, xh, uh = dxu
+    yhh = C[i] @ xh + D[i] @ uh
+    r1 = d[0] - (np.clip(yhh, -L, L) - yhh)
+    bic_gain = _dhat_bic_gain(d[0], r1, 1)
+    lg = StaticLaw(spec=spec, eps=np.zeros(1), coef=np.array([[0.0, L]]),
+                   Ddx=s * C[i][None, :], Ddu=s * D[i][None, :], nonlinear=True,
+                   residual_var=np.array([float(np.mean(r1**2))]), bic_gain=float(bic_gain),
+                   npar=1, formula=f"{out} = clip({out}_model, -L, L), L = ({L:.4g} ± "
+                                   f"{half:.2g}) [{out}]",
+                   ci=np.array([[np.nan, half]]), output=i)
+    B = np.asarray(model.B, dtype=float)[:, :m]
+    Q, R = noise
+    Cn, Dn = C.copy(), D.copy()
+    Cn[i] += s * C[i]
+    Dn[i] += s * D[i]
+    upd = named_ss(A, B, Cn, Dn, model.dt, states=model.state_labels,
+                   inputs=list(model.input_labels)[:m], outputs=model.output_labels, name=name)
+    return lg, UpdatedModel(sys=upd, Q=Q, R=R, order=A.shape[0], kind="static"), float(e @ e)
 
 
 def _aligned_rows(v, align, K):

@@ -84,6 +84,30 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
 
 
 LINEAR_KINDS = ("x", "u", "rel", "yhat")
+# Sensor-law terms the updated model carries as sensor states (number of states each):
+# a first-order lag (the reading) and a drift (offset and drift rate; see sensor_states)
+SENSOR_STATE_KINDS = {"yhat_lag": 1, "drift": 2}
+
+
+def sensor_states(law: StaticLaw | None) -> int:
+    """Number of sensor states a sensor-error law adds to the updated model (0: a static law).
+
+    A first-order sensor lag adds the reading (one state), a drift adds the
+    offset and the drift rate (two states); the law's other terms are static.
+
+    Parameters
+    ----------
+    law : StaticLaw or None
+        A law from :func:`greybox.trace.trace_channel` (None: 0).
+
+    Returns
+    -------
+    int
+    """
+    if law is None:
+        return 0
+    return sum(SENSOR_STATE_KINDS.get(sp[1], 0) for j, sp in enumerate(law.spec)
+               if np.any(law.coef[:, j]))
 
 
 def output_terms(x: NDArray, u: NDArray, c: NDArray, dd: NDArray, name: str, *,
@@ -113,12 +137,16 @@ def _eval_terms(spec, eps, x, u):
         if kind == "const":
             out[r] = 1.0
             continue
-        if kind == "yhat_lag":
-            raise ModelError("a first-order sensor lag is not a function of the current sample; "
-                             "found a 'yhat_lag' term; expected a static term. Hint: simulate "
-                             "the trace's static_model (the sensor reading is its last state)")
+        if kind in SENSOR_STATE_KINDS:
+            what = "a first-order sensor lag" if kind == "yhat_lag" else "a sensor drift"
+            raise ModelError(f"{what} is not a function of the current sample; found a "
+                             f"{kind!r} term; expected a static term. Hint: simulate the "
+                             f"trace's static_model (it carries the sensor's states last)")
         if kind.startswith("yhat"):
             v = np.asarray(i[0]) @ x + (np.asarray(i[1]) @ u if len(i[1]) else 0.0)
+            if kind == "yhat_sat":  # (clip(v, -L, L) - v) / L: its coefficient is L itself
+                out[r] = (np.clip(v, -i[2], i[2]) - v) / i[2]
+                continue
             out[r] = v if kind == "yhat" else v**3 if kind == "yhat^3" else np.abs(v)
             continue
         if kind == "x*u":
@@ -201,9 +229,13 @@ class StaticLaw:
         Index of the output a sensor-error law adds to (``y_i = C_i x + D_i u
         + d``; Ddx, Ddu are then its linear part in the output equation);
         None: the law enters the state equations. A first-order sensor lag
-        (one term of kind "yhat_lag", coefficient tau [s]) is not static: the
-        trace's updated model carries the reading as one more state, and
-        :meth:`evaluate` raises ModelError for it.
+        (one term of kind "yhat_lag", coefficient tau [s]) and a drift (a
+        term of kind "drift", coefficient the drift rate [output units/s],
+        beside the offset "1" at the estimation record's first sample) are not
+        static: the trace's updated model carries the reading, or the offset
+        and the drift rate, as sensor states (:func:`sensor_states`), and
+        :meth:`evaluate` raises ModelError for them. A saturation (kind
+        "yhat_sat", ``clip(y_model, -L, L) - y_model``) has coefficient L.
     """
 
     spec: tuple
@@ -461,8 +493,12 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
 
 
 def _sensor_notes(channel: Channel, law: StaticLaw) -> tuple[str, ...]:
-    """What a sensor-error law says about sensor ``channel.output``: gain, offset, |.|, cube."""
+    """What a sensor-error law says about sensor ``channel.output``.
+
+    Gain, offset, |.|, cube, saturation level, first-order lag, drift rate.
+    """
     nm, out = channel.output, []
+    drift = any(sp[1] == "drift" and law.coef[0, j] for j, sp in enumerate(law.spec))
     for j, (_, kind, _) in enumerate(law.spec):
         c = law.coef[0, j]
         if c == 0:
@@ -472,8 +508,18 @@ def _sensor_notes(channel: Channel, law: StaticLaw) -> tuple[str, ...]:
         if kind == "yhat":
             out.append(f"sensor {nm}: gain 1 in the model; the data want {1 + c:.4g}{pm} "
                        f"({100 * c:+.1f} %)")
+        elif kind == "const" and drift:
+            out.append(f"sensor {nm}: offset {c:.4g}{pm} [{nm}] at the estimation record's "
+                       f"first sample (0 in the model; the updated model's state "
+                       f"{nm}_offset, estimated with the initial state of every record)")
         elif kind == "const":
             out.append(f"sensor {nm}: offset {c:.4g}{pm} [{nm}] (0 in the model)")
+        elif kind == "drift":
+            out.append(f"sensor {nm}: drifts at {c:.4g}{pm} [{nm}]/s (0 in the model; the "
+                       f"updated model's state {nm}_drift: d{nm}_offset/dt = {nm}_drift)")
+        elif kind == "yhat_sat":
+            out.append(f"sensor {nm}: saturates at +-{c:.4g}{pm} [{nm}] (the sensor reads "
+                       f"clip({nm}, -L, L); none in the model)")
         elif kind == "yhat_abs":
             out.append(f"sensor {nm}: {c:.4g}{pm} * |{nm}| (with the gain at 0 a rectifier: "
                        f"the sensor reads |{nm}|)")
