@@ -139,6 +139,11 @@ def test_drives_before_after(summary):
                                rtol=0.02)
     np.testing.assert_allclose([t["updated"]["se"], t["updated"]["rms"]], [26.2, 0.114],
                                rtol=0.02)
+    # PE: the updated row's one-step predictor is an extended Kalman filter on the |.| law
+    # (it read ~1e28 % with a constant gain from the law's linear stand-in, which diverged):
+    # measured 10.9 % -> 9.55 %; 2 %: rounding
+    np.testing.assert_allclose([t["nominal"]["pe"], t["updated"]["pe"]], [10.9, 9.55],
+                               rtol=0.02)
     # high-amplitude record: only 13 % of its model speed samples are < 0; the sensor
     # channel is the best candidate but its law's BIC gain on d^ fails the gate: unchanged
     high = summary["drives"]["high"]

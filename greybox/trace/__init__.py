@@ -33,6 +33,7 @@ from .channels import (
 from .laws import (
     StaticLaw,
     aligned,
+    ekf_predict_with_law,
     law_terms,
     output_terms,
     parameter_notes,
@@ -55,5 +56,6 @@ __all__ = [
     "aligned",
     "simulate_with_law",
     "predict_with_law",
+    "ekf_predict_with_law",
     "parameter_notes",
 ]
