@@ -17,7 +17,10 @@ on the delayed, fixed-interval smoothed d^ (:func:`greybox.smooth_uikf`),
 weights the law's terms as that d^ sees them (:func:`greybox.input_weights`:
 first-order hold of a continuous force, [1/6, 2/3, 1/6]) and fits by GLS
 (the d^ noise is coloured). It finds sign(v) and |v| for EMPS (the published
-Coulomb friction and friction asymmetry) and y^3 first for Silverbox.
+Coulomb friction and friction asymmetry; the published symmetric model's
+offset is the mean of the asymmetry term, printed below) and y^3 first for
+Silverbox, whose d^ law simulates far above the noise floor and is refitted
+by output error (v^3 then dropped; arrow test: ``bench/silverbox_arrow.py``).
 
 Choices (stated, not tuned on validation data):
 
