@@ -425,7 +425,8 @@ class _OutputErrorNonlinearLaw:
 # squared error is above this many times what the noise model alone gives (_noise_floor):
 # 10x in RMS. Measured ratios: a right cubic law under process noise 0.7-44 (20 records of
 # tests/test_trace_delayed.py; the floor leaves out the initial state's error and the law's
-# nonlinearity), EMPS 0.8, Silverbox 344, a static law for a lagged damper 2e4.
+# nonlinearity), EMPS 0.8, Silverbox 344, a static law for a lagged damper 2e4 (windows of
+# 4000 samples; the right-law records are 2000 samples long).
 _FLOOR_FACTOR = 100.0
 
 
