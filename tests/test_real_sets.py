@@ -93,8 +93,11 @@ def test_exchanger_law_contains_the_bilinear_q_T_term(summary):
     assert hx["detected"]
     coef, half = hx["eq_terms"]["T*q"]
     # negative (more flow: faster, smaller response) and its 95 % interval excludes 0
-    # (measured -0.141 +- 0.075 per s and flow unit)
+    # (measured -0.164 +- 0.020 per s and flow unit, the only term left after the
+    # output-error refit of the d^ law, which had q, T, an offset and |T| beside it and
+    # -0.141 +- 0.075)
     assert coef < 0 and abs(coef) > half > 0, hx["eq_law"]
+    assert list(hx["eq_terms"]) == ["T*q"], hx["eq_law"]
 
 
 @needs_data
@@ -111,8 +114,9 @@ def test_exchanger_before_after(summary):
     assert not hx["updated"] and hx["passed"] == {"whiteness": True, "bic": True,
                                                   "se_drop": False}
     assert t["updated"]["se"] == t["nominal"]["se"]
-    # the static law with T*q, added anyway: 34.1 % on the test split (no real gain)
-    assert hx["forced_static"]["se"] < t["nominal"]["se"]
+    # the static law (T*q alone), added anyway: 35.8 % on the test split, no gain (the d^
+    # law with five terms gave 34.1 %): within 5 % of the nominal either way
+    assert abs(hx["forced_static"]["se"] / t["nominal"]["se"] - 1) < 0.05, hx["forced_static"]
 
 
 @needs_data

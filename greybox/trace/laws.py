@@ -451,7 +451,11 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
 
 def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArray,
                      u: NDArray, K: NDArray, x0: NDArray) -> NDArray[np.float64]:
-    """One-step predictions ``C x^[k|k-1] + D u`` of a constant-gain filter on the nonlinear model."""
+    """One-step predictions ``C x^[k|k-1] + D u`` of a constant-gain filter on the nonlinear model.
+
+    A gain designed on the law's linear stand-in can diverge (a |.| sensor);
+    the validation table's PE uses :func:`ekf_predict_with_law`.
+    """
     A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
     N = u.shape[1]
     yp = np.empty((C.shape[0], N))
