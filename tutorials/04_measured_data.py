@@ -174,7 +174,8 @@ print(f"inside eq(v): relative degree {fe['r']} (weights {np.round(fe['w'], 3)})
       f"delayed smoothed d^: lag-1 {fe['lag1_2']:.3f}, variance {fe['var2']:.3g} "
       f"(its estimation-noise variance {fe['pd2']:.3g}) (m/s^2)^2")
 law_e = fe["trace"].static
-print("trace law (GLS on the delayed, smoothed d^):", law_e.formula)
+print("trace law (GLS on the delayed, smoothed d^; refitted by output error where the "
+      "simulation contradicts it):", law_e.formula)
 names_e = [sp[0] for sp in law_e.spec]
 j = names_e.index("sign(v)")
 Fc, hFc = -M * law_e.coef[0, j], M * law_e.ci[0, j]
@@ -280,7 +281,8 @@ fs = inside(silver, y_sb[None, est], uc[None, est], Q, R, dt)
 print(f"inside eq(v): relative degree {fs['r']} (weights {np.round(fs['w'], 3)}); r = 1 "
       f"filter d^: lag-1 {fs['lag1']:.3f}, variance {fs['var1']:.3g}; delayed smoothed d^: "
       f"lag-1 {fs['lag1_2']:.3f}, variance {fs['var2']:.3g} (V/s^2)^2")
-print("trace law (GLS on the delayed, smoothed d^):", fs["trace"].static.formula)
+print("trace law (GLS on the delayed, smoothed d^; refitted by output error where the "
+      "simulation contradicts it):", fs["trace"].static.formula)
 # the physically expected law d_v = a*y + b*v + k*y^3 on the same d^, with intervals
 th_s, hw_s = fit_terms(fs, ["y", "v", "y^3"])
 x2, d2 = fs["x"], fs["d2"]
