@@ -110,7 +110,7 @@ class ModelValidation:
         Simulation error (eq. 42, relative RMS) [%]; NaN when undefined
         (see ``se_reason``).
     pe : RelativeError
-        One-step prediction error [%].
+        One-step prediction error [%]; NaN when undefined (see ``pe_reason``).
     whiteness : WhitenessTest
         Ljung-Box test of the one-step prediction residuals.
     autocorr : ndarray, shape (noutputs, lags + 1)
@@ -129,6 +129,8 @@ class ModelValidation:
     se_reason : str
         Why ``se`` is undefined (an unstable model, a diverged simulation),
         or "".
+    pe_reason : str
+        Why ``pe`` is undefined (the one-step predictor diverged), or "".
     """
 
     name: str
@@ -144,22 +146,30 @@ class ModelValidation:
     residuals: NDArray[np.float64] = field(repr=False)
     output_labels: tuple[str, ...] = ()
     se_reason: str = ""
+    pe_reason: str = ""
 
     @property
     def se_defined(self) -> bool:
         """The simulation error is defined (stable model, finite simulation)."""
         return not self.se_reason
 
+    @property
+    def pe_defined(self) -> bool:
+        """The one-step prediction error is defined (the predictor did not diverge)."""
+        return not self.pe_reason
+
     def as_dict(self) -> dict:
         """JSON-ready summary (an undefined SE is None, with ``se_reason``)."""
         out = {"order": self.order,
                "se": self.se.value if self.se_defined else None,
-               "pe": self.pe.value,
+               "pe": self.pe.value if self.pe_defined else None,
                "se_per_output": self.se.per_output.tolist() if self.se_defined else None,
-               "pe_per_output": self.pe.per_output.tolist(),
+               "pe_per_output": self.pe.per_output.tolist() if self.pe_defined else None,
                "whiteness_pvalue": self.whiteness.pvalue.tolist()}
         if not self.se_defined:
             out["se_reason"] = self.se_reason
+        if not self.pe_defined:
+            out["pe_reason"] = self.pe_reason
         return out
 
 

@@ -54,7 +54,7 @@ from .trace import (
     ChannelTrace,
     StaticLaw,
     parameter_notes,
-    predict_with_law,
+    ekf_predict_with_law,
     resolve_channel_spec,
     simulate_with_law,
     trace_channel,
@@ -343,19 +343,35 @@ def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, sk
     if not np.all(np.isfinite(y_sim)):
         se_reason = se_reason or "the simulation diverged: its simulation error is undefined"
         y_sim = np.full(y.shape, np.nan)
-    kf = kalman_filter(upd.sys, y, u, Q=upd.Q, R=upd.R)
-    y_pred = predict_with_law(res.sys, res.G, law, y, u, kf.K, x0)
+    # the one-step predictor of a nonlinear law: an extended Kalman filter (gain from the
+    # law's local slope); a constant gain designed on the law's linear stand-in diverges when
+    # the slope changes sign (a |.| sensor), and its PE read ~1e28 %
+    y_pred = ekf_predict_with_law(res.sys, res.G, law, y, u, x0, Q=upd.Q, R=upd.R)
+    pe_reason = ""
+    if not np.all(np.isfinite(y_pred[:, skip:])):
+        pe_reason = "the one-step predictor (extended Kalman filter) diverged"
+        y_pred = np.full(y.shape, np.nan)
     e = y - y_pred
+    p = y.shape[0]
+    if pe_reason:  # no residual: its statistics are undefined too
+        nan = np.full(p, np.nan)
+        white = WhitenessTest(statistic=nan, pvalue=nan, lags=lags, alpha=alpha,
+                              white=np.zeros(p, bool))
+        acf = np.full((p, lags + 1), np.nan)
+        xcf = np.full((u.shape[0], p, 2 * lags + 1), np.nan)
+    else:
+        white = whiteness_test(e[:, skip:], lags, alpha=alpha)
+        acf = autocorrelation(e[:, skip:], lags)
+        xcf = cross_correlation(u[:, skip:], e[:, skip:], lags) if u.shape[0] else \
+            np.zeros((0, p, 2 * lags + 1))
     return ModelValidation(
         name=name, order=upd.order,
-        se=undefined_error(y.shape[0]) if se_reason else relative_error(y, y_sim, skip=skip),
-        pe=relative_error(y, y_pred, skip=skip),
-        whiteness=whiteness_test(e[:, skip:], lags, alpha=alpha),
-        autocorr=autocorrelation(e[:, skip:], lags),
-        crosscorr=cross_correlation(u[:, skip:], e[:, skip:], lags) if u.shape[0] else
-        np.zeros((0, y.shape[0], 2 * lags + 1)),
+        se=undefined_error(p) if se_reason else relative_error(y, y_sim, skip=skip),
+        pe=undefined_error(p) if pe_reason else relative_error(y, y_pred, skip=skip),
+        whiteness=white, autocorr=acf, crosscorr=xcf,
         band=correlation_band(y.shape[1] - skip, 0.99), y_sim=y_sim, y_pred=y_pred,
-        residuals=e, output_labels=tuple(upd.sys.output_labels), se_reason=se_reason)
+        residuals=e, output_labels=tuple(upd.sys.output_labels), se_reason=se_reason,
+        pe_reason=pe_reason)
 
 
 def _dynamic_formula(sub: Subsystem, ch: Channel, dt: float, x, u) -> str:
@@ -646,11 +662,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 if tr.static.nonlinear:
                     res = tr.filter_result
                     x0 = estimate_initial_state(sm.sys, ys, us)
-                    K = kalman_filter(sm.sys, ys, us, Q=sm.Q, R=sm.R).K if unstable else None
                     se = _fit_error(sm.sys, sm.Q, sm.R,
                                     ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us, x0),
-                                    ypred=lambda: predict_with_law(res.sys, res.G, tr.static, ys,
-                                                                   us, K, x0))
+                                    ypred=lambda: ekf_predict_with_law(
+                                        res.sys, res.G, tr.static, ys, us, x0, Q=sm.Q, R=sm.R))
                 else:
                     se = _fit_error(sm.sys, sm.Q, sm.R)
                 cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))

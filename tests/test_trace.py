@@ -202,9 +202,15 @@ def test_trace_channel_dynamic_law_matches_true_augmented_poles():
     # invariant (the subsystem's own coordinates are not unique); measured error
     # ~1e-5, 1e-3 is still 0.1 % of the pole radius
     np.testing.assert_allclose(ev, ev_true, atol=1e-3)
-    # a static law cannot hold the lag: its model misses the poles by far more
+    # a static law cannot hold the lag: its model has no pole near the lag's (0.986) and
+    # misses the others by far more (its output-error refit, a linear law in p and v, puts
+    # the oscillatory pair 2e-3 off; the dynamic model's error is ~1e-5)
     ev_s = np.sort_complex(np.linalg.eigvals(tr.static_model.sys.A))
-    assert np.min(np.abs(ev_s[:, None] - ev_true[None, :]), axis=1).max() > 1e-2
+    lag = ev_true[np.argmin(np.abs(ev_true.imag))]
+    assert np.min(np.abs(ev_s - lag)) > 1e-2
+    miss_s = np.min(np.abs(ev_s[:, None] - ev_true[None, :]), axis=1).max()
+    miss_d = np.min(np.abs(ev[:, None] - ev_true[None, :]), axis=1).max()
+    assert miss_s > 10 * miss_d, (miss_s, miss_d)
 
 
 def test_trace_channel_skips_unobservable_channel():

@@ -227,7 +227,8 @@ figure(rep, dT[None, val], dt, "T - T0 [degC]", "heat exchanger, test [2800:4000
 ch = [c for c in resolve_channel_spec(hx, None) if c.name == "eq(T)"][0]
 tr = trace_channel(hx, ch, dT[None, est], dq[None, est], Q=Q_hx, R=R_hx, dt=dt, max_order=0)
 law_terms_hx = terms_of(tr.static)
-print("   inside eq(T): static law on d^:", tr.static.formula)
+print("   inside eq(T): static law (on d^; refitted by output error where the simulation "
+      "contradicts it):", tr.static.formula)
 if "T*q" in law_terms_hx:
     c_, h_ = law_terms_hx["T*q"]
     print(f"   -> the bilinear energy-balance term T*q: {c_:.3g} +- {h_:.2g} 1/(s flow unit) "

@@ -18,7 +18,11 @@ first-order dynamic laws of a continuous model are parametrized in
 continuous time and refined by output error (``oe``, ``dynamic``); with
 several effects, ``joint`` refits them all at once. Nonlinear laws stay in
 discrete time: ``d[j]`` acts through the ZOH-discretized G between samples
-j and j+1.
+j and j+1; one whose simulation is far above the noise model's floor and
+whose d^ fit the simulation contradicts is refitted by output error and
+pruned (``oe._refine_nonlinear_oe``). The one-step predictions of a model
+with a nonlinear law come from an extended Kalman filter
+(:func:`ekf_predict_with_law`).
 """
 
 
@@ -33,6 +37,7 @@ from .channels import (
 from .laws import (
     StaticLaw,
     aligned,
+    ekf_predict_with_law,
     law_terms,
     output_terms,
     parameter_notes,
@@ -55,5 +60,6 @@ __all__ = [
     "aligned",
     "simulate_with_law",
     "predict_with_law",
+    "ekf_predict_with_law",
     "parameter_notes",
 ]

@@ -43,6 +43,7 @@ from .laws import (
 )
 from .intervals import hac_covariance
 from .oe import (
+    _refine_nonlinear_oe,
     _refine_static_oe,
     _select_static_oe,
     noise_covariance,
@@ -799,6 +800,13 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                                             k0, labels, channel.units, tscale, cont, (Q, R))
         if se_y < se_d:
             notes.append(f"static law refined by output error on y: estimation SE "
+                         f"{se_d:.3g}% -> {se_y:.3g}%")
+    elif law.nonlinear and oe_ok:  # the same for a nonlinear law (simulated, pruned)
+        law, se_d, se_y = _refine_nonlinear_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
+                                               k0, labels, channel.units, law.term_scale(x, uu),
+                                               noise=(Q, R))
+        if se_y < se_d:
+            notes.append(f"nonlinear static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
     if channel.kind == "force" and cont is not None and oe_ok and law.npar \
             and not law.nonlinear and law.time_base == "continuous":

@@ -433,6 +433,17 @@ def _law_line(label: str, coefs, names, unit: str, half=None) -> str:
 
 
 # --------------------------------------------------------------------------- nonlinear laws
+def _step_cols(A, X, bu, G, law, uk):
+    """:func:`_step` for the states in the columns of X (nstates, K); bu (nstates,)."""
+    F = law.evaluate(X, uk)
+    base = A @ X + bu[:, None]
+    if law.hold is None:
+        return base + G @ F
+    G0, G1 = law.hold
+    Xs = base + (G0 + G1) @ F  # predictor: d constant over the sample
+    return base + G0 @ F + G1 @ law.evaluate(Xs, uk)
+
+
 def _step(A, xk, bu, G, law, uk):
     """``A x + B u + G d`` with d held (ZOH), or first-order hold of the law (Heun step)."""
     fk = law.evaluate(xk[:, None], uk)[:, 0]
@@ -472,7 +483,11 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
 
 def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArray,
                      u: NDArray, K: NDArray, x0: NDArray) -> NDArray[np.float64]:
-    """One-step predictions ``C x^[k|k-1] + D u`` of a constant-gain filter on the nonlinear model."""
+    """One-step predictions ``C x^[k|k-1] + D u`` of a constant-gain filter on the nonlinear model.
+
+    A gain designed on the law's linear stand-in can diverge (a |.| sensor);
+    the validation table's PE uses :func:`ekf_predict_with_law`.
+    """
     A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
     N = u.shape[1]
     yp = np.empty((C.shape[0], N))
@@ -490,6 +505,85 @@ def predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArra
             break
     return yp
 
+
+def ekf_predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: NDArray,
+                         u: NDArray, x0: NDArray, *, Q: NDArray, R: NDArray,
+                         P0: NDArray | None = None) -> NDArray[np.float64]:
+    """One-step predictions of an extended Kalman filter on the model with a static law.
+
+    The model is ``x[k+1] = A x + B u + G law(x, u)`` (a state-equation law,
+    integrated as :func:`simulate_with_law` does) or ``y = C x + D u +
+    law(x, u)`` on output ``law.output`` (a sensor law). The gain is
+    recomputed at every sample from the law's local slope (forward
+    differences of the step and of the output map at the current estimate):
+    a constant gain designed on the law's linear stand-in is no predictor of
+    a nonlinear law; e.g. the stand-in of a rectifying sensor ``|y|`` has
+    the slope's sign wrong for half of the samples, and such a predictor
+    diverges.
+
+    Parameters
+    ----------
+    model : control.StateSpace
+        Discrete nominal model (A, B, C, D).
+    G : ndarray, shape (nstates, md)
+        How the law enters the state equations (zero for a sensor law).
+    law : StaticLaw
+    y : ndarray, shape (noutputs, nsteps)
+        Measured outputs.
+    u : ndarray, shape (ninputs, nsteps)
+        Known inputs.
+    x0 : ndarray, shape (nstates,)
+        Initial state estimate (prior mean at k = 0).
+    Q : ndarray, shape (nstates, nstates)
+        Process noise covariance of the discrete model.
+    R : ndarray, shape (noutputs, noutputs)
+        Measurement noise covariance.
+    P0 : ndarray, shape (nstates, nstates), optional
+        Prior covariance at k = 0 (default: identity, as :func:`greybox.kalman_filter`).
+
+    Returns
+    -------
+    ndarray, shape (noutputs, nsteps)
+        ``y^[k|k-1]``; NaN from the sample where the filter diverged (a
+        non-finite or exploding estimate) on.
+    """
+    A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
+    Q, R = np.atleast_2d(np.asarray(Q, dtype=float)), np.atleast_2d(np.asarray(R, dtype=float))
+    n, N = A.shape[0], u.shape[1]
+    yp = np.full((C.shape[0], N), np.nan)
+    xp = np.asarray(x0, dtype=float).copy()
+    P = np.eye(n) if P0 is None else np.asarray(P0, dtype=float).copy()
+    Bu, Du = B @ u, D @ u
+    eye = np.eye(n)
+    out = law.output
+    with np.errstate(over="ignore", invalid="ignore"):  # a diverging filter: caught below
+        for k in range(N):
+            uk = u[:, k:k + 1]
+            H = C
+            yk = C @ xp + Du[:, k]
+            if out is not None:  # the sensor law and its slope at x^[k|k-1]
+                h = 1e-7 * (np.abs(xp) + np.sqrt(np.abs(np.diag(P)))) + 1e-12
+                fv = law.evaluate(np.c_[xp, xp[:, None] + np.diag(h)], uk)[0]
+                yk[out] += fv[0]
+                H = C.copy()
+                H[out] += (fv[1:] - fv[0]) / h
+            yp[:, k] = yk
+            PH = P @ H.T
+            S = H @ PH + R
+            Kk = np.linalg.solve(S, PH.T).T
+            xf = xp + Kk @ (y[:, k] - yk)
+            IKH = eye - Kk @ H
+            P = IKH @ P @ IKH.T + Kk @ R @ Kk.T  # Joseph form: stays symmetric, PSD
+            h = 1e-7 * (np.abs(xf) + np.sqrt(np.abs(np.diag(P)))) + 1e-12
+            Xn = _step_cols(A, np.c_[xf, xf[:, None] + np.diag(h)], Bu[:, k], G, law, uk)
+            xp = Xn[:, 0]
+            F = (Xn[:, 1:] - xp[:, None]) / h
+            P = F @ P @ F.T + Q
+            P = 0.5 * (P + P.T)
+            if not (np.all(np.isfinite(xp)) and np.all(np.isfinite(P))) \
+                    or np.max(np.abs(xp)) > 1e100:
+                break
+    return yp
 
 
 def _sensor_notes(channel: Channel, law: StaticLaw) -> tuple[str, ...]:
