@@ -807,11 +807,18 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     dl = fit_shared_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
                                             y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
                                             pole=float(lam.max()) if lam.size else None)
+                    se = np.inf if dl is None else _fit_error(dl.model.sys, dl.model.Q,
+                                                              dl.model.R)
                 except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                     notes.append(f"{ch.name}: shared-state law failed: {e}")
                     break
-                if dl is not None:
-                    se = _fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+                if dl is not None and dl.one_direction and any(
+                        t[2].channel.kind == "force" and
+                        set(t[2].channel.equations) == set(ch.equations) for t in scored):
+                    cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
+                                                "redundant", "one state along one direction: "
+                                                "the force channel's law says the same"))
+                elif dl is not None:
                     cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
                                                 "ok"))
                     sparse[id(tr_)] = dl

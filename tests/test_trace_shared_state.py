@@ -65,6 +65,7 @@ def test_one_shared_state_in_the_pair(runs, seed):
     assert rep.effect.kind == "dynamic" and rep.effect.order == 1
     dl = rep.effect.dynamic_law
     assert isinstance(dl, SharedLaw)
+    assert not dl.one_direction  # d_T1 carries T1, d_T2 carries T2: no fixed direction
     assert rep.model.sys.nstates == nom.nstates + 1  # one state, shared by both equations
     assert dl.npar <= 8, dl.formula  # the true law has 6; the unstructured pair filter 24
     # the true model's validation SE is the floor; 1.5x as issue 8 item 7 asks

@@ -447,6 +447,17 @@ class SharedLaw:
     continuous: ct.StateSpace = field(repr=False)
     dt: float
 
+    @property
+    def one_direction(self) -> bool:
+        """True if d stays along k: the feedthrough is ``k e^T`` (within 5 % of its largest term).
+
+        Such a law is one force along k (an md = 1 law along ``G k``), not a
+        state shared along no fixed direction.
+        """
+        dev = self.E - np.outer(self.k, self.E[self.reference])
+        return bool(np.max(np.abs(dev), initial=0.0) <=
+                    0.05 * np.max(np.abs(self.E), initial=0.0))
+
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """The law's d, shape (md, K), on x (nstates, K) and u (ninputs, K).
 
@@ -642,8 +653,19 @@ def _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, th
                 np.sum(alt[1].fun ** 2) <= 1.01**2 * np.sum(sol.fun ** 2)):
             break
         prob, sol, hw = alt
-    if not float(sol.x[0]) < 0:
+    if not float(sol.x[0]) < 0 or not np.all(np.isfinite(hw)):
         return None
+    # unstable through the loop x -> z -> x (the output-error window is finite): no law
+    lam0 = float(np.max(np.linalg.eigvals(prob.Ac).real, initial=0.0))
+    if np.max(np.linalg.eigvals(prob.cont(sol.x)[0]).real) > lam0 + 1e-9 * (1 + abs(lam0)):
+        return None
+    # a component whose gain k_c is not told from 0 and has no feedthrough: the law of the
+    # smaller channel (a single equation), not a shared state
+    nb, md = len(prob.bdrv), prob.md
+    k, hk = prob.split(sol.x)[2], np.insert(hw[1 + nb:nb + md], prob.ref, 0.0)
+    for c in range(md):
+        if abs(k[c]) < hk[c] and not any(cc == c for cc, _ in prob.eterms):
+            return None
     return _shared_law_from(sys, channel, prob, sol.x, hw, Q, R)
 
 
