@@ -5,7 +5,8 @@ seeds 0-4). Prints, per seed, the effects found with their laws, the validation 
 and the true model's SE. The plants are the tests' own
 (``tests/test_trace_scale.py::_lag_and_spring``, ``tests/test_trace_shared.py::_maxwell``);
 ``thermal`` (``tests/plantlib.py::thermal_pair``: a hidden thermal mass shared by two
-bodies, along no fixed direction) is a known limit of issue 8 item 2, not yet tested.
+bodies, along no fixed direction; issue 8 item 2, the shared-state law, tested on
+seeds 1-3 in ``tests/test_trace_shared_state.py``).
 """
 
 from __future__ import annotations

@@ -59,7 +59,7 @@ from .trace import (
     simulate_with_law,
     trace_channel,
 )
-from .trace.dynamic import DynamicLaw, fit_sparse_dynamic
+from .trace.dynamic import DynamicLaw, SharedLaw, fit_shared_dynamic, fit_sparse_dynamic
 from .trace.joint import joint_effect, refine_jointly
 from .trace.channels import force_channel, relative_coordinates
 from .trace.laws import direction, sensor_states
@@ -141,8 +141,9 @@ class Effect:
         Which existing model parameters the law re-scales, and by how much.
     law : StaticLaw or None
     subsystem : Subsystem or None
-    dynamic_law : DynamicLaw or None
-        A sparse first-order law in continuous time (pole, drivers, intervals).
+    dynamic_law : DynamicLaw or SharedLaw or None
+        A sparse first-order law in continuous time (pole, drivers, intervals);
+        a SharedLaw for one state shared by the equations of a pair.
     """
 
     kind: str
@@ -155,7 +156,7 @@ class Effect:
     parameter_notes: tuple[str, ...] = ()
     law: StaticLaw | None = field(default=None, repr=False)
     subsystem: Subsystem | None = field(default=None, repr=False)
-    dynamic_law: DynamicLaw | None = field(default=None, repr=False)
+    dynamic_law: DynamicLaw | SharedLaw | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         """JSON-ready summary."""
@@ -646,7 +647,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         #    higher orders for the two channels that explain the data best (cost control)
         cands, notes = [], []
         scored = []  # (se, npar, trace, kind)
-        sparse = {}  # id(trace) -> DynamicLaw
+        sparse = {}  # id(trace) -> DynamicLaw or SharedLaw
 
         def _score(tr):
             tr = _light(tr)  # every candidate's full filter record would be kept to the end
@@ -785,6 +786,44 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
                 sparse[id(tr_)] = dl
                 scored.append((se, dl.npar, tr_, "sparse"))
+            # one state shared by a pair of equations along no fixed direction (a thermal
+            # mass between two bodies): the best pair with evidence of dynamics
+            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
+                ch = tr_.channel
+                if big or ch.md != 2 or ch.kind != "equation" or not np.isfinite(se_) or \
+                        kind_ != "dynamic":
+                    continue
+                se_static = min((c[0] for c in scored
+                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
+                if not se_ < SPARSE_IF * se_static:
+                    continue
+                dyn = tr_.dynamic
+                lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
+                lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
+                res_ = tr_.filter_result
+                k0s = max(20, res_.period_converged or 20)
+                Ns = res_.d_est.shape[1] - 1
+                try:
+                    dl = fit_shared_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
+                                            y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
+                                            pole=float(lam.max()) if lam.size else None)
+                    se = np.inf if dl is None else _fit_error(dl.model.sys, dl.model.Q,
+                                                              dl.model.R)
+                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+                    notes.append(f"{ch.name}: shared-state law failed: {e}")
+                    break
+                if dl is not None and dl.one_direction and any(
+                        t[2].channel.kind == "force" and
+                        set(t[2].channel.equations) == set(ch.equations) for t in scored):
+                    cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
+                                                "redundant", "one state along one direction: "
+                                                "the force channel's law says the same"))
+                elif dl is not None:
+                    cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
+                                                "ok"))
+                    sparse[id(tr_)] = dl
+                    scored.append((se, dl.npar, tr_, "sparse"))
+                break
         finite = [s for s in scored if np.isfinite(s[0])]
         if not finite:
             gate["passed"] = {"whiteness": True, "trace": False}

@@ -14,6 +14,19 @@ with a sparse driver set S chosen by forward selection (BIC) on d^ at the
 pole of the unstructured fit, then (a, b_S, e_S) refined by output error on
 y with the augmented continuous model discretized exactly (ZOH), and
 drivers whose two coefficients' intervals both contain 0 dropped.
+
+For a channel of md >= 2 equations driven by one hidden state along no
+fixed direction (a thermal mass shared by two bodies), :func:`fit_shared_dynamic`
+fits one shared state instead (:class:`SharedLaw`):
+
+.. math::
+
+    \\dot z = a z + \\sum_{i \\in S} b_i w_i, \\qquad
+    d_c = k_c z + \\sum_{i \\in S_c} e_{c,i} w_i, \\qquad k_r = 1,
+
+with the drivers S of z and the feedthrough terms S_c of each component
+chosen sparsely, refined by output error the same way, and every term whose
+interval contains 0 dropped.
 """
 
 from __future__ import annotations
@@ -32,7 +45,7 @@ from ..update import UpdatedModel
 from .channels import Channel
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
-__all__ = ["DynamicLaw", "fit_sparse_dynamic"]
+__all__ = ["DynamicLaw", "SharedLaw", "fit_shared_dynamic", "fit_sparse_dynamic"]
 
 # Samples (block means) on which the drivers of a sparse law are chosen.
 _SELECT_SAMPLES = 4000
@@ -371,3 +384,438 @@ def _lag_state(sys) -> str:
     while f"z[{k}]" in sys.state_labels:
         k += 1
     return f"z[{k}]"
+
+
+@dataclass(frozen=True)
+class SharedLaw:
+    """One first-order state shared by the md components of a channel (see module docstring).
+
+    Attributes
+    ----------
+    pole : float
+        a [1/s] (negative for a stable law).
+    tau : float
+        Time constant -1/a [s].
+    state : str
+        Name of the shared state (``z[0]``); it has the units of the reference
+        component's d.
+    drivers : tuple of str
+        Names of the signals driving the state, S.
+    b : ndarray, shape (len(drivers),)
+        Their gains [d_ref units * 1/s per driver unit].
+    k : ndarray, shape (md,)
+        Gain of the state in each component (``k[reference] = 1``).
+    reference : int
+        The component whose gain is fixed to 1 (the scale of z).
+    feedthrough : tuple of (int, str, float)
+        Feedthrough terms ``(component, driver name, e_{c,i})``.
+    Bz : ndarray, shape (nstates + ninputs,)
+        The state's input row over ``[x; u]``: ``dz/dt = a z + Bz @ w``.
+    E : ndarray, shape (md, nstates + ninputs)
+        Feedthrough over ``[x; u]``: ``d = k z + E @ w``.
+    ci : ndarray, shape (npar,)
+        95 % half-widths of (a, b, k without the reference, e) in that order.
+    npar : int
+        1 + len(drivers) + (md - 1) + len(feedthrough).
+    formula : str
+        Readable law, e.g. ``"d_T1 = z[0] - (1 ± 0.02)*T1; d_T2 = (0.4 ± 0.01)*z[0] - ..."``.
+    model : UpdatedModel
+        The nominal model augmented with ``z``, discretized exactly.
+    se_estimation : float
+        SE [%] of the augmented model on the output-error window.
+    continuous : control.StateSpace
+        The augmented model in continuous time (states ``[x; z]``).
+    dt : float
+        Sampling period [s] of the discrete model.
+    """
+
+    pole: float
+    tau: float
+    state: str
+    drivers: tuple[str, ...]
+    b: NDArray[np.float64]
+    k: NDArray[np.float64]
+    reference: int
+    feedthrough: tuple[tuple[int, str, float], ...]
+    Bz: NDArray[np.float64] = field(repr=False)
+    E: NDArray[np.float64] = field(repr=False)
+    ci: NDArray[np.float64] = field(repr=False)
+    npar: int
+    formula: str
+    model: UpdatedModel = field(repr=False)
+    se_estimation: float
+    continuous: ct.StateSpace = field(repr=False)
+    dt: float
+
+    @property
+    def one_direction(self) -> bool:
+        """True if d stays along k: the feedthrough is ``k e^T`` (within 5 % of its largest term).
+
+        Such a law is one force along k (an md = 1 law along ``G k``), not a
+        state shared along no fixed direction.
+        """
+        dev = self.E - np.outer(self.k, self.E[self.reference])
+        return bool(np.max(np.abs(dev), initial=0.0) <=
+                    0.05 * np.max(np.abs(self.E), initial=0.0))
+
+    def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
+        """The law's d, shape (md, K), on x (nstates, K) and u (ninputs, K).
+
+        ``z`` starts at 0 and follows the ZOH-equivalent first-order filter.
+        """
+        w = np.vstack([x, u])
+        phi = np.exp(self.pole * self.dt)
+        z = lfilter([0.0, (phi - 1.0) / self.pole], [1.0, -phi], self.Bz @ w)
+        return self.k[:, None] * z[None, :] + self.E @ w
+
+
+class _SharedProblem(_DynProblem):
+    """Output error on y of ``[x; z]`` with one state shared by the md components of d.
+
+    ``theta = (a, b over bdrv, k without the reference, e over eterms)``;
+    ``eterms`` are pairs (component, driver).
+    """
+
+    def __init__(self, Ac, Bc, Gc, C, D, dt, y, u, x0, k0, bdrv, eterms, ref):
+        super().__init__(Ac, Bc, Gc, C, D, dt, y, u, x0, k0, list(bdrv))
+        self.G = np.asarray(Gc, dtype=float)
+        self.md, self.ref = self.G.shape[1], ref
+        self.bdrv, self.eterms = list(bdrv), list(eterms)
+        m = self.Bc.shape[1]
+        self.Wb = driver_weights(self.bdrv, self.n, m)
+        self.We = driver_weights([dv for _, dv in self.eterms], self.n, m)
+
+    def split(self, theta):
+        """(a, b, k with the reference's 1, e) of ``theta``."""
+        nb, md = len(self.bdrv), self.md
+        k = np.insert(theta[1 + nb:nb + md], self.ref, 1.0)
+        return theta[0], theta[1:1 + nb], k, theta[nb + md:]
+
+    def rows(self, theta):
+        """(Bz over [x; u], E (md, n + m)) at ``theta``."""
+        _, b, _, e = self.split(theta)
+        E = np.zeros((self.md, self.Wb.shape[1]))
+        for (c, _), ec, wq in zip(self.eterms, e, self.We):
+            E[c] += ec * wq
+        return b @ self.Wb, E
+
+    def cont(self, theta):
+        n = self.n
+        a, _, k, _ = self.split(theta)
+        bw, E = self.rows(theta)
+        A = np.zeros((n + 1, n + 1))
+        A[:n, :n] = self.Ac + self.G @ E[:, :n]
+        A[:n, n] = self.G @ k
+        A[n, :n], A[n, n] = bw[:n], a
+        B = np.vstack([self.Bc + self.G @ E[:, n:], bw[n:][None, :]])
+        return A, B
+
+
+def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDArray,
+                       y: NDArray, u: NDArray, *, Q: NDArray, R: NDArray, dt: float,
+                       x0: NDArray, k0: int, pole: float | None = None,
+                       max_drivers: int = 3) -> SharedLaw | None:
+    """Fit one first-order state shared by the components of an md >= 2 channel.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Continuous nominal model.
+    channel : Channel
+        md >= 2 (e.g. a pair of equations).
+    x : ndarray, shape (nstates, K)
+        Filtered states aligned with ``d``.
+    d : ndarray, shape (md, K)
+        d^ on the same samples.
+    y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
+        The whole estimation record (the output-error fit starts at sample 0).
+    Q, R : ndarray
+        Noise covariances of the discrete nominal model (for the intervals).
+    dt : float
+        Sampling period [s].
+    x0 : ndarray, shape (nstates,)
+        Initial state for the output-error simulation.
+    k0 : int
+        First sample of the output-error window.
+    pole : float, optional
+        A discrete pole to try as a start (e.g. from an unstructured fit),
+        beside a log grid of time constants from 2 to 500 samples; the two
+        starts with the lowest output error are refined and the better fit kept.
+    max_drivers : int
+        Largest number of drivers of the state (and of feedthrough terms per
+        component).
+
+    Returns
+    -------
+    SharedLaw or None
+        None when no stable law is found.
+
+    Notes
+    -----
+    At each start pole the drivers are chosen on d^ per component by forward
+    selection (BIC) among ``[x; u]`` and their first-order lags; the lag
+    coefficients of the components are made rank one (one shared state) by
+    their leading singular pair. The refinement is output error on y with
+    the augmented model discretized exactly (ZOH); the term whose 95 %
+    interval contains 0 by the widest margin is dropped and the rest refitted
+    until none is left (the state keeps at least one driver).
+    """
+    md = channel.md
+    if md < 2 or d.shape[0] != md:
+        return None
+    w = np.vstack([x, u[:, k0:k0 + x.shape[1]]])
+    wrms = np.sqrt(np.mean(w**2, axis=1)) + 1e-300
+    grid = list(np.exp(-1.0 / np.geomspace(2.0, 500.0, 16)))
+    if pole is not None and 0 < pole < 1:
+        grid.append(float(pole))
+    starts = []
+    for p0 in grid:
+        st = _shared_start(sys, channel, w, d, dt, p0, max_drivers)
+        if st is None:
+            continue
+        bdrv, eterms, ref, theta0 = st
+        with single_thread_blas():
+            r = _shared_problem(sys, channel, y, u, dt, x0, k0, bdrv, eterms, ref).resid(theta0)
+        starts.append((float(np.sum(r**2)), bdrv, eterms, ref, theta0))
+    laws = []
+    for _, bdrv, eterms, ref, theta0 in sorted(starts, key=lambda s: s[0])[:2]:
+        law = _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, theta0,
+                               wrms)
+        if law is not None:
+            laws.append(law)
+    if not laws:
+        return None
+    # the fewest terms among the fits within 1 % of the lowest output error (two starts
+    # can end in two realizations of one law, one with a spurious small term)
+    lo = min(lw.se_estimation for lw in laws)
+    return min((lw for lw in laws if lw.se_estimation <= 1.01 * lo),
+               key=lambda lw: (lw.npar, lw.se_estimation))
+
+
+def _shared_start(sys, channel, w, d, dt, pole, max_drivers):
+    """Drivers of z and feedthrough terms on d^ at ``pole``; least-squares rank-one start."""
+    n, m, md = sys.nstates, sys.ninputs, channel.md
+    cand = [("x", i) for i in range(n)] + [("u", i) for i in range(m)]
+    wc = driver_weights(cand, n, m) @ w
+    f = lfilter([0.0, 1.0 - pole], [1.0, -pole], wc, axis=1)
+    names = [_driver_name(sys, c) for c in cand]
+    terms = np.vstack([wc, f])
+    tnames = list(names) + [f"lag({s})" for s in names]
+    b = max(1, terms.shape[1] // _SELECT_SAMPLES)
+    nb = terms.shape[1] // b
+    tb = terms[:, :nb * b].reshape(terms.shape[0], nb, b).mean(axis=2)
+    lag, feed = set(), []
+    for c in range(md):
+        dbm = d[c, :nb * b].reshape(nb, b).mean(axis=1)
+        sel = forward_selection(tb, dbm, tnames, max_terms=2 * max_drivers, min_drop=1e-3,
+                                prune=True)
+        lag |= {j - len(cand) for j in sel.index if j >= len(cand)}
+        feed.append(sorted(j for j in sel.index if j < len(cand))[:max_drivers])
+    lag = sorted(lag)[:max_drivers]
+    if not lag:
+        return None
+    L = np.zeros((md, len(lag)))
+    for c in range(md):
+        cols = np.vstack([f[lag], wc[feed[c]]])
+        L[c] = np.linalg.lstsq(cols.T, d[c], rcond=None)[0][:len(lag)]
+    U, s, Vt = np.linalg.svd(L, full_matrices=False)
+    ref = int(np.argmax(np.abs(U[:, 0])))
+    k = U[:, 0] / U[ref, 0]
+    beta = s[0] * U[ref, 0] * Vt[0]
+    zf = beta @ f[lag]
+    e = []
+    for c in range(md):  # the feedthrough given the shared state
+        if feed[c]:
+            e.extend(np.linalg.lstsq(wc[feed[c]].T, d[c] - k[c] * zf, rcond=None)[0])
+    a0 = np.log(pole) / dt
+    eterms = [(c, cand[j]) for c in range(md) for j in feed[c]]
+    return [cand[j] for j in lag], eterms, ref, np.r_[a0, -a0 * beta, np.delete(k, ref), e]
+
+
+def _shared_problem(sys, channel, y, u, dt, x0, k0, bdrv, eterms, ref):
+    return _SharedProblem(np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
+                          np.asarray(channel.G, dtype=float), np.asarray(sys.C, dtype=float),
+                          np.asarray(sys.D, dtype=float), dt, y, u, x0, k0, bdrv, eterms, ref)
+
+
+def _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, theta0, wrms):
+    """Output error from one start; weak terms dropped; the sparsest equivalent realization."""
+    args = (sys, channel, y, u, Q, R, dt, x0, k0, ref)
+    prob, sol, hw = _drop_weak(*args, bdrv, eterms, theta0)
+    for _ in range(3):
+        sp = _sparsest_realization(prob, sol.x, wrms)
+        if sp is None:
+            break
+        alt = _drop_weak(*args, *sp)
+        # the same law in other coordinates with fewer terms: kept within 1 % of the
+        # output error (the rule that picks among starts in fit_shared_dynamic)
+        if not (alt[1].x.size < sol.x.size and
+                np.sum(alt[1].fun ** 2) <= 1.01**2 * np.sum(sol.fun ** 2)):
+            break
+        prob, sol, hw = alt
+    if not float(sol.x[0]) < 0 or not np.all(np.isfinite(hw)):
+        return None
+    # unstable through the loop x -> z -> x (the output-error window is finite): no law
+    lam0 = float(np.max(np.linalg.eigvals(prob.Ac).real, initial=0.0))
+    if np.max(np.linalg.eigvals(prob.cont(sol.x)[0]).real) > lam0 + 1e-9 * (1 + abs(lam0)):
+        return None
+    # a component whose gain k_c is not told from 0 and has no feedthrough: the law of the
+    # smaller channel (a single equation), not a shared state
+    nb, md = len(prob.bdrv), prob.md
+    k, hk = prob.split(sol.x)[2], np.insert(hw[1 + nb:nb + md], prob.ref, 0.0)
+    for c in range(md):
+        if abs(k[c]) < hk[c] and not any(cc == c for cc, _ in prob.eterms):
+            return None
+    return _shared_law_from(sys, channel, prob, sol.x, hw, Q, R)
+
+
+def _drop_weak(sys, channel, y, u, Q, R, dt, x0, k0, ref, bdrv, eterms, theta0):
+    """Fit; drop the term whose interval contains 0 by the widest margin; repeat."""
+    md = channel.md
+    while True:
+        prob = _shared_problem(sys, channel, y, u, dt, x0, k0, bdrv, eterms, ref)
+        sol = prob.fit(theta0)
+        hw = prob.halfwidths(sol, Q, R)
+        nb = len(bdrv)
+        # candidates to drop: b (while z keeps a driver) and e; k stays (the state's gains)
+        idx = ([1 + q for q in range(nb)] if nb > 1 else []) + \
+            list(range(nb + md, sol.x.size))
+        weak = [i for i in idx if abs(sol.x[i]) < hw[i]]
+        if not weak:
+            return prob, sol, hw
+        i = min(weak, key=lambda i: abs(sol.x[i]) / hw[i])
+        if i <= nb:
+            bdrv = bdrv[:i - 1] + bdrv[i:]
+        else:
+            q = i - nb - md
+            eterms = eterms[:q] + eterms[q + 1:]
+        theta0 = np.delete(sol.x, i)
+
+
+def _sparsest_realization(prob, theta, wrms):
+    """The same law in the coordinates with the smallest terms: ``(bdrv, eterms, theta)`` or None.
+
+    The shared state is defined up to ``z~ = z + c x_j`` for any state x_j:
+    x_j's equation is known, so ``dz~/dt`` is again first order in (z~, x, u),
+    with pole ``a + c (G k)_j``, and ``d = k z~ + (E - c k e_j^T) w`` -- the
+    same output for every c, but a different pole and different terms: the
+    time constant is defined only by the sparse realization. Every entry of
+    the new (Bz, E) is a polynomial of degree <= 2 in c; at its real roots
+    (an entry vanishes) the terms are counted, leaving out those whose
+    contribution to d (``|e| rms(w)`` for feedthrough, ``max|k| |b| / |a| rms(w)``
+    for the state's drivers) is below 1 % of the largest; the realization
+    with the fewest terms (then the smallest sum of contributions) is
+    returned when it has fewer terms than now and a stable pole. The caller
+    refits it and keeps it only if the refit keeps fewer terms at the same
+    output error. ``wrms``: RMS of ``[x; u]``.
+    """
+    n, md, ref = prob.n, prob.md, prob.ref
+    m = prob.Bc.shape[1]
+    a, _, k, _ = prob.split(theta)
+    Bz, E = prob.rows(theta)
+    A, B = prob.cont(theta)
+    AB = np.hstack([A[:n, :n], B[:n]])  # the states' known equations over [x; u]
+    kmax = float(np.max(np.abs(k)))
+
+    def terms(c, j):
+        """(pole, Bz~, E~) of z~ = z + c x_j."""
+        ej = np.zeros(n + m)
+        ej[j] = 1.0
+        ap = a + c * A[j, n]
+        return ap, Bz + c * AB[j] - c * ap * ej, E - c * np.outer(k, ej)
+
+    def contrib(ap, bz, ee):
+        return np.r_[kmax * np.abs(bz) * wrms / abs(ap), (np.abs(ee) * wrms[None, :]).ravel()]
+
+    cur = contrib(a, Bz, E)
+    now = int(np.sum(cur > 0.01 * cur.max()))
+    best = None
+    for j in range(n):
+        v = np.array([np.r_[terms(c, j)[1], terms(c, j)[2].ravel()] for c in (-1.0, 0.0, 1.0)])
+        c2, c1, c0 = (v[0] + v[2]) / 2 - v[1], (v[2] - v[0]) / 2, v[1]
+        roots = set()
+        for q in range(v.shape[1]):
+            if c0[q] == 0:
+                continue
+            rq = np.roots([c2[q], c1[q], c0[q]]) if abs(c2[q]) > 1e-12 * abs(c0[q]) else \
+                (np.array([-c0[q] / c1[q]]) if c1[q] != 0 else np.zeros(0))
+            roots |= {(float(r.real), q) for r in np.atleast_1d(rq)
+                      if abs(r.imag) <= 1e-9 * max(1.0, abs(r)) and r.real != 0}
+        for c, q in roots:
+            ap, bz, ee = terms(c, j)
+            if not ap < 0:
+                continue
+            vv = np.r_[bz, ee.ravel()]
+            vv[q] = 0.0  # the entry this c removes (exactly 0 up to rounding)
+            cv = contrib(ap, vv[:n + m], vv[n + m:].reshape(md, n + m))
+            vv[cv <= 0.01 * cv.max()] = 0.0
+            bz, ee = vv[:n + m], vv[n + m:].reshape(md, n + m)
+            cnt = int(np.sum(vv != 0))
+            key = (cnt, float(np.sum(cv)))
+            if np.any(bz != 0) and cnt < now and (best is None or key < best[0]):
+                best = (key, ap, bz, ee)
+    if best is None:
+        return None
+    _, ap, bz, ee = best
+    drv = [("x", i) if i < n else ("u", i - n) for i in range(n + m)]
+    bdrv = [drv[i] for i in range(n + m) if bz[i] != 0]
+    eterms = [(c, drv[i]) for c in range(md) for i in range(n + m) if ee[c, i] != 0]
+    theta0 = np.r_[ap, bz[bz != 0], np.delete(k, ref), [ee[c, i] for c in range(md)
+                                                     for i in range(n + m) if ee[c, i] != 0]]
+    return bdrv, eterms, theta0
+
+
+def _shared_law_from(sys, channel, prob, theta, hw, Q, R) -> SharedLaw:
+    """The SharedLaw record of ``prob`` at ``theta``, half-widths ``hw``."""
+    n, dt, md = sys.nstates, prob.dt, prob.md
+    a, b, k, e = prob.split(theta)
+    a = float(a)
+    nb = len(prob.bdrv)
+    hb = hw[1:1 + nb]
+    hk = np.insert(hw[1 + nb:nb + md], prob.ref, np.nan)
+    he = hw[nb + md:]
+    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
+    r = prob.resid(theta).reshape(prob.y.shape[0], -1)
+    se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
+    zname = _lag_state(sys)
+    units = list(channel.units) if channel.units else [""] * md
+
+    def unit(c):
+        un = units[c] if c < len(units) else ""
+        return "" if not un else f" {un}" if un.startswith("[") else f" [{un}]"
+
+    lines = []
+    for c in range(md):
+        parts = [zname if c == prob.ref else f"{_pm(k[c], hk[c])}*{zname}"]
+        parts += [f"{_pm(ec, hc)}*{_driver_name(sys, dv)}"
+                  for (cc, dv), ec, hc in zip(prob.eterms, e, he) if cc == c]
+        lines.append(f"{channel.labels[c]} = " + " + ".join(parts).replace("+ (-", "- (") +
+                     unit(c))
+    dn = [_driver_name(sys, dv) for dv in prob.bdrv]
+    zpart = " + ".join(f"{_pm(bi, hbi)}/(s + {_pm(-a, hw[0])})*{nm}"
+                       for nm, bi, hbi in zip(dn, b, hb)).replace("+ (-", "- (")
+    formula = "; ".join(lines) + f"; {zname} = {zpart}{unit(prob.ref)}"
+    formula += f", time constant {1 / -a:.3g} s"
+    if np.isfinite(hw[0]):
+        lo, hi = -a - hw[0], -a + hw[0]
+        formula += (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if lo > 0
+                    else " (not determined by the data)")
+    formula += f" (one state shared by {', '.join(channel.labels)})"
+    Ad, Bd = prob.disc(theta)
+    Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
+    Qa = np.zeros((n + 1, n + 1))
+    Qa[:n, :n] = Q
+    Qa[n, n] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300)
+    states = list(sys.state_labels) + [zname]
+    out = named_ss(Ad, Bd, Ca, D, dt, states=states, inputs=sys.input_labels,
+                   outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    Acn, Bcn = prob.cont(theta)
+    cont = named_ss(Acn, Bcn, Ca, D, 0, states=states, inputs=sys.input_labels,
+                    outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    Bz, E = prob.rows(theta)
+    feed = tuple((int(c), _driver_name(sys, dv), float(ec)) for (c, dv), ec in zip(prob.eterms, e))
+    return SharedLaw(pole=a, tau=1 / -a, state=zname, drivers=tuple(dn), b=np.array(b),
+                     k=np.array(k), reference=prob.ref, feedthrough=feed, Bz=Bz, E=E,
+                     ci=np.asarray(hw), npar=int(theta.size), formula=formula,
+                     model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
+                     se_estimation=se, continuous=cont, dt=dt)
