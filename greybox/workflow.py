@@ -767,16 +767,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                               if c[2].channel == ch and c[3] == "dynamic"), default=np.inf)
                 if not big and not se_dyn < SPARSE_IF * se_static:
                     continue  # no evidence of dynamics in this channel: the static law stands
-                dyn = tr_.dynamic
-                lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
-                lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
-                res_ = tr_.filter_result
-                k0s = max(20, res_.period_converged or 20)
-                Ns = res_.d_est.shape[1] - 1
+                res_, k0s, Ns, pole0 = _sparse_start(tr_)
                 try:
                     dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
                                             y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                            pole=float(lam.max()) if lam.size else None)
+                                            pole=pole0)
                 except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                     notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
                     continue
@@ -797,16 +792,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                  if c[2].channel == ch and c[3] == "static"), default=np.inf)
                 if not se_ < SPARSE_IF * se_static:
                     continue
-                dyn = tr_.dynamic
-                lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
-                lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
-                res_ = tr_.filter_result
-                k0s = max(20, res_.period_converged or 20)
-                Ns = res_.d_est.shape[1] - 1
+                res_, k0s, Ns, pole0 = _sparse_start(tr_)
                 try:
                     dl = fit_shared_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
                                             y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                            pole=float(lam.max()) if lam.size else None)
+                                            pole=pole0)
                     se = np.inf if dl is None else _fit_error(dl.model.sys, dl.model.Q,
                                                               dl.model.R)
                 except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
@@ -1108,6 +1098,16 @@ def _delta_baseline(nominal, y, u, Q, R, max_order, x0):
     with single_thread_blas():  # thin and small products: a second thread only stalls
         return delta_update(nominal, y, u, Q=Q, R=R, max_order=max_order, x0=x0,
                             refine_window=win)
+
+
+def _sparse_start(tr):
+    """(filter result, first and end sample of d^, the unstructured fit's slowest real pole)."""
+    dyn = tr.dynamic
+    lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
+    lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
+    res = tr.filter_result
+    return (res, max(20, res.period_converged or 20), res.d_est.shape[1] - 1,
+            float(lam.max()) if lam.size else None)
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:
