@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+import control as ct
 import numpy as np
 
 import greybox as gb
@@ -168,3 +169,11 @@ def thermal_pair(seed, n_est=20000):
     true = named_ss(At, Bt, np.eye(3)[:2], np.zeros((2, 2)), 0, states=["T1", "T2", "Tm"],
                     inputs=["Q1", "Q2"], outputs=["T1", "T2"], name="thermal_pair_true")
     return nom, d, gb.discretize(true, 0.05)
+
+
+def linear_as_nlsys(s):
+    """The linear model ``s.sys`` (a random_system namespace) as a discrete ``ct.nlsys``."""
+    A, B, C, D = (np.asarray(m) for m in (s.sys.A, s.sys.B, s.sys.C, s.sys.D))
+    return ct.nlsys(lambda t, x, u, p: A @ x + B @ u, lambda t, x, u, p: C @ x + D @ u,
+                    states=s.sys.state_labels, inputs=s.sys.input_labels,
+                    outputs=s.sys.output_labels, dt=s.dt, name="linear")

@@ -28,13 +28,18 @@ def test_snippet_runs(code):
 RESULTS_WORKFLOW = README.parent / "bench" / "RESULTS_workflow.md"
 
 
+def _table_rows(marker: str, what: str, min_rows: int) -> list[str]:
+    """Data rows of the README table between ``<!-- marker -->`` and ``<!-- /marker -->``."""
+    m = re.search(rf"<!-- {marker} -->(.*?)<!-- /{marker} -->", README.read_text(), flags=re.S)
+    assert m, f"README.md lost its marked table of {what}"
+    rows = [ln for ln in m.group(1).splitlines() if ln.startswith("|") and "---" not in ln][1:]
+    assert len(rows) >= min_rows, f"the table of {what} needs at least {min_rows} rows"
+    return rows
+
+
 def test_big_file_figures_are_the_measured_ones():
     """The README's 1e6-sample table quotes bench/RESULTS_workflow.md (the raw outputs)."""
-    text = README.read_text()
-    m = re.search(r"<!-- workflow-1e6 -->(.*?)<!-- /workflow-1e6 -->", text, flags=re.S)
-    assert m, "README.md lost its marked table of the 1e6-sample run"
-    rows = [ln for ln in m.group(1).splitlines() if ln.startswith("|") and "---" not in ln][1:]
-    assert len(rows) >= 2, "the table needs a before and an after row"
+    rows = _table_rows("workflow-1e6", "the 1e6-sample run", 2)  # a before and an after row
     raw = RESULTS_WORKFLOW.read_text()
     for row in rows:
         for number in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?![\w.])", row.split("|", 2)[2]):
@@ -47,11 +52,7 @@ RESULTS_UKF = README.parent / "bench" / "RESULTS_ukf.md"
 
 def test_ukf_benchmark_figures_are_the_measured_ones():
     """The README's unscented-filter table quotes bench/RESULTS_ukf.md (the raw output)."""
-    text = README.read_text()
-    m = re.search(r"<!-- ukf-bench -->(.*?)<!-- /ukf-bench -->", text, flags=re.S)
-    assert m, "README.md lost its marked table of bench/ukf.py"
-    rows = [ln for ln in m.group(1).splitlines() if ln.startswith("|") and "---" not in ln][1:]
-    assert len(rows) >= 8, "the table needs the rows of both models"
+    rows = _table_rows("ukf-bench", "bench/ukf.py", 8)  # the rows of both models
     raw = RESULTS_UKF.read_text()
     for row in rows:  # cells after "model | method"
         for number in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?:e-\d+)?(?![\d.e])",

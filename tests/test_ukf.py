@@ -17,6 +17,7 @@ from greybox.exceptions import (
 )
 from greybox.filters import MerweScaledSigmaPoints, robust_cholesky
 from greybox.nonlinear import state_map
+from plantlib import linear_as_nlsys
 
 
 # --------------------------------------------------------------------------- plants
@@ -45,13 +46,6 @@ def pendulum_run(seed, N=150):
     sim = gb.simulate_nonlinear(sysd, np.vstack([u, d]), x0=x0 + g.multivariate_normal(
         np.zeros(2), P0), Q=PEND_Q, R=PEND_R, rng=g)
     return sysd, sim, u, d, x0, P0, g
-
-
-def linear_as_nlsys(s):
-    A, B, C, D = (np.asarray(m) for m in (s.sys.A, s.sys.B, s.sys.C, s.sys.D))
-    return ct.nlsys(lambda t, x, u, p: A @ x + B @ u, lambda t, x, u, p: C @ x + D @ u,
-                    states=s.sys.state_labels, inputs=s.sys.input_labels,
-                    outputs=s.sys.output_labels, dt=s.dt, name="linear")
 
 
 @pytest.fixture

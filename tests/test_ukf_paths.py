@@ -10,22 +10,15 @@ from __future__ import annotations
 
 import sys
 
-import control as ct
 import numpy as np
 import pytest
 
 import greybox as gb
 from greybox.filters import MerweScaledSigmaPoints, robust_cholesky
+from plantlib import linear_as_nlsys
 from greybox.plants.motor_pump import MotorPumpParams, _batch_matrix, _rhs, _rhs_batch
 
 UKF_MODULE = sys.modules["greybox.filters.ukf"]
-
-
-def linear_as_nlsys(s):
-    A, B, C, D = (np.asarray(m) for m in (s.sys.A, s.sys.B, s.sys.C, s.sys.D))
-    return ct.nlsys(lambda t, x, u, p: A @ x + B @ u, lambda t, x, u, p: C @ x + D @ u,
-                    states=s.sys.state_labels, inputs=s.sys.input_labels,
-                    outputs=s.sys.output_labels, dt=s.dt, name="linear")
 
 
 @pytest.fixture
