@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.linalg import block_diag
 
 from ._blas import single_thread_blas
 from ._lti import lti_states
@@ -1009,6 +1010,9 @@ def _static_is_enough(scored, y, u, Q, R, k0, lags, alpha) -> bool:
     if not stat:
         return False
     sm = min(stat, key=lambda s: s[0])[2].static_model
+    n = np.shape(Q)[0]
+    if sm.sys.nstates > n:  # a sensor law's own states (a lag, a drift): their Q is the law's
+        Q = block_diag(Q, np.asarray(sm.Q)[n:, n:])
     kf = kalman_filter(sm.sys, y, u, Q=Q, R=R)
     return whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha).all_white
 

@@ -187,3 +187,31 @@ def test_a_dense_single_equation_law_is_chosen_by_output_error_not_refined_term_
     assert dense, tr.notes
     assert int(dense[0].split("(")[1].split(" terms")[0]) > 8, dense
     assert tr.static.npar <= 4, tr.static.formula   # _select_static_oe's max_terms
+
+
+def test_static_is_enough_accepts_a_sensor_law_with_its_own_states():
+    """Regression (lag + spring, seed 4, pass 3): the best static candidate was a sensor lag,
+    whose model has one more state than the pass's Q; the whiteness check then raised
+    "Q has shape (7, 7); expected (8, 8)" and ended the several-effects loop. Its Q is now
+    the pass's Q beside the law's own block for the sensor state."""
+    from types import SimpleNamespace
+    from greybox.workflow import _static_is_enough
+
+    # a first-order plant read through a 0.2 s sensor lag: states (x, y_lag), one output
+    lagged = gb.discretize(gb.named_ss([[-1.0, 0.0], [5.0, -5.0]], [[1.0], [0.0]],
+                                       [[0.0, 1.0]], [[0.0]], 0, states=["x", "y_lag"],
+                                       inputs=["u"], outputs=["y"]), 0.1)
+    u = np.random.default_rng(0).standard_normal((1, 2000))
+    y = gb.simulate(lagged, u, R=np.array([[1e-6]]), rng=1).y
+    Q = np.array([[1e-8]])  # the pass's Q: one state
+    law_model = SimpleNamespace(sys=lagged, Q=np.diag([1e-8, 1e-8]))
+    scored = [(1.0, 1, SimpleNamespace(static_model=law_model), "static")]
+    # the lagged model is the true one: its innovations are white
+    assert _static_is_enough(scored, y, u, Q, np.array([[1e-6]]), 20, 10, 0.01)
+    # and a sensor law with the wrong lag (2 s) leaves coloured innovations
+    slow = gb.discretize(gb.named_ss([[-1.0, 0.0], [0.5, -0.5]], [[1.0], [0.0]],
+                                     [[0.0, 1.0]], [[0.0]], 0, states=["x", "y_lag"],
+                                     inputs=["u"], outputs=["y"]), 0.1)
+    wrong = SimpleNamespace(sys=slow, Q=np.diag([1e-8, 1e-8]))
+    assert not _static_is_enough([(1.0, 1, SimpleNamespace(static_model=wrong), "static")],
+                                 y, u, Q, np.array([[1e-6]]), 20, 10, 0.01)
