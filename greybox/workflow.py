@@ -87,6 +87,10 @@ SCREEN_TOP = 4
 # much weaker one is left to the next pass of the several-effects loop; equations the
 # model gets right score below 5, see trace/screen.py).
 SCREEN_REL = 0.25
+# A force traced again along its refitted direction may refit it again (a wrong first law
+# moves the direction only part way: 64-state chain, positions only, -0.90 -> -0.976 ->
+# -1.00); at most this many re-traces, each kept only if it is better.
+_MAX_RETRACE = 3
 # A sparse first-order law is fitted for a channel only when its unstructured dynamic
 # fit beats its static law's estimation SE by this factor (evidence of dynamics).
 SPARSE_IF = 0.8
@@ -823,9 +827,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         best_se = min(s[0] for s in finite)
         near = [s for s in finite if s[0] <= parsimony * best_se]
         se_c, npar, tr, kind = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
-        if kind == "static" and tr.refined_G is not None:
+        for _ in range(_MAX_RETRACE):
+            if not (kind == "static" and tr.refined_G is not None):
+                break
             # the chosen force's law contradicts its direction (taken from a noisy pair law):
-            # trace it again along the refitted one (law, filter and model then agree)
+            # trace it again along the refitted one (law, filter and model then agree); the
+            # new law can refit the direction again (a wrong first law moves it part way)
             n_before = len(scored)
             try:
                 rtr = trace_channel(sys, replace(tr.channel, G=tr.refined_G), ys, us, Q=Q, R=R,
@@ -834,9 +841,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     _score(rtr)
             except (GreyboxError, np.linalg.LinAlgError) as e:
                 notes.append(f"{tr.channel.name} along its refitted direction: {e}")
-            better = [s for s in scored[n_before:] if s[3] == "static" and s[0] < se_c]
-            if better:
-                se_c, npar, tr, kind = better[0]
+            better = [s for s in scored[n_before:] if s[3] == "static" and (
+                s[0] < se_c or (s[0] <= parsimony * se_c and s[1] < npar))]
+            if not better:
+                break
+            se_c, npar, tr, kind = better[0]
         dl_chosen = sparse.get(id(tr))
         res = tr.filter_result  # the gate's d^ and x^: the search window's, as the law's
         ch = tr.channel  # (the report's trace gets its whole record at the end: _with_record)
