@@ -116,7 +116,7 @@ def check_vector(v, n: int, name: str, *, what: str = "") -> NDArray[np.float64]
 def _check_magnitude(a, name: str) -> None:
     """Refuse finite values so large that their squares would overflow."""
     if a.size:
-        big = float(np.nanmax(np.abs(a)))
+        big = max(abs(float(np.nanmax(a))), abs(float(np.nanmin(a))))  # no |a| copy
         if big > MAX_MAGNITUDE:
             raise DataError(f"{name} has values up to {big:.3g} in magnitude; above "
                             f"{MAX_MAGNITUDE:g} sums of squares overflow: rescale (change units)")

@@ -205,12 +205,14 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
         raise DataError(f"min_drop must be below 1 (a fraction of sum(d**2)); found {min_drop!r}")
     max_terms = nterms if max_terms is None else min(max_terms, nterms)
 
-    s = np.sqrt(np.mean(X**2, axis=1))
+    # unit-RMS scaling applied to the products, not to X: no nterms x N copies (each as
+    # large as the terms themselves, 290 MB for 362 terms at N = 1e5)
+    s = np.sqrt(np.einsum("ij,ij->i", X, X) / N)
     usable = s > 0
-    Xs = X / np.where(usable, s, 1.0)[:, None]
+    sd = np.where(usable, s, 1.0)
     with single_thread_blas():  # thin products: threads only cost (and stall under load)
-        Gm = Xs @ Xs.T
-        b = Xs @ d
+        Gm = (X @ X.T) / np.outer(sd, sd)
+        b = (X @ d) / sd
     dd = float(d @ d)
     floor = 1e-10 * dd
 
