@@ -1265,7 +1265,7 @@ def _refitted_steps(steps, passes, jr, row):
     new = []
     for st, (base, ch, _), law in zip(steps, passes, jr.laws):
         eff = st.effect
-        if isinstance(law, DynamicLaw):
+        if isinstance(law, (DynamicLaw, SharedLaw)):
             eff = replace(eff, formula=law.formula, dynamic_law=law)
         else:
             eff = replace(eff, formula=law.formula, law=law,
