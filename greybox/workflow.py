@@ -714,6 +714,19 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             if ftr.status == "ok":
                 _score(ftr)
 
+        def _group_trace(gch):
+            """The static trace of a group channel (scored), or None."""
+            try:
+                gtr = trace_channel(sys, gch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
+                                    max_order=0)
+            except (GreyboxError, np.linalg.LinAlgError) as e:
+                notes.append(f"{gch.name}: {e}")
+                return None
+            if gtr.status != "ok":
+                return None
+            _score(gtr)
+            return next((t[2] for t in scored[::-1] if t[2].channel == gch), None)
+
         for se_, _, tr_, kind_ in list(scored):
             if kind_ != "static" or tr_.channel.md != 2 or tr_.channel.kind != "equation":
                 continue
@@ -783,15 +796,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 scored.append((se, dl.npar, tr_, "sparse"))
             # one state shared by a pair of equations along no fixed direction (a thermal
             # mass between two bodies): the best pair with evidence of dynamics
-            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
+            def _shared(tr_):
+                """Fit one shared state for the channel of ``tr_``; False if the fit failed."""
                 ch = tr_.channel
-                if big or ch.md != 2 or ch.kind != "equation" or not np.isfinite(se_) or \
-                        kind_ != "dynamic":
-                    continue
-                se_static = min((c[0] for c in scored
-                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
-                if not se_ < SPARSE_IF * se_static:
-                    continue
                 res_, k0s, Ns, pole0 = _sparse_start(tr_)
                 try:
                     dl = fit_shared_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
@@ -801,7 +808,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                                               dl.model.R)
                 except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                     notes.append(f"{ch.name}: shared-state law failed: {e}")
-                    break
+                    return False
                 if dl is not None and dl.one_direction and any(
                         t[2].channel.kind == "force" and
                         set(t[2].channel.equations) == set(ch.equations) for t in scored):
@@ -813,7 +820,26 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                                 "ok"))
                     sparse[id(tr_)] = dl
                     scored.append((se, dl.npar, tr_, "sparse"))
+                return True
+
+            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
+                ch = tr_.channel
+                if big or ch.md != 2 or ch.kind != "equation" or not np.isfinite(se_) or \
+                        kind_ != "dynamic":
+                    continue
+                se_static = min((c[0] for c in scored
+                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
+                if not se_ < SPARSE_IF * se_static:
+                    continue
+                _shared(tr_)
                 break
+            # above SCREEN_ABOVE states there is no unstructured fit to show dynamics (the
+            # best static law left the innovations coloured, see _static_is_enough): the
+            # screen's group of equations (a hidden body touching 2-4 bodies) and the best
+            # pair's static trace
+            for gtr in (_shared_groups(sys, chans, scored, _group_trace) if big else ()):
+                if not _shared(gtr):
+                    break
         finite = [s for s in scored if np.isfinite(s[0])]
         if not finite:
             gate["passed"] = {"whiteness": True, "trace": False}
@@ -1108,6 +1134,31 @@ def _sparse_start(tr):
     res = tr.filter_result
     return (res, max(20, res.period_converged or 20), res.d_est.shape[1] - 1,
             float(lam.max()) if lam.size else None)
+
+
+def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
+    """Traces to fit one shared state on, above SCREEN_ABOVE states (one per group of equations).
+
+    The equations the screen kept (the single-equation channels of ``chans``),
+    when 2 to SCREEN_TOP of them, as one channel (a hidden body touching those
+    bodies; its trace from ``scored``, or traced by ``trace``); then the pair
+    of equations whose static law has the lowest estimation error, if it is
+    not that group.
+    """
+    def static(t):
+        return t[3] == "static" and t[2].channel.kind == "equation" and np.isfinite(t[0])
+
+    top = [c.equations[0] for c in chans if c.md == 1 and c.kind == "equation" and c.equations]
+    group = set(top) if 2 <= len(top) <= SCREEN_TOP else None
+    if group is not None:
+        tr = next((t[2] for t in scored if static(t) and set(t[2].channel.equations) == group
+                   and t[2].channel.md == len(group)), None)
+        tr = tr if tr is not None else trace(resolve_channel_spec(sys, [tuple(top)])[0])
+        if tr is not None:
+            yield tr
+    pairs = sorted((t for t in scored if static(t) and t[2].channel.md == 2), key=lambda t: t[0])
+    if pairs and set(pairs[0][2].channel.equations) != group:
+        yield pairs[0][2]
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:
