@@ -3,7 +3,8 @@
 ``python bench/trace_seeds.py [lag_spring|maxwell|thermal|thermal_three|thermal_row|
 thermal_row_ok] [seed ...]`` (default: all, seeds 0-4). Prints, per seed, the effects
 found with their laws, the validation SE after and the true model's SE. The plants are
-the tests' own (``tests/test_trace_scale.py::_lag_and_spring``, ``tests/test_trace_shared.py::_maxwell``);
+the tests' own (``tests/test_trace_scale.py::_lag_and_spring``,
+``tests/test_trace_shared.py::_maxwell``);
 ``thermal`` (``tests/plantlib.py::thermal_pair``: a hidden thermal mass shared by two
 bodies, along no fixed direction; issue 8 item 2, the shared-state law, tested on
 seeds 1-3 in ``tests/test_trace_shared_state.py``); ``thermal_three``
