@@ -553,9 +553,12 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     Notes
     -----
     At each start pole the drivers are chosen on d^ per component by forward
-    selection (BIC) among ``[x; u]`` and their first-order lags; the lag
+    selection (BIC) among ``[x; u]`` and their first-order lags, and, as a
+    second start, taken as the states of the channel's equations (a hidden
+    body exchanging with the bodies it touches: with collinear drivers, such
+    as neighbouring temperatures, forward selection can keep a proxy); the lag
     coefficients of the components are made rank one (one shared state) by
-    their leading singular pair. The refinement is output error on y with
+    their leading singular pair. The starts are ranked by output error. The refinement is output error on y with
     the augmented model discretized exactly (ZOH); the term whose 95 %
     interval contains 0 by the widest margin is dropped and the rest refitted
     until none is left (the state keeps at least one driver).
@@ -675,13 +678,13 @@ def _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, th
     lam0 = float(np.max(np.linalg.eigvals(prob.Ac).real, initial=0.0))
     if np.max(np.linalg.eigvals(prob.cont(sol.x)[0]).real) > lam0 + 1e-9 * (1 + abs(lam0)):
         return None
-    # a component whose gain k_c is not told from 0 and has no feedthrough: the law of the
-    # smaller channel (a single equation), not a shared state
+    # a component whose gain k_c is not told from 0: the law of the smaller channel (and,
+    # with feedthrough, an independent static law beside it: two effects, which the
+    # several-effects loop finds one by one), not a shared state
     nb, md = len(prob.bdrv), prob.md
     k, hk = prob.split(sol.x)[2], np.insert(hw[1 + nb:nb + md], prob.ref, 0.0)
-    for c in range(md):
-        if abs(k[c]) < hk[c] and not any(cc == c for cc, _ in prob.eterms):
-            return None
+    if np.any(np.abs(k) < hk):
+        return None
     return _shared_law_from(sys, channel, prob, sol.x, hw, Q, R)
 
 
