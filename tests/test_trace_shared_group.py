@@ -47,7 +47,7 @@ def _true_law(nominal, true_d):
 def runs():
     out = {}
     for seed in SEEDS:
-        nom, d, true = thermal_row(seed)
+        nom, d, true = thermal_row(seed, n_est=10000)
         rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
                                 delta=False)
         out[seed] = (nom, true, rep, _floor(d, true, nom.nstates))
