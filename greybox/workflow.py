@@ -815,12 +815,48 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
                                                 "redundant", "one state along one direction: "
                                                 "the force channel's law says the same"))
+                    _force_along(dl, se, ch)
                 elif dl is not None:
                     cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
                                                 "ok"))
                     sparse[id(tr_)] = dl
                     scored.append((se, dl.npar, tr_, "sparse"))
                 return True
+
+            def _force_along(dl, se, ch):
+                """The force traced again along a one-direction shared law's k, if that fits better.
+
+                The force channel's direction comes from the static pair law (a few % off
+                for a dynamic effect: its law then adds compensating terms); the shared
+                law's k is refitted by output error with the dynamics.
+                """
+                fse = min((t[0] for t in scored if t[2].channel.kind == "force" and
+                           set(t[2].channel.equations) == set(ch.equations)), default=np.inf)
+                if not se < fse:
+                    return
+                fch = force_channel(sys, ch, dl.k)
+                n_before = len(scored)
+                _trace_force(fch)
+                ftr = next((t[2] for t in scored[n_before:] if t[3] == "static"), None)
+                if ftr is None:
+                    return
+                res_, k0s, Ns, _ = _sparse_start(ftr)
+                try:
+                    fl = fit_sparse_dynamic(sys, fch, res_.x_filt[:, k0s:Ns],
+                                            res_.d_est[:, k0s:Ns], y, u, Q=Q, R=R, dt=dt,
+                                            x0=res_.x_filt[:, 0], k0=k0s,
+                                            pole=float(np.exp(dl.pole * dt)))
+                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+                    notes.append(f"{fch.name} along the shared law's direction: {e}")
+                    return
+                if fl is None:
+                    return
+                fse = _fit_error(fl.model.sys, fl.model.Q, fl.model.R)
+                cands.append(CandidateScore(fch.name, "dynamic (sparse)", 1, fse, fl.npar, "ok",
+                                            "along the shared-state law's direction "
+                                            f"{np.array2string(dl.k, precision=3)}"))
+                sparse[id(ftr)] = fl
+                scored.append((fse, fl.npar, ftr, "sparse"))
 
             for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
                 ch = tr_.channel
