@@ -1,12 +1,20 @@
 """What the trace names over seeds on the issue-8 plants whose tests run one or two seeds.
 
-``python bench/trace_seeds.py [lag_spring|maxwell|thermal] [seed ...]`` (default: all,
-seeds 0-4). Prints, per seed, the effects found with their laws, the validation SE after
-and the true model's SE. The plants are the tests' own
-(``tests/test_trace_scale.py::_lag_and_spring``, ``tests/test_trace_shared.py::_maxwell``);
+``python bench/trace_seeds.py [lag_spring|maxwell|thermal|thermal_three|thermal_row|
+thermal_row_ok] [seed ...]`` (default: all, seeds 0-4). Prints, per seed, the effects
+found with their laws, the validation SE after and the true model's SE. The plants are
+the tests' own (``tests/test_trace_scale.py::_lag_and_spring``,
+``tests/test_trace_shared.py::_maxwell``);
 ``thermal`` (``tests/plantlib.py::thermal_pair``: a hidden thermal mass shared by two
 bodies, along no fixed direction; issue 8 item 2, the shared-state law, tested on
-seeds 1-3 in ``tests/test_trace_shared_state.py``).
+seeds 1-3 in ``tests/test_trace_shared_state.py``); ``thermal_three``
+(``plantlib.thermal_three``: that shared mass and an independent missing conductance of a
+third body, two effects over the several-effects loop, refitted jointly; issue 8 item 5,
+``tests/test_trace_shared_joint.py``); ``thermal_row`` (``plantlib.thermal_row``: six
+bodies in a row, a hidden mass touching three of them, a 6-state model above
+SCREEN_ABOVE; ``tests/test_trace_shared_group.py``) and ``thermal_row_ok`` (the same row
+without the hidden mass: the model is right and must stay unchanged). Each row also
+prints the time and the load average.
 """
 
 from __future__ import annotations
@@ -23,18 +31,24 @@ import numpy as np  # noqa: E402
 import greybox as gb  # noqa: E402
 from test_trace_scale import _lag_and_spring  # noqa: E402
 from test_trace_shared import _maxwell  # noqa: E402
-from plantlib import thermal_pair  # noqa: E402
+from plantlib import thermal_pair, thermal_row, thermal_three  # noqa: E402
 
 
-def _thermal(seed):
-    nom, d, true = thermal_pair(seed)
-    Qt = np.zeros((3, 3))
-    Qt[:2, :2] = d.Q
-    return nom, d, gb.validate_model(true, d.y_val, d.u_val, Q=Qt + 1e-12 * np.eye(3),
-                                     R=d.R).se.value
+def _with_floor(plant, **kw):
+    """The case with the true model's validation SE (its hidden states noise-free)."""
+    def case(seed):
+        nom, d, true = plant(seed, **kw)
+        n, nt = nom.nstates, true.nstates
+        Qt = np.zeros((nt, nt))
+        Qt[:n, :n] = d.Q
+        return nom, d, gb.validate_model(true, d.y_val, d.u_val, Q=Qt + 1e-12 * np.eye(nt),
+                                         R=d.R).se.value
+    return case
 
 
-CASES = {"lag_spring": _lag_and_spring, "maxwell": _maxwell, "thermal": _thermal}
+CASES = {"lag_spring": _lag_and_spring, "maxwell": _maxwell, "thermal": _with_floor(thermal_pair),
+         "thermal_three": _with_floor(thermal_three), "thermal_row": _with_floor(thermal_row),
+         "thermal_row_ok": _with_floor(thermal_row, hidden=())}
 
 
 def main(names, seeds):
@@ -47,8 +61,9 @@ def main(names, seeds):
                                     delta=False)
             el = time.perf_counter() - t
             se = rep.table["updated"].se.value
-            print(f"{name} seed {seed}: {el:.1f} s, SE {rep.table['nominal'].se.value:.3g} -> "
-                  f"{se:.3g} % (true model {floor:.3g} %, ratio {se / floor:.2f})")
+            print(f"{name} seed {seed}: {el:.1f} s (load {os.getloadavg()[0]:.1f}), SE "
+                  f"{rep.table['nominal'].se.value:.3g} -> {se:.3g} % (true model {floor:.3g} %, "
+                  f"ratio {se / floor:.2f})")
             for st in rep.steps or ():
                 print(f"   {st.channel}: {st.effect.formula}")
             if not rep.steps:

@@ -177,3 +177,76 @@ def linear_as_nlsys(s):
     return ct.nlsys(lambda t, x, u, p: A @ x + B @ u, lambda t, x, u, p: C @ x + D @ u,
                     states=s.sys.state_labels, inputs=s.sys.input_labels,
                     outputs=s.sys.output_labels, dt=s.dt, name="linear")
+
+
+def thermal_three(seed, n_est=20000):
+    """``thermal_pair`` plus a third body T3 (1.5 J/K, heater Q3) whose loss to ambient the
+    model has as 0.3 W/K while the truth has 0.3 + 0.15 W/K: two independent effects, the
+    hidden mass shared by eq(T1) and eq(T2) (as in ``thermal_pair``) and a missing
+    conductance in eq(T3) (d3 = -0.1 T3). Returns (nominal, case, true discrete model)."""
+    c1, c2, c3, cm, l1, l2, l3, g1, g2, g3 = 1.0, 2.0, 1.5, 4.0, 0.5, 0.4, 0.3, 1.0, 0.8, 0.15
+    A = np.diag([-l1 / c1, -l2 / c2, -l3 / c3])
+    B = np.diag([1 / c1, 1 / c2, 1 / c3])
+    st = ["T1", "T2", "T3"]
+    nom = named_ss(A, B, np.eye(3), np.zeros((3, 3)), 0, states=st, inputs=["Q1", "Q2", "Q3"],
+                   outputs=st, name="thermal_three")
+    At = np.zeros((4, 4))
+    At[:3, :3] = A
+    At[0, 0] -= g1 / c1
+    At[1, 1] -= g2 / c2
+    At[2, 2] -= g3 / c3
+    At[0, 3], At[1, 3] = g1 / c1, g2 / c2
+    At[3] = [g1 / cm, g2 / cm, 0.0, -(g1 + g2) / cm]
+    Bt = np.vstack([B, np.zeros((1, 3))])
+    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=4, dt=0.05,
+             rng=np.random.default_rng(seed), q_std=np.full(3, 1e-3), r_std=1e-2,
+             n_est=n_est, n_val=4000, sub=2, bandwidth=0.2)
+    true = named_ss(At, Bt, np.eye(4)[:3], np.zeros((3, 3)), 0, states=st + ["Tm"],
+                    inputs=["Q1", "Q2", "Q3"], outputs=st, name="thermal_three_true")
+    return nom, d, gb.discretize(true, 0.05)
+
+
+def thermal_row(seed, n_bodies=6, hidden=(1, 2, 3), n_est=20000):
+    """``n_bodies`` bodies in a row (T1..Tn; capacities 1, 1.5, 2, 1, 1.5, 2, ... J/K; losses
+    0.2 W/K to ambient; 0.5 W/K between neighbours; heaters Q1, Q3, Q5, ... [W]), all
+    temperatures measured, and a hidden thermal mass Tm (4 J/K) the model lacks, coupled to
+    the bodies ``hidden`` (0-based) by 1.0, 0.8, 0.6, ... W/K: one state shared by those
+    equations along no fixed direction. ``hidden=()``: the model is right (no Tm). Returns
+    (nominal, case, true discrete model)."""
+    n = n_bodies
+    cap = np.array([(1.0, 1.5, 2.0)[i % 3] for i in range(n)])
+    A = np.zeros((n, n))
+    for i in range(n):
+        A[i, i] = -0.2
+        for j in (i - 1, i + 1):
+            if 0 <= j < n:
+                A[i, i] -= 0.5
+                A[i, j] += 0.5
+    A /= cap[:, None]
+    heat = list(range(0, n, 2))
+    B = np.zeros((n, len(heat)))
+    for q, i in enumerate(heat):
+        B[i, q] = 1.0 / cap[i]
+    st = [f"T{i + 1}" for i in range(n)]
+    ins = [f"Q{i + 1}" for i in heat]
+    nom = named_ss(A, B, np.eye(n), np.zeros((n, len(heat))), 0, states=st, inputs=ins,
+                   outputs=st, name=f"thermal_row{n}")
+    nt = n + (1 if hidden else 0)
+    At = np.zeros((nt, nt))
+    At[:n, :n] = A
+    if hidden:
+        cm = 4.0
+        for q, i in enumerate(hidden):
+            g = 1.0 - 0.2 * q
+            At[i, i] -= g / cap[i]
+            At[i, n] = g / cap[i]
+            At[n, i] = g / cm
+            At[n, n] -= g / cm
+    Bt = np.vstack([B, np.zeros((nt - n, len(heat)))])
+    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=nt, dt=0.05,
+             rng=np.random.default_rng(seed), q_std=np.full(n, 1e-3), r_std=1e-2,
+             n_est=n_est, n_val=4000, sub=2, bandwidth=0.2)
+    true = named_ss(At, Bt, np.eye(nt)[:n], np.zeros((n, len(heat))), 0,
+                    states=st + ["Tm"] * (nt - n), inputs=ins, outputs=st,
+                    name=f"thermal_row{n}_true")
+    return nom, d, gb.discretize(true, 0.05)

@@ -553,9 +553,12 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     Notes
     -----
     At each start pole the drivers are chosen on d^ per component by forward
-    selection (BIC) among ``[x; u]`` and their first-order lags; the lag
+    selection (BIC) among ``[x; u]`` and their first-order lags, and, as a
+    second start, taken as the states of the channel's equations (a hidden
+    body exchanging with the bodies it touches: with collinear drivers, such
+    as neighbouring temperatures, forward selection can keep a proxy); the lag
     coefficients of the components are made rank one (one shared state) by
-    their leading singular pair. The refinement is output error on y with
+    their leading singular pair. The starts are ranked by output error. The refinement is output error on y with
     the augmented model discretized exactly (ZOH); the term whose 95 %
     interval contains 0 by the widest margin is dropped and the rest refitted
     until none is left (the state keeps at least one driver).
@@ -569,9 +572,9 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     if pole is not None and 0 < pole < 1:
         grid.append(float(pole))
     starts = []
-    for p0 in grid:
-        st = _shared_start(sys, channel, w, d, dt, p0, max_drivers)
-        if st is None:
+    for p0, own in ((p0, own) for p0 in grid for own in (False, True)):
+        st = _shared_start(sys, channel, w, d, dt, p0, max_drivers, own)
+        if st is None or any(s[1:4] == st[:3] and np.allclose(s[4], st[3]) for s in starts):
             continue
         bdrv, eterms, ref, theta0 = st
         with single_thread_blas():
@@ -592,8 +595,17 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
                key=lambda lw: (lw.npar, lw.se_estimation))
 
 
-def _shared_start(sys, channel, w, d, dt, pole, max_drivers):
-    """Drivers of z and feedthrough terms on d^ at ``pole``; least-squares rank-one start."""
+def _shared_start(sys, channel, w, d, dt, pole, max_drivers, own=False):
+    """Drivers of z and feedthrough terms on d^ at ``pole``; least-squares rank-one start.
+
+    The drivers are chosen by forward selection (BIC) per component, or with
+    ``own``, taken as the states of the channel's equations, each component
+    carrying its own state: a hidden body exchanging with the bodies whose
+    equations it enters. With collinear drivers (the temperatures of
+    neighbouring bodies) forward selection can keep an early proxy term (an
+    input's lag for a state's) in every component; the output-error
+    refinement drops what the data do not support in either start.
+    """
     n, m, md = sys.nstates, sys.ninputs, channel.md
     cand = [("x", i) for i in range(n)] + [("u", i) for i in range(m)]
     wc = driver_weights(cand, n, m) @ w
@@ -604,14 +616,21 @@ def _shared_start(sys, channel, w, d, dt, pole, max_drivers):
     b = max(1, terms.shape[1] // _SELECT_SAMPLES)
     nb = terms.shape[1] // b
     tb = terms[:, :nb * b].reshape(terms.shape[0], nb, b).mean(axis=2)
-    lag, feed = set(), []
-    for c in range(md):
-        dbm = d[c, :nb * b].reshape(nb, b).mean(axis=1)
-        sel = forward_selection(tb, dbm, tnames, max_terms=2 * max_drivers, min_drop=1e-3,
-                                prune=True)
-        lag |= {j - len(cand) for j in sel.index if j >= len(cand)}
-        feed.append(sorted(j for j in sel.index if j < len(cand))[:max_drivers])
-    lag = sorted(lag)[:max_drivers]
+    dbm = d[:, :nb * b].reshape(md, nb, b).mean(axis=2)
+    if own:
+        labels = list(sys.state_labels)
+        mine = [labels.index(e) for e in channel.equations if e in labels]
+        if len(mine) != md:
+            return None
+        lag, feed = sorted(mine), [[j] for j in mine]
+    else:
+        lag, feed = set(), []
+        for c in range(md):
+            sel = forward_selection(tb, dbm[c], tnames, max_terms=2 * max_drivers,
+                                    min_drop=1e-3, prune=True)
+            lag |= {j - len(cand) for j in sel.index if j >= len(cand)}
+            feed.append(sorted(j for j in sel.index if j < len(cand))[:max_drivers])
+        lag = sorted(lag)[:max_drivers]
     if not lag:
         return None
     L = np.zeros((md, len(lag)))
@@ -659,13 +678,13 @@ def _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, th
     lam0 = float(np.max(np.linalg.eigvals(prob.Ac).real, initial=0.0))
     if np.max(np.linalg.eigvals(prob.cont(sol.x)[0]).real) > lam0 + 1e-9 * (1 + abs(lam0)):
         return None
-    # a component whose gain k_c is not told from 0 and has no feedthrough: the law of the
-    # smaller channel (a single equation), not a shared state
+    # a component whose gain k_c is not told from 0: the law of the smaller channel (and,
+    # with feedthrough, an independent static law beside it: two effects, which the
+    # several-effects loop finds one by one), not a shared state
     nb, md = len(prob.bdrv), prob.md
     k, hk = prob.split(sol.x)[2], np.insert(hw[1 + nb:nb + md], prob.ref, 0.0)
-    for c in range(md):
-        if abs(k[c]) < hk[c] and not any(cc == c for cc, _ in prob.eterms):
-            return None
+    if np.any(np.abs(k) < hk):
+        return None
     return _shared_law_from(sys, channel, prob, sol.x, hw, Q, R)
 
 

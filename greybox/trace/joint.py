@@ -11,7 +11,10 @@ and terms whose 95 % interval then contains 0 are dropped one at a time.
 
 Every effect enters the continuous model affinely:
 ``A(theta) = A0 + sum_q theta_q dA_q`` (same for B), so one parameter list
-covers both law kinds.
+covers every law kind. A shared-state law (:class:`~greybox.trace.dynamic.SharedLaw`)
+is affine too once its scale is fixed (the reference component's gain is 1):
+its pole, the state's drivers' gains b, the other components' gains k and the
+feedthrough e each move one entry (or one outer product) of A and B.
 """
 
 from __future__ import annotations
@@ -27,7 +30,8 @@ from .._lti import lti_states
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
-from .dynamic import DynamicLaw, _law_from, _problem
+from .dynamic import DynamicLaw, SharedLaw, _law_from, _problem, _shared_law_from, \
+    _shared_problem
 from .laws import StaticLaw, _law_line, _one_direction, linear_part
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
@@ -44,9 +48,10 @@ class JointEffect:
         The continuous model the effect was added to (states ``n_i``).
     channel : Channel
         Its channel (G of shape (n_i, md)).
-    law : StaticLaw or DynamicLaw
+    law : StaticLaw or DynamicLaw or SharedLaw
         A continuous-time linear static law, or a sparse first-order law
-        whose state is appended at index ``n_i``.
+        (one component, or one state shared by the md components) whose
+        state is appended at index ``n_i``.
     """
 
     base: ct.StateSpace = field(repr=False)
@@ -90,12 +95,17 @@ class JointRefinement:
 
 
 class _Param:
-    """One coefficient: its effect, its key, and where it enters (dA, dB)."""
+    """One coefficient: its effect, its key, and where it enters (dA, dB).
+
+    ``group``: the prunable coefficients of which one must stay (default: the
+    effect's; None: it may go with all its group).
+    """
 
     def __init__(self, eff: int, key, dA: NDArray, dB: NDArray, value: float, name: str,
-                 prunable: bool):
+                 prunable: bool, group="effect"):
         self.eff, self.key, self.dA, self.dB = eff, key, dA, dB
         self.value, self.name, self.prunable = value, name, prunable
+        self.group = (eff,) if group == "effect" else group
 
 
 def _params(effects, nf: int, m: int) -> list[_Param]:
@@ -114,6 +124,8 @@ def _params(effects, nf: int, m: int) -> list[_Param]:
                     dA[:n, :n], dB[:n] = G @ Ddx, G @ Ddu
                     out.append(_Param(i, ("s", c, int(j)), dA, dB, float(law.coef[c, j]),
                                       f"{ef.channel.name}: {law.spec[j][0]}", True))
+        elif isinstance(law, SharedLaw):
+            out += _shared_params(i, ef, nf, m)
         else:
             g = G[:, 0]
             dA = np.zeros((nf, nf))
@@ -131,6 +143,46 @@ def _params(effects, nf: int, m: int) -> list[_Param]:
                 out.append(_Param(i, ("e", q), dAe, dBe, float(e), f"{ef.channel.name}: {nm}",
                                   True))
     return out
+
+
+def _shared_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
+    """A shared-state law's coefficients: pole, b (one stays), k (not the reference's), e."""
+    law, base, nm = ef.law, ef.base, ef.channel.name
+    n = base.nstates
+    G = np.asarray(ef.channel.G, dtype=float)
+    rows = _rows_of(base)
+    out = []
+    dA = np.zeros((nf, nf))
+    dA[n, n] = 1.0
+    out.append(_Param(i, ("a",), dA, np.zeros((nf, m)), law.pole, f"{nm}: pole", False))
+    for q, (dn, b) in enumerate(zip(law.drivers, law.b)):
+        w = np.zeros(n + m)
+        w[rows[dn]] = 1.0
+        dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
+        dA[n, :n], dB[n] = w[:n], w[n:]
+        out.append(_Param(i, ("b", q), dA, dB, float(b), f"{nm}: {law.state} <- {dn}", True,
+                          group=(i, "b")))
+    for c in range(law.k.size):
+        if c == law.reference:
+            continue
+        dA = np.zeros((nf, nf))
+        dA[:n, n] = G[:, c]
+        out.append(_Param(i, ("k", c), dA, np.zeros((nf, m)), float(law.k[c]),
+                          f"{nm}: {law.state} in {ef.channel.labels[c]}", False))
+    for q, (c, dn, e) in enumerate(law.feedthrough):
+        w = np.zeros(n + m)
+        w[rows[dn]] = 1.0
+        dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
+        dA[:n, :n], dB[:n] = np.outer(G[:, c], w[:n]), np.outer(G[:, c], w[n:])
+        out.append(_Param(i, ("e", q), dA, dB, float(e), f"{nm}: {ef.channel.labels[c]} {dn}",
+                          True, group=None))
+    return out
+
+
+def _rows_of(base: ct.StateSpace) -> dict:
+    """Row in ``[x; u]`` of every state and input name of ``base``."""
+    names = list(base.state_labels) + list(base.input_labels)
+    return {s: r for r, s in enumerate(names)}
 
 
 class _Joint:
@@ -273,9 +325,15 @@ def _independent(ps, theta):
 
 
 def _last_of_effect(ps, active, q) -> bool:
-    """True if ``active[q]`` is the last prunable coefficient left of its effect."""
-    eff = ps[active[q]].eff
-    return sum(1 for i in active if ps[i].eff == eff and ps[i].prunable) <= 1
+    """True if ``active[q]`` is the last prunable coefficient left of its group.
+
+    The group is the effect (one of its terms stays), or the drivers of a shared
+    state (one stays); a shared law's feedthrough terms may all go.
+    """
+    grp = ps[active[q]].group
+    if grp is None:
+        return False
+    return sum(1 for i in active if ps[i].group == grp and ps[i].prunable) <= 1
 
 
 def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
@@ -303,6 +361,8 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
             lines += _one_direction(coef, law.term_scale(x, u[:, :x.shape[1]]), ch.labels)
         return replace(law, coef=coef, ci=half, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines),
                        npar=int(np.count_nonzero(coef)))
+    if isinstance(law, SharedLaw):
+        return _rebuild_shared(ef, mine, values, halves, y, u, Q, R, dt, k0, prob)
     # dynamic: keep the drivers whose gains are left
     a = values[next(q for q, p in mine if p.key == ("a",))]
     ha = halves[next(q for q, p in mine if p.key == ("a",))]
@@ -323,6 +383,34 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
     return _law_from(base, ch, dprob, drv, np.r_[a, b, e], np.r_[ha, hb, he], Qb, R)
 
 
+def _rebuild_shared(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
+    """A shared-state law's record at the jointly refitted values (dropped terms left out)."""
+    law, ch, base = ef.law, ef.channel, ef.base
+    n, nm, im = base.nstates, list(base.state_labels), list(base.input_labels)
+
+    def drv(name):
+        return ("x", nm.index(name)) if name in nm else ("u", im.index(name))
+
+    th, hw, bdrv, eterms = {}, {}, [], []
+    for q, p in mine:
+        if q not in values:
+            continue
+        kind = p.key[0]
+        th.setdefault(kind, []).append(values[q])
+        hw.setdefault(kind, []).append(halves[q])
+        if kind == "b":
+            bdrv.append(drv(law.drivers[p.key[1]]))
+        elif kind == "e":
+            c, dn, _ = law.feedthrough[p.key[1]]
+            eterms.append((c, drv(dn)))
+    keys = ("a", "b", "k", "e")
+    theta = np.concatenate([np.asarray(th.get(k, []), dtype=float) for k in keys])
+    half = np.concatenate([np.asarray(hw.get(k, []), dtype=float) for k in keys])
+    sprob = _shared_problem(base, ch, y, u, dt, _x0_of(prob, n), k0, bdrv, eterms,
+                            law.reference)
+    return _shared_law_from(base, ch, sprob, theta, half, Q[:n, :n], R)
+
+
 def _driver_of(wq, n):
     """The driver tuple of a weight row (see greybox.trace.dynamic.driver_weights)."""
     nz = np.flatnonzero(wq)
@@ -340,11 +428,14 @@ def _x0_of(prob, n):
 def joint_effect(base: ct.StateSpace, channel: Channel, law) -> JointEffect | None:
     """The effect as the joint refinement takes it, or None if it cannot be refitted.
 
-    Continuous-time linear static laws and sparse first-order laws qualify.
+    Continuous-time linear static laws, sparse first-order laws and shared-state
+    laws qualify.
     """
     if channel.kind == "output":  # a sensor law acts on C and D, not on the state equations
         return None
     if isinstance(law, DynamicLaw) and channel.md == 1:
+        return JointEffect(base=base, channel=channel, law=law)
+    if isinstance(law, SharedLaw) and channel.md == law.k.size:
         return JointEffect(base=base, channel=channel, law=law)
     if isinstance(law, StaticLaw) and law.time_base == "continuous" and not law.nonlinear:
         return JointEffect(base=base, channel=channel, law=law)
