@@ -183,3 +183,12 @@ def test_unobservable_within_two_steps_is_refused():
         gb.delayed_ui_ukf(sys, y, u, unknown="d", Q=np.eye(3), R=[[1]])
     with pytest.raises(RankConditionError, match=r"rank\(C @ G\) = 0"):
         gb.delayed_ui_ukf(sys, y, u, unknown="d", Q=np.eye(3), R=[[1]], relative_degree=1)
+
+
+def test_a_step_where_the_model_does_not_respond_to_d_is_named():
+    """G = dF/dd vanishes for x <= 0 (a level that cannot go below 0): a clear DataError."""
+    sys = ct.nlsys(lambda t, x, u, p: x + u[0] * (x > 0), lambda t, x, u, p: x,
+                   states=["h"], inputs=["d"], outputs=["y"], dt=1.0)
+    y = np.linspace(1.0, -3.0, 30)[None]  # the level drops below 0: no d moves it there
+    with pytest.raises(gb.DataError, match=r"not seen in y at step \d+ .*C dF/dd = 0"):
+        gb.ui_ukf(sys, y, unknown="d", Q=[[1e-6]], R=[[1e-6]], x0=[1.0], P0=[[1e-4]])

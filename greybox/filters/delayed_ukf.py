@@ -18,13 +18,12 @@ whose update is
 
 .. math::
 
-    z_{k+1} = F_z(z_k, u_k, d_{k-1})
-            = F(z_k + \\tilde G d_{k-1},\\ u_k,\\ \\bar d) - G \\bar d
+    z_{k+1} = F_z(z_k, u_k, d_{k-1}) = F(z_k + \\tilde G d_{k-1},\\ u_k,\\ 0)
 
-with ``d[k]``'s own effect ``G (d[k] - d_bar)`` left out, as the linear
-filter leaves out ``(G - G~) d[k]`` (``d_bar``, where F is evaluated in d,
-is the latest estimate: it only removes the terms of second order in d of a
-model that is not affine in d). The unknown input of this model is
+with ``d[k]``'s own effect left out (it first shows in y[k+2]), as the
+linear filter leaves out ``(G - G~) d[k]``; F is evaluated at d = 0, not at
+the latest estimate: a delayed d^ is noisy, and inside an RK4 step a noisy
+d moves the sub-steps far from the record. The unknown input of this model is
 ``d[k-1]``, it enters through ``dF_z/dd = (dF/dx) G~`` and ``C (dF/dx) G~``
 has full rank where rank(C G) = 0: the unscented unknown-input filter of
 :func:`~greybox.ui_ukf` (its sigma points, its per-step Jacobian by central
@@ -95,7 +94,11 @@ def choose_nonlinear_degree(pb, G: NDArray) -> int:
     A = _state_jacobian(pb, pb.x0, pb.u[:, 0])
     if not np.all(np.isfinite(A)):
         return 1
-    return _choose(A, pb.C, G, pb.Q, pb.R, pb.labels, 2, 100.0, 5000).r
+    try:  # a linearization far from the record (e.g. at a sqrt's 0) may not converge
+        with np.errstate(all="ignore"):
+            return _choose(A, pb.C, G, pb.Q, pb.R, pb.labels, 2, 100.0, 5000).r
+    except (GreyboxError, np.linalg.LinAlgError):
+        return 1
 
 
 def _shifted_problem(pb, G: NDArray):
@@ -106,15 +109,11 @@ def _shifted_problem(pb, G: NDArray):
     fun = pb.fun
 
     def fz(t, Z, U):
-        U = np.asarray(U, dtype=float)
-        if U.ndim == 1:  # one input vector for every point: d_bar = d'
-            dp = U[unk]
-            return fun(t, Z + (Gt @ dp)[:, None], U) - (G @ dp)[:, None]
-        dp = U[unk]  # d' of every point (the G probes differ from column 0 only in d')
-        dbar = dp[:, :1]  # column 0: a sigma point at the linearization value
-        Uc = U.copy()
-        Uc[unk] = dbar
-        return fun(t, Z + Gt @ dp, Uc) - G @ dbar
+        U = np.array(U, dtype=float)  # a copy: d[k] is set to zero below
+        dp = U[unk]  # d' = d[k-1] of every point (the G probes differ in d' only)
+        U[unk] = 0.0  # d[k]'s own effect is not modelled (it shows at k + 2)
+        shift = Gt @ dp
+        return fun(t, Z + (shift[:, None] if shift.ndim == 1 else shift), U)
 
     return replace(pb, fun=fz, G=None), Gt
 
@@ -197,7 +196,7 @@ def delayed_ui_ukf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
 
     .. math::
 
-        z_{k+1} = F(z_k + \\tilde G d_{k-1}, u_k, \\bar d) - G \\bar d, \\qquad
+        z_{k+1} = F(z_k + \\tilde G d_{k-1}, u_k, 0), \\qquad
         y_k = C z_k + D u_k + v_k
 
     and :func:`~greybox.ui_ukf` estimates the input :math:`d_{k-1}` of this

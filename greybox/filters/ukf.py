@@ -257,6 +257,16 @@ def _nonfinite_error(pb: _Problem, k: int, FX: NDArray, Xall: NDArray, npts: int
         f"sigma-point spread (alpha) / P0")
 
 
+def _unseen_error(pb: _Problem, k: int, xf: NDArray) -> DataError:
+    """The DataError for a step at which y[k] does not depend on d (C dF/dd = 0 there)."""
+    return DataError(
+        f"the unknown input {list(pb.labels)} is not seen in y at step {k} (time "
+        f"{(k - 1) * pb.dt:g} s): C dF/dd = 0 at the filtered state "
+        f"{np.array2string(np.asarray(xf), precision=4)}, where the model does not respond "
+        f"to d (e.g. a sqrt or a clip at its limit); the filter cannot estimate d there. "
+        f"Check the model's domain, Q and R")
+
+
 def _as_index(idx: tuple):
     """A slice for contiguous indices (cheap row assignment), else the index list."""
     if idx and list(idx) == list(range(idx[0], idx[-1] + 1)):
@@ -400,6 +410,8 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
                 Sol = np.linalg.solve(Rt, B)
             T = B.T @ Sol
             if md == 1:  # the common case in scalars: fewer numpy calls, same algebra
+                if not T[n, n] > 0:  # C G = 0 at this step: y[k] carries nothing of d
+                    raise _unseen_error(pb, k, xf)
                 pd = 1.0 / float(T[n, n])  # (F' Rt^-1 F)^-1
                 dd1 = pd * float(T[n, -1])  # M e
                 dh1 = dlf + dd1  # d^[k-1]
@@ -419,7 +431,10 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
                     dlin[0] = dh1
             elif md:
                 FRiF = T[n:n + md, n:n + md]
-                Pd = np.linalg.inv(FRiF)
+                try:
+                    Pd = np.linalg.inv(FRiF)
+                except np.linalg.LinAlgError:
+                    raise _unseen_error(pb, k, xf) from None
                 Pd = 0.5 * (Pd + Pd.T)
                 dd = Pd @ T[n:n + md, -1]  # M e
                 dh = dlin + dd
