@@ -16,6 +16,17 @@ linear output map, the paper's (33)). The stages mirror the linear pipeline:
    pipeline (forward selection with a BIC stopping rule over x, u, x^3,
    sign(x), |x|). Dynamic (unstructured subsystem) laws are not offered for
    a nonlinear nominal: the subsystem identification is linear.
+   A channel that no output sees in the next sample (rank(C G) = 0, e.g. the
+   upper of two tanks when only the lower is measured), or whose delayed
+   estimate has a 100x smaller steady-state variance on the linearization at
+   the operating point (:func:`greybox.detect_relative_degree`, as the linear
+   trace chooses), is traced by the delayed filter
+   :func:`greybox.delayed_ui_ukf` (relative degree 2). Its d^ is noisy: the
+   law's terms include saturation hinges ``max(x - c, 0)``, ``min(x - c, 0)``
+   (:func:`greybox.trace.law_terms`), its coefficients are refined by output
+   error before the channels are compared, and a law holding a hinge also
+   competes reduced to its hinge(s), coefficients and levels refined by output
+   error.
 3. **Choose and gate** exactly as the linear pipeline: lowest estimation SE
    of the updated model, within ``parsimony`` the fewest parameters; update
    only if some output rejects whiteness, the BIC gain exceeds
@@ -266,8 +277,10 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
         return r if np.all(np.isfinite(r)) else big
 
     theta0 = np.concatenate([law.coef[rows, cols], [law.spec[j][2][1] for j in hinges]])
-    try:
-        sol = least_squares(resid, theta0, x_scale="jac", max_nfev=20, ftol=1e-4, xtol=1e-4)
+    try:  # a term that vanishes on the record (a hinge above every x) has a zero Jacobian
+        with np.errstate(all="ignore"):  # column: x_scale="jac" then divides by zero
+            sol = least_squares(resid, theta0, x_scale="jac", max_nfev=20, ftol=1e-4,
+                                xtol=1e-4)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(sol.x)) or sol.fun is big:

@@ -58,7 +58,7 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
     n, m = x.shape[0], u.shape[0]
     rel = [x[j] - x[i] for i, j in relative]
     if eps is None:
-        eps = 0.05 * np.sqrt(np.mean(np.array(list(x) + rel) ** 2, axis=1)) + 1e-300 \
+        eps = 0.05 * np.sqrt(np.nanmean(np.array(list(x) + rel) ** 2, axis=1)) + 1e-300 \
             if n + len(rel) else np.zeros(0)
     rows, spec = [], []
     for i in range(n):
@@ -96,7 +96,7 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
             for i in range(n):
                 s = state_labels[i]
                 for side, qs in zip(("x_hi", "x_lo"), SAT_QUANTILES):
-                    for c in np.quantile(x[i], qs):
+                    for c in np.nanquantile(x[i], qs):
                         c = float(c)
                         rows.append(np.maximum(x[i] - c, 0.0) if side == "x_hi" else
                                     np.minimum(x[i] - c, 0.0))
@@ -392,6 +392,13 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
         terms, spec, eps = prebuilt
     md = d.shape[0]
     tc = [terms if align is None else aligned(terms, align[c]) for c in range(md)]
+    # samples where d^ or a term is undefined (NaN: steps where the filter did not see d)
+    # are left out, each component on its own
+    dcs = [d[c] for c in range(md)]
+    for c in range(md):
+        ok = np.isfinite(dcs[c]) & np.all(np.isfinite(tc[c]), axis=0)
+        if not np.all(ok):
+            tc[c], dcs[c] = tc[c][:, ok], dcs[c][ok]
     terms = tc[0]
     n, m = x.shape[0], u.shape[0]
     coef = np.zeros((md, len(spec)))
@@ -403,7 +410,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     names = [s[0] for s in spec]
     half = np.full((md, len(spec)), np.nan)
     for c in range(md):
-        terms, dc = tc[c], d[c]
+        terms, dc = tc[c], dcs[c]
         if whiten and terms.shape[1] > 10 * (_AR_ORDER + len(spec)):
             th = np.linalg.lstsq(terms.T, dc, rcond=None)[0]
             a = _whitening(dc - th @ terms, _AR_ORDER)
@@ -417,7 +424,8 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
             cov = hac_covariance((X / sx[:, None]).T, dc - cf @ X, 1) / np.outer(sx, sx)
             half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
-        rv[c] = float(np.mean((d[c] - cf @ tc[c][idx]) ** 2)) if idx else float(np.mean(d[c]**2))
+        rv[c] = (float(np.mean((dcs[c] - cf @ tc[c][idx]) ** 2)) if idx else
+                 float(np.mean(dcs[c]**2)))
         gain += sel.bic_gain
         npar += len(idx)
         nl = any(j >= nlin for j in idx)
