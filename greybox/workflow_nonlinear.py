@@ -229,8 +229,9 @@ def _delay_of(model_cd, labels, x_op, u_op, Q, R):
     md, m = len(labels), model_cd.ninputs - len(labels)
     lin = linearize_at(model_cd, x_op, np.concatenate([u_op, np.zeros(md)]))
     G = np.asarray(lin.B, dtype=float)[:, m:]
-    try:
-        r = detect_relative_degree(lin, unknown=labels, Q=Q, R=R, max_degree=2).r
+    try:  # a covariance recursion that does not converge is a candidate's inf, not a warning
+        with np.errstate(all="ignore"):
+            r = detect_relative_degree(lin, unknown=labels, Q=Q, R=R, max_degree=2).r
     except GreyboxError:  # not observable at r <= 2: the r = 1 filter names the condition
         return 1, G, np.ones((md, 1))
     if r == 1:
@@ -536,8 +537,13 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         alt = r1 < _ALTERNATING  # then the mean of two samples, terms weighted alike
         d_fit = 0.5 * (d[:, 1:] + d[:, :-1]) if alt else d
         al = np.full((d.shape[0], 2), 0.5) if alt else (align if r > 1 else None)
-        law = _fit_static(d_fit, x, uw, lin_cont, nonlinear, labels, ch.units, al,
-                          ch.relative, whiten=r > 1, saturation=nonlinear and r > 1)
+        try:
+            law = _fit_static(d_fit, x, uw, lin_cont, nonlinear, labels, ch.units, al,
+                              ch.relative, whiten=r > 1, saturation=nonlinear and r > 1)
+        except (GreyboxError, np.linalg.LinAlgError) as e:  # e.g. no finite d^ left
+            cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "failed",
+                                        f"static law on d^: {e}"))
+            continue
         if alt:
             notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation {r1:.2f}): "
                          f"the static law is fitted on the mean of consecutive samples")
@@ -577,7 +583,10 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         # coefficients and levels refined by output error, compete as a sparser candidate
         # (d^ of a delayed estimate is noisy and correlated with x^: its other terms are
         # often the closed-loop artefacts of PAPER_NOTES 8.4)
-        hl = _hinge_law(law, d_fit, x, uw, lin_cont, labels, ch.units, al, ch.relative)
+        try:
+            hl = _hinge_law(law, d_fit, x, uw, lin_cont, labels, ch.units, al, ch.relative)
+        except (GreyboxError, np.linalg.LinAlgError):
+            hl = None
         if hl is not None and hl.npar and (ch.md == 1 or np.all(np.any(hl.coef, axis=1))):
             ref_h = _refine_law_oe(hl, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D)
             if ref_h is not None:

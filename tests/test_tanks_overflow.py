@@ -105,3 +105,27 @@ def test_tanks_without_overflow_are_left_unchanged():
     """The same pipeline on tanks that never overflow: no saturation is invented."""
     rep, _ = run(np.inf, 6)
     assert not rep.updated, rep.message
+
+
+def test_saturation_hinges_are_offered_at_the_record_quantiles_and_evaluate_alike():
+    from greybox.trace.laws import SAT_QUANTILES, _eval_terms, law_terms
+    from greybox.workflow_nonlinear import _hinge_name
+
+    rng = np.random.default_rng(1)
+    x, u = rng.uniform(-2, 10, (2, 400)), rng.standard_normal((1, 400))
+    T0, spec0, _ = law_terms(x, u, ["x1", "x2"], ["u"])
+    T, spec, eps = law_terms(x, u, ["x1", "x2"], ["u"], saturation=True)
+    hinges = [(r, s) for r, s in enumerate(spec) if s[1] in ("x_hi", "x_lo")]
+    # 3 upper and 2 lower hinges per state, before the offset (which stays last)
+    assert len(hinges) == 2 * 5 and spec[-1][1] == "const" and len(spec) == len(spec0) + 10
+    for i in range(2):
+        lv = [s[2][1] for _, s in hinges if s[2][0] == i]
+        np.testing.assert_allclose(lv, np.quantile(x[i], SAT_QUANTILES[0] + SAT_QUANTILES[1]),
+                                   rtol=1e-12)  # the same numbers, computed twice
+    r, (name, kind, (i, c)) = hinges[0]
+    assert name == f"max(x1 - {c:.4g}, 0)" and kind == "x_hi"
+    np.testing.assert_array_equal(T[r], np.maximum(x[0] - c, 0))
+    np.testing.assert_array_equal(_eval_terms(spec, eps, x, u), T)  # evaluated alike
+    # a refined level renames the term, the state's name kept (spaces and signs too)
+    assert _hinge_name("min(x 1 + 0.43, 0)", "x_lo", 2.5) == "min(x 1 - 2.5, 0)"
+    assert _hinge_name(name, "x_hi", -1e-5) == "max(x1 + 1e-05, 0)"
