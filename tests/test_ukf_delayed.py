@@ -162,6 +162,49 @@ def test_nonlinear_tanks_nees_within_chi_square_bounds(tanks_mc):
         assert lo < nees < hi, (c, nees / M)
 
 
+def test_rk4_tanks_with_small_cg_estimate_the_input_weights_combination():
+    """d held over the sample inside RK4 (C G ~ 0.11 != 0, forced r = 2, G at the mean state).
+
+    Then, as for the linear delayed filter, d^[j] estimates ``w0 d[j] + w1 d[j+1]``
+    with the weights of ``input_weights`` on the linearization (the part of d[j+1]
+    that shows in y[j+1] is not modelled): unbiased for it, NEES in bounds.
+    """
+    def f(t, x, u, p):
+        s1 = np.sqrt(np.abs(x[0]))
+        return np.stack([-A1 * s1 + B4 * u[0] + u[1], A1 * s1 - A2 * np.sqrt(np.abs(x[1]))])
+
+    cont = ct.nlsys(f, lambda t, x, u, p: x[1:], states=["x1", "x2"], inputs=["u", "d"],
+                    outputs=["y"], dt=0)
+    model = gb.discretize_nonlinear(cont, DT, substeps=4)
+    lin = gb.linearize_at(model, [1.0, 1.56], [1.0, 0.0])
+    G = np.asarray(lin.B)[:, 1:]
+    w, misfit = gb.input_weights(lin, unknown="d", r=2)
+    assert G[1, 0] > 0.05 and misfit < 1e-9  # C G clearly nonzero; weights exact (linear)
+    rng = np.random.default_rng(7)
+    err, var, M = [], [], 120
+    for _ in range(M):
+        N = 160
+        u = np.repeat(rng.uniform(0.6, 1.6, N // 10 + 1), 10)[None, :N]
+        d = D_STD * rng.standard_normal(N)
+        x, xk = np.empty((2, N)), np.array([1.0, 1.56])
+        for k in range(N):
+            x[:, k] = xk
+            xk = model.updfcn(0, xk, np.array([u[0, k], d[k]]), {}) + \
+                np.sqrt(np.diag(Q_T)) * rng.standard_normal(2)
+        y = x[1:] + np.sqrt(R_T[0, 0]) * rng.standard_normal((1, N))
+        res = gb.delayed_ui_ukf(model, y, u, unknown="d", Q=Q_T, R=R_T, x0=[1.0, 1.56],
+                                P0=np.diag([1e-2, 1e-2]), G=G, relative_degree=2)
+        j = np.array([60, 150])
+        err.append(res.d_est[0, j] - (w[0, 0, 0] * d[j] + w[1, 0, 0] * d[j + 1]))
+        var.append(res.d_var[0, j])
+    err, var = np.array(err), np.array(var)
+    # measured z = 1.09, -0.80 and NEES / M = 1.09, 1.05 (bounds 0.63-1.48)
+    assert np.all(np.abs(err.mean(axis=0) / np.sqrt(var.mean(axis=0) / M)) < 3.5)
+    lo, hi = chi2.ppf([0.0005, 0.9995], M)
+    nees = np.sum(err**2 / var, axis=0)
+    assert np.all((lo < nees) & (nees < hi)), nees / M
+
+
 # --------------------------------------------------------------------------- errors
 def test_bad_relative_degree_is_refused():
     s = mass()

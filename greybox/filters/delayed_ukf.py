@@ -32,7 +32,10 @@ y[k]. The states are mapped back, ``x^[k|k+1] = z^[k|k] + G~ d^[k-1]``.
 
 When ``C G = 0`` exactly (a discrete model ``F(x, u) + G d`` whose d drives
 only unmeasured states) the shift is exact and ``d_est[:, j]`` estimates
-d[j]. On a linear model ``F_z`` is the linear shifted model exactly, so the
+d[j]. When C G is small but not zero (d held over the sample inside RK4
+sub-steps) it estimates ``w[0] d[j] + w[1] d[j+1]`` with the weights of
+:func:`~greybox.input_weights` on the model linearized at the operating
+point, as the linear delayed filter does. On a linear model ``F_z`` is the linear shifted model exactly, so the
 filter equals :func:`~greybox.delayed_uikf` with ``relative_degree=2`` and
 ``gain="time-varying"`` (the unscented transform is exact for linear maps).
 Larger relative degrees are not offered: for r > 2 the shift needs the
