@@ -140,6 +140,7 @@ __all__ += [
 
 # nonlinear models and filters (section IV, issue 10)
 from .filters import MerweScaledSigmaPoints, ensemble_uikf, ui_ukf, ukf  # noqa: E402
+from .filters import delayed_ui_ukf  # noqa: E402
 from .nonlinear import (  # noqa: E402
     add_law,
     as_nonlinear,
@@ -165,6 +166,7 @@ __all__ += [
     "ensemble_uikf",
     "ui_ukf",
     "ukf",
+    "delayed_ui_ukf",
     "discretize_nonlinear",
     "linear_output_map",
     "rk4_substeps",

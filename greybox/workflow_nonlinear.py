@@ -16,6 +16,17 @@ linear output map, the paper's (33)). The stages mirror the linear pipeline:
    pipeline (forward selection with a BIC stopping rule over x, u, x^3,
    sign(x), |x|). Dynamic (unstructured subsystem) laws are not offered for
    a nonlinear nominal: the subsystem identification is linear.
+   A channel that no output sees in the next sample (rank(C G) = 0, e.g. the
+   upper of two tanks when only the lower is measured), or whose delayed
+   estimate has a 100x smaller steady-state variance on the linearization at
+   the operating point (:func:`greybox.detect_relative_degree`, as the linear
+   trace chooses), is traced by the delayed filter
+   :func:`greybox.delayed_ui_ukf` (relative degree 2). Its d^ is noisy: the
+   law's terms include saturation hinges ``max(x - c, 0)``, ``min(x - c, 0)``
+   (:func:`greybox.trace.law_terms`), its coefficients are refined by output
+   error before the channels are compared, and a law holding a hinge also
+   competes reduced to its hinge(s), coefficients and levels refined by output
+   error.
 3. **Choose and gate** exactly as the linear pipeline: lowest estimation SE
    of the updated model, within ``parsimony`` the fewest parameters; update
    only if some output rejects whiteness, the BIC gain exceeds
@@ -55,7 +66,14 @@ from ._validation import (
     check_signal,
 )
 from .exceptions import DataError, GreyboxError, ModelError, RankConditionError
-from .filters import FilterResult, ui_ukf, ukf
+from .filters import (
+    FilterResult,
+    delayed_ui_ukf,
+    detect_relative_degree,
+    input_weights,
+    ui_ukf,
+    ukf,
+)
 from .metrics import (
     autocorrelation,
     correlation_band,
@@ -76,7 +94,7 @@ from .nonlinear import (
 from .progress import ProgressClock
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance
-from .trace.laws import _fit_static, _law_line
+from .trace.laws import _eval_terms, _fit_static, _law_line, hinge_name
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after, undefined_error
 from .workflow import CRITERION, CandidateScore, Effect, LoopReport
@@ -198,6 +216,30 @@ def _prior(C: NDArray, D: NDArray, y: NDArray, u: NDArray) -> tuple[NDArray, NDA
     return x0, np.eye(n)
 
 
+def _delay_of(model_cd, labels, x_op, u_op, Q, R):
+    """(r, G, align) for a channel: the delay chosen as the linear trace chooses it.
+
+    The discrete model with unknown inputs is linearized at the operating point;
+    :func:`greybox.detect_relative_degree` (r <= 2) keeps r = 1 unless rank(C G)
+    < md or the delayed estimate's steady-state variance is 100x smaller. G is
+    the linearization's input matrix of d (it defines the shift of
+    :func:`greybox.delayed_ui_ukf`); ``align`` (md, r) the weights of d[j..j+r-1]
+    in what d^[j] estimates (:func:`greybox.input_weights`).
+    """
+    md, m = len(labels), model_cd.ninputs - len(labels)
+    lin = linearize_at(model_cd, x_op, np.concatenate([u_op, np.zeros(md)]))
+    G = np.asarray(lin.B, dtype=float)[:, m:]
+    try:  # a covariance recursion that does not converge is a candidate's inf, not a warning
+        with np.errstate(all="ignore"):
+            r = detect_relative_degree(lin, unknown=labels, Q=Q, R=R, max_degree=2).r
+    except GreyboxError:  # not observable at r <= 2: the r = 1 filter names the condition
+        return 1, G, np.ones((md, 1))
+    if r == 1:
+        return 1, G, np.ones((md, 1))
+    w, _ = input_weights(lin, unknown=labels, r=r)
+    return r, G, np.einsum("icc->ci", w)
+
+
 def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
     """The law's selected coefficients refitted by output error on y; (law, model) or None.
 
@@ -210,14 +252,21 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
     if not sel:
         return None
     rows, cols = (np.array(v) for v in zip(*sel))
+    # the levels of the selected saturation hinges are refined with the coefficients
+    hinges = sorted({int(j) for j in cols if law.spec[j][1] in _HINGE_KINDS})
+    nc = len(sel)
     yy, uu = y[:, SKIP:], u[:, SKIP:]
     scale = np.maximum(np.std(yy, axis=1), 1e-300)[:, None]
     big = np.full(yy.size, 1e3)
 
     def law_at(theta):
         coef = law.coef.copy()
-        coef[rows, cols] = theta
-        return replace(law, coef=coef)
+        coef[rows, cols] = theta[:nc]
+        spec = list(law.spec)
+        for j, level in zip(hinges, theta[nc:]):
+            nm, kind, (i, _) = spec[j]
+            spec[j] = (_hinge_name(nm, kind, float(level)), kind, (i, float(level)))
+        return replace(law, coef=coef, spec=tuple(spec))
 
     def resid(theta):
         model = disc(add_law(base, ch.G, law_at(theta).evaluate))
@@ -228,16 +277,18 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
         r = ((yy - C @ sim.x - D @ uu) / scale).ravel()
         return r if np.all(np.isfinite(r)) else big
 
-    theta0 = law.coef[rows, cols]
-    try:
-        sol = least_squares(resid, theta0, x_scale="jac", max_nfev=20, ftol=1e-4, xtol=1e-4)
+    theta0 = np.concatenate([law.coef[rows, cols], [law.spec[j][2][1] for j in hinges]])
+    try:  # a term that vanishes on the record (a hinge above every x) has a zero Jacobian
+        with np.errstate(all="ignore"):  # column: x_scale="jac" then divides by zero
+            sol = least_squares(resid, theta0, x_scale="jac", max_nfev=20, ftol=1e-4,
+                                xtol=1e-4)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(sol.x)) or sol.fun is big:
         return None
     half = np.full_like(law.coef, np.nan)
     half[rows, cols] = 1.96 * np.sqrt(np.clip(np.diag(
-        hac_covariance(sol.jac, sol.fun, yy.shape[0])), 0, None))
+        hac_covariance(sol.jac, sol.fun, yy.shape[0])), 0, None))[:nc]
     new = law_at(sol.x)
     lines = []
     for c in range(new.coef.shape[0]):
@@ -247,6 +298,30 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
     new = replace(new, ci=half, formula="; ".join(lines), time_base="continuous"
                   if base.isctime(strict=True) else "discrete")
     return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated")
+
+
+_HINGE_KINDS = ("x_hi", "x_lo")
+
+
+def _hinge_name(name: str, kind: str, level: float) -> str:
+    """The name of a hinge term (:func:`greybox.trace.laws.hinge_name`) at a new level."""
+    return hinge_name(name[4:-4].rsplit(" ", 2)[0], kind, level)
+
+
+def _hinge_law(law, d, x, u, sys, labels, units, align, relative):
+    """The law reduced to its saturation hinges (refitted on d^), or None without one."""
+    idx = [j for j, sp in enumerate(law.spec) if sp[1] in _HINGE_KINDS and
+           np.any(law.coef[:, j])]
+    if not idx or len(idx) == law.npar:
+        return None
+    terms = _eval_law_terms(law, x, u)[idx]
+    return _fit_static(d, x, u, sys, True, labels, units, align, relative, whiten=True,
+                       prebuilt=(terms, [law.spec[j] for j in idx], law.eps))
+
+
+def _eval_law_terms(law, x, u):
+    """Every candidate term of ``law`` on (x, u), shape (nterms, nsteps)."""
+    return _eval_terms(law.spec, law.eps, x, u)
 
 
 def _weak_terms(law) -> list[str]:
@@ -430,30 +505,56 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     for kc, ch in enumerate(chans):
         tick("trace candidate channels", kc, len(chans))
         labels = list(ch.labels)
+        r = 1
         try:
             model_cd = disc(with_unknown_inputs(base, ch.G, labels))
-            res = ui_ukf(model_cd, y, u, unknown=labels, Q=Q, R=R, x0=x_guess, P0=P0)
+            r, G_op, align = _delay_of(model_cd, labels, x_op, u_mean, Q, R)
+            if r == 1:
+                res = ui_ukf(model_cd, y, u, unknown=labels, Q=Q, R=R, x0=x_guess, P0=P0)
+            else:
+                res = delayed_ui_ukf(model_cd, y, u, unknown=labels, Q=Q, R=R, x0=x_guess,
+                                     P0=P0, G=G_op, relative_degree=r)
         except RankConditionError as e:  # (17) fails: d is not observable in this channel
             cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", str(e)))
             continue
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
+            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed",
+                                        (f"delayed (r = {r}) estimate: " if r > 1 else "")
+                                        + str(e)))
             continue
-        d = res.d_est[:, SKIP:N - 1]
+        # d^[:, j] estimates sum_i align[:, i] d[j + i]; x and u carry r - 1 more columns
+        d = res.d_est[:, SKIP:N - r]
         x = res.x_filt[:, SKIP:N - 1]
+        uw = u[:, SKIP:N - 1]
+        if r == 1:
+            x = x[:, :d.shape[1]]
+            uw = uw[:, :d.shape[1]]
         # d^ alternating sign (a channel seen through a ZOH zero near z = -1, e.g. a
-        # velocity equation through positions only): fit on the mean of consecutive
-        # samples, as the linear trace does
-        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
+        # velocity equation through positions only) from the r = 1 filter (the delayed
+        # one was not better): fit on the mean of consecutive samples, as the linear
+        # trace does
+        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if r == 1 and d.shape[1] > 2 else 0.0
         alt = r1 < _ALTERNATING  # then the mean of two samples, terms weighted alike
-        law = _fit_static(0.5 * (d[:, 1:] + d[:, :-1]) if alt else d, x, u[:, SKIP:N - 1],
-                          lin_cont, nonlinear, labels, ch.units,
-                          np.full((d.shape[0], 2), 0.5) if alt else None, ch.relative)
-        if r1 < _ALTERNATING:
+        d_fit = 0.5 * (d[:, 1:] + d[:, :-1]) if alt else d
+        al = np.full((d.shape[0], 2), 0.5) if alt else (align if r > 1 else None)
+        try:
+            law = _fit_static(d_fit, x, uw, lin_cont, nonlinear, labels, ch.units, al,
+                              ch.relative, whiten=r > 1, saturation=nonlinear and r > 1)
+        except (GreyboxError, np.linalg.LinAlgError) as e:  # e.g. no finite d^ left
+            cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "failed",
+                                        f"static law on d^: {e}"))
+            continue
+        if alt:
             notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation {r1:.2f}): "
                          f"the static law is fitted on the mean of consecutive samples")
+        if r > 1:
+            notes.append(f"{ch.name}: relative degree {r} (delayed unscented estimate, "
+                         f"greybox.delayed_ui_ukf): d^[j] estimates "
+                         + ", ".join(f"{labels[c]}: " + " + ".join(
+                             f"{align[c, i]:.3g}*d[j+{i}]" for i in range(r))
+                             for c in range(len(labels))))
         tr = ChannelTrace(channel=ch, status="ok", model=model_cd, filter_result=res,
-                          static=law)
+                          static=law, relative_degree=r)
         if law.npar == 0:
             cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "skipped",
                                         "no law term explains d^"))
@@ -464,8 +565,37 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
             continue
         upd = add_law(base, ch.G, law.evaluate, name=f"{base.name}_updated")
         se = _se_from(disc(upd), u, res.x_filt[:, SKIP], y, C, D)
-        cands.append(CandidateScore(ch.name, "static", 0, se, law.npar, "ok"))
-        scored.append((se, law.npar, tr, upd))
+        refined = False
+        if r > 1 and law.npar <= OE_MAX_TERMS:
+            # a delayed d^ is noisy (d shows in y only through C A G~): its law's
+            # coefficients are refined by output error before the channels are compared
+            ref_d = _refine_law_oe(law, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D)
+            if ref_d is not None:
+                se_d = _se_from(disc(ref_d[1]), u, res.x_filt[:, SKIP], y, C, D)
+                if se_d < se:
+                    law, upd, se, refined = ref_d[0], ref_d[1], se_d, True
+                    tr = replace(tr, static=law)
+        cands.append(CandidateScore(ch.name, "static", 0, se, law.npar, "ok",
+                                    "delayed d^ law refined by output error" if refined
+                                    else ""))
+        scored.append((se, law.npar, tr, upd, refined))
+        # a law with a saturation hinge beside other terms: the hinges alone, their
+        # coefficients and levels refined by output error, compete as a sparser candidate
+        # (d^ of a delayed estimate is noisy and correlated with x^: its other terms are
+        # often the closed-loop artefacts of PAPER_NOTES 8.4)
+        try:
+            hl = _hinge_law(law, d_fit, x, uw, lin_cont, labels, ch.units, al, ch.relative)
+        except (GreyboxError, np.linalg.LinAlgError):
+            hl = None
+        if hl is not None and hl.npar and (ch.md == 1 or np.all(np.any(hl.coef, axis=1))):
+            ref_h = _refine_law_oe(hl, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D)
+            if ref_h is not None:
+                hl, upd_h = ref_h
+                se_h = _se_from(disc(upd_h), u, res.x_filt[:, SKIP], y, C, D)
+                cands.append(CandidateScore(ch.name, "static", 0, se_h, hl.npar, "ok",
+                                            "saturation hinge(s) only, coefficient(s) and "
+                                            "level(s) refined by output error"))
+                scored.append((se_h, hl.npar, replace(tr, static=hl), upd_h, True))
     tick("trace candidate channels", len(chans), len(chans))
     finite = [s for s in scored if np.isfinite(s[0])]
     if not finite:
@@ -474,13 +604,19 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                        "(see candidates)", True, cands=cands)
     best = min(s[0] for s in finite)
     near = [s for s in finite if s[0] <= parsimony * best]
-    se_c, npar, tr, upd = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
+    se_c, npar, tr, upd, refined = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
     ch, law = tr.channel, tr.static
     # refine the law's coefficients by output error on y, in the nominal's time base with
     # the same RK4 (PAPER_NOTES §9.3, §9.5); kept only if the estimation SE drops
     tick("output-error refinement", 0, 1)
     ref = None
-    if law.npar <= OE_MAX_TERMS:
+    if refined and any(law.spec[j][1] in _HINGE_KINDS for j in np.flatnonzero(law.coef.any(0))):
+        notes.append(f"{ch.name}: the law's saturation hinges alone, refined by output error "
+                     f"on y (coefficients and levels), were chosen over the full d^ law")
+    elif refined:
+        notes.append(f"{ch.name}: the delayed d^ law was refined by output error on y before "
+                     f"the channels were compared")
+    elif law.npar <= OE_MAX_TERMS:
         ref = _refine_law_oe(law, base, ch, disc, y, u, tr.filter_result.x_filt[:, SKIP], C, D)
     else:
         notes.append(f"{ch.name}: the law has {law.npar} terms (> {OE_MAX_TERMS}): not refined "

@@ -36,5 +36,7 @@ __all__ += [
 from .ensemble import ensemble_uikf  # noqa: E402
 from .sigma_points import MerweScaledSigmaPoints, robust_cholesky  # noqa: E402
 from .ukf import ui_ukf, ukf  # noqa: E402
+from .delayed_ukf import delayed_ui_ukf  # noqa: E402
 
-__all__ += ["MerweScaledSigmaPoints", "robust_cholesky", "ui_ukf", "ukf", "ensemble_uikf"]
+__all__ += ["MerweScaledSigmaPoints", "robust_cholesky", "ui_ukf", "ukf", "ensemble_uikf",
+            "delayed_ui_ukf"]

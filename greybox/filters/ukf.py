@@ -315,6 +315,8 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     x_filt, xp_rows, e_rows = np.empty((N, n)), np.empty((N, n)), np.empty((N, p))
     gd_rows = np.zeros((N, n)) if md else None
     g_rows = np.zeros((N, n)) if md == 1 else None
+    dl_rows = np.zeros(N)  # d_lin used at each step (md = 1)
+    pd = np.inf  # Pd when md = 1 (stays inf if d is never seen)
     d_est, d_var = np.full((N, md), np.nan), np.full((N, md), np.nan)
     Phist = np.empty((n, n, N)) if store_covariances else None
     has_D = m > 0 and bool(np.any(D))
@@ -399,7 +401,25 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
             if info:  # Rt not positive definite in floating point: LU as uikf does
                 Sol = np.linalg.solve(Rt, B)
             T = B.T @ Sol
-            if md == 1:  # the common case in scalars: fewer numpy calls, same algebra
+            unseen = md == 1 and not T[n, n] > 0
+            if md > 1:
+                try:
+                    Pd = np.linalg.inv(T[n:n + md, n:n + md])  # (F' Rt^-1 F)^-1
+                except np.linalg.LinAlgError:
+                    unseen = True
+            if unseen:  # C G = 0 here (e.g. a sqrt or a clip at its limit): y[k] says
+                # nothing of d[k-1]; d^ stays NaN, the state gets the plain UKF update
+                # with d at its linearization value, which then restarts from 0
+                xf = xp + T[:n, -1]
+                Pf = Pp - T[:n, :n]
+                d_var[k - 1] = np.inf
+                if md == 1:
+                    g_rows[k], dl_rows[k] = G[:, 0], dlf
+                    dlf = 0.0
+                else:
+                    gd_rows[k] = G @ dlin
+                dlin = np.zeros(md)
+            elif md == 1:  # the common case in scalars: fewer numpy calls, same algebra
                 pd = 1.0 / float(T[n, n])  # (F' Rt^-1 F)^-1
                 dd1 = pd * float(T[n, -1])  # M e
                 dh1 = dlf + dd1  # d^[k-1]
@@ -413,13 +433,11 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
                 Pf += Pp  # lower triangle used only: not symmetrized in the loop
                 d_est[k - 1, 0] = dh1
                 d_var[k - 1, 0] = pd
-                g_rows[k] = g  # G d_lin is formed after the loop
+                g_rows[k], dl_rows[k] = g, dlf  # G d_lin is formed after the loop
                 if d_lin == "previous":
                     dlf = dh1
                     dlin[0] = dh1
             elif md:
-                FRiF = T[n:n + md, n:n + md]
-                Pd = np.linalg.inv(FRiF)
                 Pd = 0.5 * (Pd + Pd.T)
                 dd = Pd @ T[n:n + md, -1]  # M e
                 dh = dlin + dd
@@ -443,8 +461,8 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
             if Phist is not None:
                 Phist[:, :, k] = 0.5 * (Pf + Pf.T)
     Pf = 0.5 * (Pf + Pf.T)
-    if md == 1 and d_lin == "previous":  # d_lin at step k >= 2 was d^[k-2]
-        gd_rows[2:] = g_rows[2:] * d_est[:N - 2]
+    if md == 1:  # d_lin at step k (d^[k-2], or 0 after a step where d was not seen)
+        gd_rows = g_rows * dl_rows[:, None]
     if md:
         x_pred = xp_rows - gd_rows  # f(x, u) without d, as uikf's x_pred
         innov = e_rows + gd_rows @ C.T
@@ -529,7 +547,10 @@ def ui_ukf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
     Returns
     -------
     FilterResult
-        Same record and alignment as :func:`greybox.uikf`.
+        Same record and alignment as :func:`greybox.uikf`. At a step where y
+        does not depend on d (``C dF/dd = 0`` there, e.g. a state at a sqrt's
+        or a clip's limit) ``d_est`` is NaN and ``d_var`` inf; the state gets
+        the plain UKF update there.
 
     Raises
     ------

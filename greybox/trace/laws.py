@@ -21,10 +21,21 @@ from .intervals import hac_covariance
 
 
 # --------------------------------------------------------------------------- static laws
+#: Quantiles of a state's record where the saturation hinges are placed (upper, lower).
+SAT_QUANTILES = ((0.6, 0.75, 0.9), (0.1, 0.25))
+
+
+def hinge_name(state: str, kind: str, level: float) -> str:
+    """Display name of a saturation hinge: ``max(x1 - 7.9, 0)`` or ``min(x1 + 0.4, 0)``."""
+    sign = "-" if level >= 0 else "+"
+    return f"{'max' if kind == 'x_hi' else 'min'}({state} {sign} {abs(level):.4g}, 0)"
+
+
 def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
               input_labels: Sequence[str], *, nonlinear: bool = True,
               eps: NDArray | None = None,
-              relative: Sequence[tuple[int, int]] = ()) -> tuple[NDArray, list, NDArray]:
+              relative: Sequence[tuple[int, int]] = (),
+              saturation: bool = False) -> tuple[NDArray, list, NDArray]:
     """Candidate terms of a static law, evaluated on (x, u).
 
     Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
@@ -38,12 +49,16 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
     rel) come first; with ``nonlinear`` the bilinear products ``x_i*u_j`` (a
     flow times a temperature, a field current times a speed: index ``(i, j)``)
     follow the other nonlinear terms and the constant term "1" (an offset)
-    comes last.
+    comes last. With ``saturation`` (and ``nonlinear``) each state also gets
+    hinges, ``max(x_i - c, 0)`` at the 60, 75 and 90 % quantiles of its
+    record and ``min(x_i - c, 0)`` at the 10 and 25 % quantiles (kinds
+    "x_hi", "x_lo", index ``(i, c)``): a level that stops rising at c (an
+    overflow, a stop) is a stiff restoring term above c.
     """
     n, m = x.shape[0], u.shape[0]
     rel = [x[j] - x[i] for i, j in relative]
     if eps is None:
-        eps = 0.05 * np.sqrt(np.mean(np.array(list(x) + rel) ** 2, axis=1)) + 1e-300 \
+        eps = 0.05 * np.sqrt(np.nanmean(np.array(list(x) + rel) ** 2, axis=1)) + 1e-300 \
             if n + len(rel) else np.zeros(0)
     rows, spec = [], []
     for i in range(n):
@@ -77,6 +92,15 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
             for j in range(m):
                 rows.append(x[i] * u[j])
                 spec.append((f"{state_labels[i]}*{input_labels[j]}", "x*u", (i, j)))
+        if saturation and x.shape[1]:
+            for i in range(n):
+                s = state_labels[i]
+                for side, qs in zip(("x_hi", "x_lo"), SAT_QUANTILES):
+                    for c in np.nanquantile(x[i], qs):
+                        c = float(c)
+                        rows.append(np.maximum(x[i] - c, 0.0) if side == "x_hi" else
+                                    np.minimum(x[i] - c, 0.0))
+                        spec.append((hinge_name(s, side, c), side, (i, c)))
         rows.append(np.ones(x.shape[1]))  # an offset (a constant force, a biased sensor)
         spec.append(("1", "const", 0))
     N = x.shape[1]
@@ -151,6 +175,9 @@ def _eval_terms(spec, eps, x, u):
             continue
         if kind == "x*u":
             out[r] = x[i[0]] * u[i[1]]
+            continue
+        if kind in ("x_hi", "x_lo"):  # a saturation hinge at level c = i[1]
+            out[r] = (np.maximum if kind == "x_hi" else np.minimum)(x[i[0]] - i[1], 0.0)
             continue
         if kind.startswith("rel"):
             a, b, e = i
@@ -355,7 +382,7 @@ def _whitening(e: NDArray, p: int) -> NDArray[np.float64]:
 
 
 def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
-                relative=(), whiten=False, prebuilt=None) -> StaticLaw:
+                relative=(), whiten=False, prebuilt=None, saturation=False) -> StaticLaw:
     """Sparse static law of every component of d^ on the terms of (x, u).
 
     ``align`` (md, r): d^[c, j] estimates ``sum_i align[c, i] d[c, j + i]``
@@ -367,16 +394,25 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     badly understate what the low-frequency terms explain. The regression is
     then feasible generalized least squares: an AR(4) filter fitted
     (Yule-Walker) to the residual of all candidate terms whitens d^ and the
-    terms alike before the selection and the intervals. ``prebuilt``:
+    terms alike before the selection and the intervals. ``saturation``: offer
+    the hinge terms of :func:`law_terms`. ``prebuilt``:
     ``(terms, spec, eps)`` of other candidates (:func:`output_terms`).
     """
     if prebuilt is None:
         terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels,
-                                     nonlinear=nonlinear, relative=relative)
+                                     nonlinear=nonlinear, relative=relative,
+                                     saturation=saturation)
     else:
         terms, spec, eps = prebuilt
     md = d.shape[0]
     tc = [terms if align is None else aligned(terms, align[c]) for c in range(md)]
+    # samples where d^ or a term is undefined (NaN: steps where the filter did not see d)
+    # are left out, each component on its own
+    dcs = [d[c] for c in range(md)]
+    for c in range(md):
+        ok = np.isfinite(dcs[c]) & np.all(np.isfinite(tc[c]), axis=0)
+        if not np.all(ok):
+            tc[c], dcs[c] = tc[c][:, ok], dcs[c][ok]
     terms = tc[0]
     n, m = x.shape[0], u.shape[0]
     coef = np.zeros((md, len(spec)))
@@ -388,7 +424,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     names = [s[0] for s in spec]
     half = np.full((md, len(spec)), np.nan)
     for c in range(md):
-        terms, dc = tc[c], d[c]
+        terms, dc = tc[c], dcs[c]
         if whiten and terms.shape[1] > 10 * (_AR_ORDER + len(spec)):
             a = _whitening(dc - _ls_fit(terms, dc), _AR_ORDER)
             dc = lfilter(a, [1.0], dc)[_AR_ORDER:]
@@ -401,7 +437,8 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
             cov = hac_covariance((X / sx[:, None]).T, dc - cf @ X, 1) / np.outer(sx, sx)
             half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
-        rv[c] = float(np.mean((d[c] - cf @ tc[c][idx]) ** 2)) if idx else float(np.mean(d[c]**2))
+        rv[c] = (float(np.mean((dcs[c] - cf @ tc[c][idx]) ** 2)) if idx else
+                 float(np.mean(dcs[c]**2)))
         gain += sel.bic_gain
         npar += len(idx)
         nl = any(j >= nlin for j in idx)
