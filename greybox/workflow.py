@@ -709,28 +709,18 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         tick("trace candidate channels", len(chans), len(chans))
         # 2a. one force inside a pair of equations: md = 1 along the law's direction, with
         #     the bodies' relative coordinates offered to the law (PAPER_NOTES §9.6)
-        def _trace_force(fch):
+        def _static_trace(ch_):
+            """The static trace of one channel (a force, a group), scored; or None."""
             try:
-                ftr = trace_channel(sys, fch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
+                tr_ = trace_channel(sys, ch_, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
                                     max_order=0)
             except (GreyboxError, np.linalg.LinAlgError) as e:
-                notes.append(f"{fch.name}: {e}")
-                return
-            if ftr.status == "ok":
-                _score(ftr)
-
-        def _group_trace(gch):
-            """The static trace of a group channel (scored), or None."""
-            try:
-                gtr = trace_channel(sys, gch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
-                                    max_order=0)
-            except (GreyboxError, np.linalg.LinAlgError) as e:
-                notes.append(f"{gch.name}: {e}")
+                notes.append(f"{ch_.name}: {e}")
                 return None
-            if gtr.status != "ok":
+            if tr_.status != "ok":
                 return None
-            _score(gtr)
-            return next((t[2] for t in scored[::-1] if t[2].channel == gch), None)
+            _score(tr_)
+            return next((t[2] for t in scored[::-1] if t[2].channel == ch_), None)
 
         for se_, _, tr_, kind_ in list(scored):
             if kind_ != "static" or tr_.channel.md != 2 or tr_.channel.kind != "equation":
@@ -745,12 +735,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             fch = force_channel(sys, tr_.channel, g)
             if _along_an_input(sys, fch):
                 continue  # the input's own channel says the same, and names the input
-            _trace_force(fch)
+            _static_trace(fch)
         # ... and along the screen's direction (rougher) where the pair law gave no force
         for fch in screen_forces:
             if not any(t[2].channel.kind == "force" and
                        set(t[2].channel.equations) == set(fch.equations) for t in scored):
-                _trace_force(fch)
+                _static_trace(fch)
         if max_order >= 2 and scored and not big:
             ranked = []
             for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
@@ -841,7 +831,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     return
                 fch = force_channel(sys, ch, dl.k)
                 n_before = len(scored)
-                _trace_force(fch)
+                _static_trace(fch)
                 ftr = next((t[2] for t in scored[n_before:] if t[3] == "static"), None)
                 if ftr is None:
                     return
@@ -878,7 +868,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             # best static law left the innovations coloured, see _static_is_enough): the
             # screen's group of equations (a hidden body touching 2-4 bodies) and the best
             # pair's static trace
-            for gtr in (_shared_groups(sys, chans, scored, _group_trace) if big else ()):
+            for gtr in (_shared_groups(sys, chans, scored, _static_trace) if big else ()):
                 if not _shared(gtr):
                     break
         finite = [s for s in scored if np.isfinite(s[0])]
