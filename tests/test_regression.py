@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import greybox as gb
-from greybox.ident.regression import SparseLaw, forward_selection, static_least_squares
+from greybox.ident.regression import (SparseLaw, forward_selection, forward_selection_gram,
+                                      static_least_squares)
 
 
 @pytest.fixture
@@ -206,3 +207,41 @@ def test_forward_selection_errors(rng):
         forward_selection(T, d, names, min_gain=-1.0)
     with pytest.raises(gb.DataError, match="min_drop must be below 1"):
         forward_selection(T, d, names, min_drop=1.0)
+
+
+# --------------------------------------------------------------------------- from products
+def test_forward_selection_gram_selects_as_forward_selection_on_the_terms(rng):
+    """The products X X^T, X d, d^T d carry everything the selection needs: the same
+    terms, coefficients and BIC path as on X (pruning included), and the normal
+    equations' RSS as the residual variance."""
+    N = 3000
+    T, names = _candidates(rng, N)
+    a, b, c = rng.standard_normal((3, N))
+    T = np.vstack([T, a + b + 0.3 * c, a, b])  # with the pruning case's proxy
+    names = names + ["proxy", "a", "b"]
+    d = (T[names.index("x1")] - 0.5 * T[names.index("x3")] + a + b
+         + 0.01 * rng.standard_normal(N))
+    ref = forward_selection(T, d, names, min_drop=1e-4, prune=True)
+    law = forward_selection_gram(T @ T.T, T @ d, float(d @ d), N, names, min_drop=1e-4,
+                                 prune=True)
+    assert law.names == ref.names and law.pruned == ref.pruned and "proxy" not in law.names
+    # both solve the same normal equations: agreement to rounding (1e-10)
+    np.testing.assert_allclose(law.coef, ref.coef, rtol=1e-10)
+    np.testing.assert_allclose(law.bic_path, ref.bic_path, rtol=1e-10)
+    np.testing.assert_allclose(law.residual_var, ref.residual_var, rtol=1e-6)
+
+
+def test_forward_selection_gram_errors(rng):
+    T = rng.standard_normal((3, 200))
+    d = rng.standard_normal(200)
+    G, b, names = T @ T.T, T @ d, ["a", "b", "c"]
+    with pytest.raises(gb.DimensionError, match=r"gram has shape \(3, 2\)"):
+        forward_selection_gram(G[:, :2], b, float(d @ d), 200, names)
+    with pytest.raises(gb.DimensionError, match="cross has 2 entries; expected nterms = 3"):
+        forward_selection_gram(G, b[:2], float(d @ d), 200, names)
+    with pytest.raises(gb.DimensionError, match="names has 2 entries"):
+        forward_selection_gram(G, b, float(d @ d), 200, names[:2])
+    with pytest.raises(gb.DataError, match="must be finite"):
+        forward_selection_gram(G, b, np.nan, 200, names)
+    with pytest.raises(gb.DataError, match="nsteps"):
+        forward_selection_gram(G, b, float(d @ d), 0, names)

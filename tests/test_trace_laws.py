@@ -73,3 +73,25 @@ def test_joint_refit_merges_a_term_two_effects_hold():
     active, theta, merged = _independent(ps, np.array([2.0, -5.0, 4.0]))
     assert active == [0, 1] and merged == ["b: p (the same term as an earlier effect's)"]
     np.testing.assert_allclose(theta, [2.0 + 0.5 * 4.0, -5.0])  # exact: the model unchanged
+
+
+def test_filtered_products_equal_the_products_of_the_filtered_terms():
+    """The whitened regression's X X^T and X d accumulate over blocks of time without
+    the whitened copy of the terms: they must equal the products of lfilter's output
+    (start-up dropped) across block edges (K not a multiple of the block)."""
+    from scipy.signal import lfilter
+
+    from greybox.trace import laws
+
+    rng = np.random.default_rng(3)
+    K = 2 * laws._BLOCK + 777
+    T = rng.standard_normal((6, K)).cumsum(axis=1)  # coloured, large: a stringent check
+    d = rng.standard_normal(K)
+    a = np.array([1.0, -0.9, 0.3, 0.05, -0.02])
+    p = len(a) - 1
+    W = lfilter(a, [1.0], T, axis=1)[:, p:]
+    dw = lfilter(a, [1.0], d)[p:]
+    gram, cross = laws._filtered_products(T, a, dw)
+    # the same sums in another order: rounding only (1e-12 relative)
+    np.testing.assert_allclose(gram, W @ W.T, rtol=1e-12)
+    np.testing.assert_allclose(cross, W @ dw, rtol=1e-12, atol=1e-12 * np.abs(W @ dw).max())

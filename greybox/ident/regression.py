@@ -16,7 +16,8 @@ from .._blas import single_thread_blas
 from .._validation import check_positive, check_same_length, check_signal
 from ..exceptions import DataError, DimensionError
 
-__all__ = ["StaticFit", "static_least_squares", "SparseLaw", "forward_selection"]
+__all__ = ["StaticFit", "static_least_squares", "SparseLaw", "forward_selection",
+           "forward_selection_gram"]
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,89 @@ def _bic(rss: float, N: int, k: int) -> float:
 _GRAM_COND_MAX = 1e12
 
 
+def _select_on_gram(gram, cross, dd, N, names, max_terms, min_gain, min_drop, prune):
+    """The forward pass and pruning of :func:`forward_selection` on ``X X^T``, ``X d``, ``d^T d``.
+
+    Returns the term scale s (nterms,), the selected indices, their coefficients
+    on the unit-RMS terms, the RSS, the BIC path and the pruned names.
+    """
+    nterms = gram.shape[0]
+    s = np.sqrt(np.clip(np.diag(gram), 0.0, None) / N)
+    usable = s > 0
+    sd = np.where(usable, s, 1.0)
+    Gm = gram / np.outer(sd, sd)
+    b = cross / sd
+    floor = 1e-10 * dd
+
+    sel: list[int] = []
+    coef_s = np.zeros(0)
+    rss = dd
+    path = [_bic(dd, N, 0)]
+    while len(sel) < max_terms:
+        best = None
+        for j in range(nterms):
+            if j in sel or not usable[j]:
+                continue
+            idx = sel + [j]
+            Gs = Gm[np.ix_(idx, idx)]
+            try:
+                c = np.linalg.solve(Gs, b[idx])
+            except np.linalg.LinAlgError:
+                continue
+            if np.linalg.cond(Gs) > _GRAM_COND_MAX:
+                continue
+            r = dd - float(c @ b[idx])
+            if best is None or r < best[1]:
+                best = (j, r, c)
+        if best is None:
+            break
+        rj = max(best[1], floor)
+        bb = _bic(rj, N, len(sel) + 1)
+        if bb >= path[-1] - min_gain or rss - best[1] < min_drop * dd:
+            break
+        sel.append(best[0])
+        rss, coef_s = rj, best[2]
+        path.append(bb)
+
+    pruned: list[str] = []
+    while prune and len(sel) > 1:
+        for j in list(sel):
+            idx = [i for i in sel if i != j]
+            c = np.linalg.solve(Gm[np.ix_(idx, idx)], b[idx])
+            r = dd - float(c @ b[idx])
+            if r - rss < min_drop * dd:
+                pruned.append(names[j])
+                sel, coef_s, rss = idx, c, max(r, floor)
+                path = path[:len(sel)] + [_bic(rss, N, len(sel))]
+                break
+        else:
+            break
+
+    return s, sel, coef_s, rss, path, pruned
+
+
+def _selection_options(names, nterms, max_terms, min_gain, min_drop):
+    """The checked names and options of a forward selection over nterms terms."""
+    try:
+        names = None if isinstance(names, str) else list(names)
+    except TypeError:
+        names = None
+    if names is None or not all(isinstance(v, str) for v in names):
+        raise DimensionError("names must be a sequence of term names (strings), one per row "
+                             "of terms")
+    if len(names) != nterms:
+        raise DimensionError(f"names has {len(names)} entries; expected nterms = {nterms} "
+                             f"(one name per row of terms)")
+    if max_terms is not None:
+        max_terms = check_positive(max_terms, "max_terms", integer=True, allow_zero=True)
+    min_gain = check_positive(min_gain, "min_gain", allow_zero=True)
+    min_drop = check_positive(min_drop, "min_drop", allow_zero=True)
+    if min_drop >= 1:
+        raise DataError(f"min_drop must be below 1 (a fraction of sum(d**2)); found {min_drop!r}")
+    max_terms = nterms if max_terms is None else min(max_terms, nterms)
+    return names, max_terms, min_gain, min_drop
+
+
 def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
                       max_terms: int | None = None, min_gain: float = 0.0,
                       min_drop: float = 0.0, prune: bool = False) -> SparseLaw:
@@ -186,82 +270,79 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
     X = check_signal(terms, None, "terms")
     d = check_signal(d, 1, "d")[0]  # one channel: (nsteps,) or (1, nsteps)
     N = check_same_length(("terms", X), ("d", d[None, :]))
-    nterms = X.shape[0]
-    try:
-        names = None if isinstance(names, str) else list(names)
-    except TypeError:
-        names = None
-    if names is None or not all(isinstance(v, str) for v in names):
-        raise DimensionError("names must be a sequence of term names (strings), one per row "
-                             "of terms")
-    if len(names) != nterms:
-        raise DimensionError(f"names has {len(names)} entries; expected nterms = {nterms} "
-                             f"(one name per row of terms)")
-    if max_terms is not None:
-        max_terms = check_positive(max_terms, "max_terms", integer=True, allow_zero=True)
-    min_gain = check_positive(min_gain, "min_gain", allow_zero=True)
-    min_drop = check_positive(min_drop, "min_drop", allow_zero=True)
-    if min_drop >= 1:
-        raise DataError(f"min_drop must be below 1 (a fraction of sum(d**2)); found {min_drop!r}")
-    max_terms = nterms if max_terms is None else min(max_terms, nterms)
+    names, max_terms, min_gain, min_drop = _selection_options(
+        names, X.shape[0], max_terms, min_gain, min_drop)
 
     # unit-RMS scaling applied to the products, not to X: no nterms x N copies (each as
     # large as the terms themselves, 290 MB for 362 terms at N = 1e5)
-    s = np.sqrt(np.einsum("ij,ij->i", X, X) / N)
-    usable = s > 0
-    sd = np.where(usable, s, 1.0)
     with single_thread_blas():  # thin products: threads only cost (and stall under load)
-        Gm = (X @ X.T) / np.outer(sd, sd)
-        b = (X @ d) / sd
-    dd = float(d @ d)
-    floor = 1e-10 * dd
-
-    sel: list[int] = []
-    coef_s = np.zeros(0)
-    rss = dd
-    path = [_bic(dd, N, 0)]
-    while len(sel) < max_terms:
-        best = None
-        for j in range(nterms):
-            if j in sel or not usable[j]:
-                continue
-            idx = sel + [j]
-            Gs = Gm[np.ix_(idx, idx)]
-            try:
-                c = np.linalg.solve(Gs, b[idx])
-            except np.linalg.LinAlgError:
-                continue
-            if np.linalg.cond(Gs) > _GRAM_COND_MAX:
-                continue
-            r = dd - float(c @ b[idx])
-            if best is None or r < best[1]:
-                best = (j, r, c)
-        if best is None:
-            break
-        rj = max(best[1], floor)
-        bb = _bic(rj, N, len(sel) + 1)
-        if bb >= path[-1] - min_gain or rss - best[1] < min_drop * dd:
-            break
-        sel.append(best[0])
-        rss, coef_s = rj, best[2]
-        path.append(bb)
-
-    pruned: list[str] = []
-    while prune and len(sel) > 1:
-        for j in list(sel):
-            idx = [i for i in sel if i != j]
-            c = np.linalg.solve(Gm[np.ix_(idx, idx)], b[idx])
-            r = dd - float(c @ b[idx])
-            if r - rss < min_drop * dd:
-                pruned.append(names[j])
-                sel, coef_s, rss = idx, c, max(r, floor)
-                path = path[:len(sel)] + [_bic(rss, N, len(sel))]
-                break
-        else:
-            break
-
+        gram, cross = X @ X.T, X @ d
+    s, sel, coef_s, rss, path, pruned = _select_on_gram(
+        gram, cross, float(d @ d), N, names, max_terms, min_gain, min_drop, prune)
     coef = coef_s / s[sel] if sel else np.zeros(0)
     e = d - coef @ X[sel] if sel else d
     return SparseLaw(names=tuple(names[j] for j in sel), index=tuple(sel), coef=coef,
                      residual_var=float(e @ e) / N, bic_path=np.array(path),
+                     pruned=tuple(pruned))
+
+
+def forward_selection_gram(gram: ArrayLike, cross: ArrayLike, dd: float, nsteps: int,
+                           names: Sequence[str], *, max_terms: int | None = None,
+                           min_gain: float = 0.0, min_drop: float = 0.0,
+                           prune: bool = False) -> SparseLaw:
+    """:func:`forward_selection` from the products of the terms, not the terms.
+
+    For callers that form ``X X^T`` and ``X d`` without holding X (or a
+    filtered copy of it) in memory, e.g. accumulated over blocks of time.
+    The selection is the same as :func:`forward_selection` on X and d; the
+    law's ``residual_var`` is the RSS of the normal equations over nsteps.
+
+    Parameters
+    ----------
+    gram : array_like, shape (nterms, nterms)
+        ``X X^T`` of the candidate terms X (nterms, nsteps).
+    cross : array_like, shape (nterms,)
+        ``X d``.
+    dd : float
+        ``d^T d``.
+    nsteps : int
+        Number of samples N behind the products.
+    names : sequence of str, length nterms
+    max_terms : int, optional
+        As :func:`forward_selection`.
+    min_gain : float
+        As :func:`forward_selection`.
+    min_drop : float
+        As :func:`forward_selection`.
+    prune : bool
+        As :func:`forward_selection`.
+
+    Returns
+    -------
+    SparseLaw
+
+    Raises
+    ------
+    DimensionError
+        If gram is not square, or cross and names disagree with it.
+    DataError
+        If a product is not finite, or an option is out of range.
+    """
+    G = np.asarray(gram, dtype=float)
+    b = np.asarray(cross, dtype=float).ravel()
+    if G.ndim != 2 or G.shape[0] != G.shape[1]:
+        raise DimensionError(f"gram has shape {G.shape}; expected (nterms, nterms) = X X^T")
+    if b.size != G.shape[0]:
+        raise DimensionError(f"cross has {b.size} entries; expected nterms = {G.shape[0]} "
+                             f"(X d)")
+    if not (np.all(np.isfinite(G)) and np.all(np.isfinite(b)) and np.isfinite(dd)):
+        raise DataError("gram, cross and dd must be finite; found NaN or inf")
+    N = check_positive(nsteps, "nsteps", integer=True)
+    names, max_terms, min_gain, min_drop = _selection_options(
+        names, G.shape[0], max_terms, min_gain, min_drop)
+    s, sel, coef_s, rss, path, pruned = _select_on_gram(
+        G, b, float(dd), N, names, max_terms, min_gain, min_drop, prune)
+    coef = coef_s / s[sel] if sel else np.zeros(0)
+    return SparseLaw(names=tuple(names[j] for j in sel), index=tuple(sel), coef=coef,
+                     residual_var=float(rss) / N, bic_path=np.array(path),
                      pruned=tuple(pruned))

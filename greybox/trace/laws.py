@@ -11,9 +11,10 @@ from numpy.typing import NDArray
 from scipy.linalg import lstsq, solve_toeplitz
 from scipy.signal import lfilter
 
+from .._blas import single_thread_blas
 from ..exceptions import ModelError
 from ..filters import FilterResult
-from ..ident.regression import SparseLaw, forward_selection
+from ..ident.regression import SparseLaw, forward_selection, forward_selection_gram
 from ..update import Subsystem, psd_part
 from .channels import Channel
 from .intervals import hac_covariance
@@ -316,6 +317,39 @@ def _select(terms: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
     return forward_selection(terms, d, names, min_drop=_MIN_DROP, prune=True)
 
 
+def _select_gram(gram: NDArray, cross: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
+    """:func:`_select` from the terms' products ``X X^T``, ``X d`` (d: the regressand)."""
+    return forward_selection_gram(gram, cross, float(d @ d), d.size, names, min_drop=_MIN_DROP,
+                                  prune=True)
+
+
+# time samples per block of the filtered products (p x 8192 floats: 13 MB at p = 200)
+_BLOCK = 8192
+
+
+def _filtered_products(terms: NDArray, a: NDArray, dw: NDArray) -> tuple[NDArray, NDArray]:
+    """``W W^T`` and ``W dw`` of the FIR-filtered terms W without forming W.
+
+    ``W = lfilter(a, [1], terms, axis=1)[:, p:]`` (p = len(a) - 1, the
+    filter's start-up dropped), accumulated over blocks of time: the whitened
+    copy of the terms (as large as the terms, 130 MB for 160 terms at K = 1e5)
+    is never held.
+    """
+    p = len(a) - 1
+    K = terms.shape[1]
+    gram = np.zeros((terms.shape[0], terms.shape[0]))
+    cross = np.zeros(terms.shape[0])
+    with single_thread_blas():  # thin products: threads only cost (and stall under load)
+        for t0 in range(p, K, _BLOCK):
+            t1 = min(t0 + _BLOCK, K)
+            w = a[0] * terms[:, t0:t1]
+            for i in range(1, p + 1):
+                w += a[i] * terms[:, t0 - i:t1 - i]
+            gram += w @ w.T
+            cross += w @ dw[t0 - p:t1 - p]
+    return gram, cross
+
+
 def direction(coef: NDArray, tscale: NDArray) -> NDArray | None:
     """The one direction of an md > 1 law (largest component 1), or None if it has two."""
     if coef.shape[0] < 2 or not np.any(coef):
@@ -350,7 +384,14 @@ def aligned(terms: NDArray, w: NDArray) -> NDArray[np.float64]:
     """
     r = len(w)
     K = terms.shape[1] - r + 1
-    return sum(w[i] * terms[:, i:i + K] for i in range(r))
+    out = w[0] * terms[:, :K]
+    # in place, a block of rows at a time: a sum of r weighted copies would hold three
+    # arrays as large as the terms at once (the peak of a 32-state chain's trace)
+    rows = max(1, _BLOCK * 16 // max(K, 1))
+    for i in range(1, r):
+        for j in range(0, out.shape[0], rows):
+            out[j:j + rows] += w[i] * terms[j:j + rows, i:i + K]
+    return out
 
 
 # AR order of the prewhitening filter of a smoothed or delayed d^
@@ -405,15 +446,6 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     else:
         terms, spec, eps = prebuilt
     md = d.shape[0]
-    tc = [terms if align is None else aligned(terms, align[c]) for c in range(md)]
-    # samples where d^ or a term is undefined (NaN: steps where the filter did not see d)
-    # are left out, each component on its own
-    dcs = [d[c] for c in range(md)]
-    for c in range(md):
-        ok = np.isfinite(dcs[c]) & np.all(np.isfinite(tc[c]), axis=0)
-        if not np.all(ok):
-            tc[c], dcs[c] = tc[c][:, ok], dcs[c][ok]
-    terms = tc[0]
     n, m = x.shape[0], u.shape[0]
     coef = np.zeros((md, len(spec)))
     Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
@@ -423,28 +455,50 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     nlin = sum(1 for sp in spec if sp[1] in LINEAR_KINDS)  # the linear terms come first
     names = [s[0] for s in spec]
     half = np.full((md, len(spec)), np.nan)
+    tscale = None
+    held = (None, None)  # (weights, aligned terms): components with equal weights share one
     for c in range(md):
-        terms, dc = tc[c], dcs[c]
-        if whiten and terms.shape[1] > 10 * (_AR_ORDER + len(spec)):
-            a = _whitening(dc - _ls_fit(terms, dc), _AR_ORDER)
-            dc = lfilter(a, [1.0], dc)[_AR_ORDER:]
-            terms = lfilter(a, [1.0], terms, axis=1)[:, _AR_ORDER:]
-        sel = _select(terms, dc, names)
+        # one component's terms at a time (each aligned copy is as large as the terms)
+        tcur = terms
+        if align is not None:
+            key = tuple(np.asarray(align[c], dtype=float))
+            if held[0] != key:
+                held = (None, None)
+                held = (key, aligned(terms, align[c]))
+            tcur = held[1]
+            if c == md - 1:
+                terms = None  # the unaligned terms are no longer needed here
+        dc = d[c]
+        # samples where d^ or a term is undefined (NaN: steps where the filter did not see
+        # d) are left out, each component on its own
+        ok = np.isfinite(dc) & np.all(np.isfinite(tcur), axis=0)
+        if not np.all(ok):
+            tcur, dc = tcur[:, ok], dc[ok]
+        if tscale is None:  # the scale of the first component's terms, no squared copy
+            tscale = np.sqrt(np.einsum("ij,ij->i", tcur, tcur) / tcur.shape[1])
+        if whiten and tcur.shape[1] > 10 * (_AR_ORDER + len(spec)):
+            aw = _whitening(dc - _ls_fit(tcur, dc), _AR_ORDER)
+            dw = lfilter(aw, [1.0], dc)[_AR_ORDER:]
+            gram, cross = _filtered_products(tcur, aw, dw)
+            sel = _select_gram(gram, cross, dw, names)
+        else:
+            aw, dw = None, dc
+            sel = _select(tcur, dc, names)
         idx, cf = list(sel.index), sel.coef
         coef[c, idx] = cf
         if idx:  # 95 % half-widths of the regression on d^, robust to its autocorrelation
-            X = terms[idx]
+            X = tcur[idx] if aw is None else lfilter(aw, [1.0], tcur[idx], axis=1)[:, _AR_ORDER:]
             sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
-            cov = hac_covariance((X / sx[:, None]).T, dc - cf @ X, 1) / np.outer(sx, sx)
+            cov = hac_covariance((X / sx[:, None]).T, dw - cf @ X, 1) / np.outer(sx, sx)
             half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
-        rv[c] = (float(np.mean((dcs[c] - cf @ tc[c][idx]) ** 2)) if idx else
-                 float(np.mean(dcs[c]**2)))
+        rv[c] = (float(np.mean((dc - cf @ tcur[idx]) ** 2)) if idx else float(np.mean(dc**2)))
         gain += sel.bic_gain
         npar += len(idx)
         nl = any(j >= nlin for j in idx)
         any_nl |= nl
         if nl:  # best linear surrogate for the StateSpace
-            lin = _select(terms[:nlin], dc, names[:nlin])
+            lin = (_select(tcur[:nlin], dc, names[:nlin]) if aw is None else
+                   _select_gram(gram[:nlin, :nlin], cross[:nlin], dw, names[:nlin]))
             lc = np.zeros(nlin)
             lc[list(lin.index)] = lin.coef
         else:
@@ -453,8 +507,8 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
         Ddx[c], Ddu[c] = dx_[0], du_[0]
         lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
                                units[c] if c < len(units) else "", half[c, idx]))
-    terms = X = None  # the last whitened copy (as large as the terms) before the scale below
-    tscale = np.sqrt(np.einsum("ij,ij->i", tc[0], tc[0]) / tc[0].shape[1])  # no squared copy
+        tcur = X = None
+    held = None
     lines += _one_direction(coef, tscale, labels)
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
                      residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines),
