@@ -779,7 +779,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 try:
                     dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
                                             y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                            pole=pole0)
+                                            pole=pole0, d_noise=_d_noise(res_))
                 except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                     notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
                     continue
@@ -1163,6 +1163,18 @@ def _delta_baseline(nominal, y, u, Q, R, max_order, x0):
     with single_thread_blas():  # thin and small products: a second thread only stalls
         return delta_update(nominal, y, u, Q=Q, R=R, max_order=max_order, x0=x0,
                             refine_window=win)
+
+
+def _d_noise(res) -> float | None:
+    """The variance of d^'s estimation noise (Pd) of a one-component filter, or None.
+
+    None for a delayed or smoothed d^ (coloured noise: its variance says little
+    about the law, see ``greybox.trace.channel_trace``).
+    """
+    if res.smoothed or res.relative_degree != 1 or res.d_cov is None:
+        return None
+    Pd = np.atleast_2d(res.d_cov)
+    return float(Pd[0, 0]) if Pd.shape == (1, 1) else None
 
 
 def _sparse_start(tr):

@@ -43,6 +43,7 @@ from ..ident.regression import forward_selection
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
+from .channel_trace import _LOW_SNR
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["DynamicLaw", "SharedLaw", "fit_shared_dynamic", "fit_sparse_dynamic"]
@@ -195,7 +196,7 @@ def _pm(v, h):
 def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDArray,
                        y: NDArray, u: NDArray, *, Q: NDArray, R: NDArray, dt: float,
                        x0: NDArray, k0: int, pole: float | None = None,
-                       max_drivers: int = 3) -> DynamicLaw | None:
+                       max_drivers: int = 3, d_noise: float | None = None) -> DynamicLaw | None:
     """Fit a first-order law with sparse drivers for a one-component channel.
 
     Parameters
@@ -224,6 +225,12 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         poles that explain d^ best are refined and the better fit is kept.
     max_drivers : int
         Largest number of drivers.
+    d_noise : float, optional
+        Variance of d^'s own estimation noise (the filter's Pd). When the
+        variance of ``d`` exceeds it by less than ``_LOW_SNR`` (10 %), d^ is
+        mostly noise and regressions on it pick drivers at random: the
+        drivers are then chosen by output error on y instead
+        (:func:`_select_drivers_oe`).
 
     Returns
     -------
@@ -233,6 +240,14 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     if channel.md != 1:
         return None
     w = np.vstack([x, u[:, k0:k0 + x.shape[1]]])
+    if d_noise is not None and float(np.var(d)) < (1.0 + _LOW_SNR) * float(d_noise):
+        cand = [("x", i) for i in range(sys.nstates)] + \
+            [("u", j) for j in range(sys.ninputs)] + [("r", tuple(ij)) for ij in channel.relative]
+        sel = _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers,
+                                 pole, _oe_candidates(sys, cand, w, d))
+        if sel is None:
+            return None
+        return _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, *sel)
 
     # the unstructured fit's pole may sit far from the law's (it also fits the noise):
     # screen a log grid of time constants from 2 to 500 samples on d^ as well
@@ -257,6 +272,121 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         if dl is not None and (best is None or dl.se_estimation < best.se_estimation):
             best = dl
     return best
+
+
+# Output-error driver selection (noise-dominated d^): start poles (time constants in
+# samples), candidates kept per step after the score test, and at most this many
+# candidate drivers (those whose first-order lags d^ correlates with most).
+_OE_TAUS = np.geomspace(2.0, 500.0, 7)
+_OE_TOP = 3
+_OE_MAX_CAND = 12
+
+
+def _oe_candidates(sys, cand, w, d):
+    """Indices of the ``_OE_MAX_CAND`` candidate drivers that d^ correlates with most.
+
+    Every input is kept (an actuator or servo lag); states and relative
+    coordinates are ranked by |corr(d^, lag(w))| over the lags of the pole grid.
+    """
+    if len(cand) <= _OE_MAX_CAND:
+        return list(range(len(cand)))
+    W = driver_weights(cand, sys.nstates, sys.ninputs) @ w
+    dm = d[0] - d[0].mean()
+    score = np.zeros(len(cand))
+    for tau in _OE_TAUS:
+        p = np.exp(-1.0 / tau)
+        f = lfilter([0.0, 1.0 - p], [1.0, -p], W, axis=1)
+        f = f - f.mean(axis=1, keepdims=True)
+        score = np.maximum(score, np.abs(f @ dm) / (np.linalg.norm(f, axis=1) *
+                                                     np.linalg.norm(dm) + 1e-300))
+    keep = [q for q, c in enumerate(cand) if c[0] == "u"]
+    rest = [q for q in np.argsort(-score) if cand[q][0] != "u"]
+    return sorted(keep + [int(q) for q in rest[:max(0, _OE_MAX_CAND - len(keep))]])
+
+
+def _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers, pole, allowed):
+    """Drivers and start ``(drv, theta)`` by forward selection on the output error of y (BIC).
+
+    For d^ that is mostly its own estimation noise. Each step scores every
+    candidate driver c not yet chosen by the score test: the drop of the
+    output-error RSS of one Gauss-Newton step in (b_c, e_c) from the current
+    law (two extra simulations per candidate; at the first step at every
+    pole of a log grid of time constants from 2 to 500 samples, and at
+    ``pole``). The ``_OE_TOP`` best are refitted in full (pole, b, e) by
+    Levenberg-Marquardt; the one with the lowest BIC of the output error is
+    added while that BIC drops. None when no driver lowers it.
+    """
+    a_grid = [np.log(np.exp(-1.0 / t)) / dt for t in _OE_TAUS]
+    if pole is not None and 0 < pole < 1:
+        a_grid.append(float(np.log(pole)) / dt)
+    with single_thread_blas():
+        prob0 = _problem(sys, channel, y, u, dt, x0, k0, [cand[allowed[0]]])
+        r0 = prob0.resid(np.array([a_grid[0], 0.0, 0.0]))
+        ny = r0.size
+
+        def bic(rss, k):
+            return ny * np.log(max(rss / ny, 1e-300)) + k * np.log(ny)
+
+        best_bic, sel, theta = bic(float(r0 @ r0), 0), [], None
+        while len(sel) < max_drivers:
+            trials = []
+            for q in allowed:
+                c = cand[q]
+                if c in sel:
+                    continue
+                drv = sel + [c]
+                prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
+                k = len(sel)
+                for a in (a_grid if theta is None else [theta[0]]):
+                    th = np.r_[a, np.zeros(2)] if theta is None else \
+                        np.r_[theta[0], theta[1:1 + k], 0.0, theta[1 + k:], 0.0]
+                    step = _gauss_newton_step(prob, th, [1 + k, 2 + 2 * k])
+                    if step is not None:
+                        trials.append((step[0], drv, step[1]))
+            trials.sort(key=lambda t: -t[0])
+            fits, seen = [], set()
+            for _, drv, th in trials:
+                if drv[-1] in seen:
+                    continue
+                seen.add(drv[-1])
+                sol = _problem(sys, channel, y, u, dt, x0, k0, drv).fit(th)
+                if sol.x[0] < 0:
+                    fits.append((bic(float(np.sum(sol.fun ** 2)), 1 + 2 * len(drv)), drv, sol.x))
+                if len(seen) >= _OE_TOP:
+                    break
+            if not fits:
+                break
+            b, drv, th = min(fits, key=lambda f: f[0])
+            if not b < best_bic:
+                break
+            best_bic, sel, theta = b, drv, th
+    return (sel, theta) if sel else None
+
+
+def _gauss_newton_step(prob, theta, idx):
+    """(RSS drop, theta after) of one Gauss-Newton step in the entries ``idx`` of theta.
+
+    The Jacobian columns by forward differences (the output is affine in a
+    feedthrough or filtered gain of an input, and nearly so for a state's at a
+    small step); None when the columns carry no signal.
+    """
+    r0 = prob.resid(theta)
+    J = np.empty((r0.size, len(idx)))
+    for c, i in enumerate(idx):
+        for h in (1e-4, 1e-2, 1.0):
+            th = theta.copy()
+            th[i] += h
+            j = (prob.resid(th) - r0) / h
+            if np.max(np.abs(j)) * h > 1e-9 * (np.max(np.abs(r0)) + 1e-300):
+                break
+        J[:, c] = j
+    if not np.all(np.isfinite(J)):
+        return None
+    g, *_ = np.linalg.lstsq(J, -r0, rcond=None)
+    drop = float(r0 @ r0 - np.sum((r0 + J @ g) ** 2))
+    out = theta.copy()
+    out[idx] += g
+    return drop, out
 
 
 def _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers=None, relative=()):
