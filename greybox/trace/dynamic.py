@@ -228,9 +228,9 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     d_noise : float, optional
         Variance of d^'s own estimation noise (the filter's Pd). When the
         variance of ``d`` exceeds it by less than ``_LOW_SNR`` (10 %), d^ is
-        mostly noise and regressions on it pick drivers at random: the
-        drivers are then chosen by output error on y instead
-        (:func:`_select_drivers_oe`).
+        mostly noise and regressions on it pick drivers at random: drivers
+        chosen by output error on y (:func:`_select_drivers_oe`) are then one
+        more start.
 
     Returns
     -------
@@ -240,14 +240,6 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     if channel.md != 1:
         return None
     w = np.vstack([x, u[:, k0:k0 + x.shape[1]]])
-    if d_noise is not None and float(np.var(d)) < (1.0 + _LOW_SNR) * float(d_noise):
-        cand = [("x", i) for i in range(sys.nstates)] + \
-            [("u", j) for j in range(sys.ninputs)] + [("r", tuple(ij)) for ij in channel.relative]
-        sel = _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers,
-                                 pole, _oe_candidates(sys, cand, w, d))
-        if sel is None:
-            return None
-        return _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, *sel)
 
     # the unstructured fit's pole may sit far from the law's (it also fits the noise):
     # screen a log grid of time constants from 2 to 500 samples on d^ as well
@@ -266,6 +258,17 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         lone = [st for st in lone if st is not None]
         if lone:
             starts.append(min(lone, key=lambda st: st[0]))
+    if d_noise is not None and float(np.var(d)) < (1.0 + _LOW_SNR) * float(d_noise):
+        # d^ mostly noise: its regressions pick drivers at random; drivers chosen by output
+        # error on y as one more start (the lowest output error among them all is kept:
+        # d^'s drivers can also undo an earlier pass's borrowed terms, which the joint
+        # refinement of the effects then drops)
+        cand = [("x", i) for i in range(sys.nstates)] + \
+            [("u", j) for j in range(sys.ninputs)] + [("r", tuple(ij)) for ij in channel.relative]
+        sel = _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers,
+                                 pole, _oe_candidates(sys, cand, w, d))
+        if sel is not None:
+            starts.append((np.nan, *sel))
     best = None
     for _, drv, theta0 in starts:
         dl = _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
