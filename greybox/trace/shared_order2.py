@@ -17,11 +17,17 @@ law: the two poles and the zeros are read off it)
 so ``z_1 = sum_i (beta_1i s + beta_0i) / (s^2 + alpha_1 s + alpha_0) w_i``.
 :func:`fit_shared_order2` starts from a first-order shared law
 (:class:`~greybox.trace.dynamic.SharedLaw`) with its drivers, gains and
-feedthrough, and a second pole five times slower or faster (an exact
+feedthrough (and, from 0, the states of the channel's own equations as drivers
+and feedthrough), and a second pole five times slower or faster (an exact
 pole-zero cancellation: the start is the first-order law), refines every
 coefficient by output error on y with the augmented model discretized exactly
 (ZOH), and drops the term whose 95 % interval contains 0 by the widest margin
-until none is left. The workflow offers it beside the first-order law and
+until none is left. A second start is the template of a hidden part touching
+the bodies (driven by their states, each equation with its own state's
+feedthrough); of the fits within 1 % of the lowest output error the one with
+the fewest terms is kept (the hidden part is defined only up to
+``z~ = z + c x_j``: two realizations of one law have different poles, and the
+sparser is the physical one). The workflow offers it beside the first-order law and
 chooses between them with the same rule as between all candidates (the fewest
 parameters within the parsimony margin of the lowest estimation SE).
 """
@@ -40,7 +46,7 @@ from .._lti import lti_states
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
-from .dynamic import SharedLaw, _driver_name, _pm, driver_weights
+from .dynamic import SharedLaw, _driver_name, _gauss_newton_step, _pm, driver_weights
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["SharedLaw2", "fit_shared_order2"]
@@ -238,24 +244,53 @@ def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw, y: N
     def drv(name):
         return ("x", states.index(name)) if name in states else ("u", inputs.index(name))
 
+    # the first-order law's drivers and feedthrough, and the states of the channel's own
+    # equations (a hidden part exchanging with the bodies it touches: the first-order law
+    # can have kept a proxy, e.g. an input's lag for a state's), the latter from 0
+    own = [drv(e) for e in channel.equations if e in states]
     bdrv = [drv(nm) for nm in law.drivers]
+    b1 = list(law.b) + [0.0] * sum(dv not in bdrv for dv in own)
+    bdrv += [dv for dv in own if dv not in bdrv]
+    b1 = np.asarray(b1)
     bterms = [(0, dv) for dv in bdrv] + [(1, dv) for dv in bdrv]
     eterms = [(c, drv(nm)) for c, nm, _ in law.feedthrough]
-    kk = np.delete(law.k, law.reference)
     ee = [v for _, _, v in law.feedthrough]
+    for c, dv in enumerate(own if len(own) == channel.md else []):
+        if (c, dv) not in eterms:
+            eterms.append((c, dv))
+            ee.append(0.0)
+    kk = np.delete(law.k, law.reference)
     a = law.pole
-    best = None
+    fits = []
+    args = (sys, channel, y, u, Q, R, dt, x0, k0)
     with single_thread_blas():
         for p2 in (0.2 * a, 5.0 * a):  # the second pole slower or faster than the first
-            theta0 = np.r_[-(a + p2), a * p2, law.b, -p2 * law.b, kk, ee]
-            out = _drop_weak(sys, channel, y, u, Q, R, dt, x0, k0, bterms, eterms,
-                             law.reference, theta0)
-            if out is not None and (best is None or
-                                    np.sum(out[1].fun ** 2) < np.sum(best[1].fun ** 2)):
-                best = out
-        if best is None:
+            theta0 = np.r_[-(a + p2), a * p2, b1, -p2 * b1, kk, ee]
+            fits.append(_drop_weak(*args, bterms, eterms, law.reference, theta0))
+            if len(own) != channel.md:
+                continue
+            # the template of a hidden part touching the bodies: driven by their states,
+            # each component with its own state's feedthrough; numerators and feedthrough
+            # from one Gauss-Newton step at the start poles
+            ob = [(0, dv) for dv in own] + [(1, dv) for dv in own]
+            oe = list(enumerate(own))
+            th = np.r_[-(a + p2), a * p2, np.zeros(len(ob)), kk, np.zeros(len(oe))]
+            prob = _Problem(sys, channel, y, u, dt, x0, k0, ob, oe, law.reference)
+            idx = list(range(2, 2 + len(ob))) + list(range(th.size - len(oe), th.size))
+            step = _gauss_newton_step(prob, th, idx)
+            if step is not None:
+                fits.append(_drop_weak(*args, ob, oe, law.reference, step[1]))
+        fits = [f for f in fits if f is not None]
+        if not fits:
             return None
-        prob, sol, hw = best
+        # the fewest terms among the fits within 1 % of the lowest output error: the
+        # hidden part is defined up to z~ = z + c x_j (x_j's equation is known), and two
+        # starts can end in two realizations of one law, with different poles; the
+        # sparser is the physical one (the rule of the first-order shared law)
+        rss = [float(np.sum(f[1].fun ** 2)) for f in fits]
+        lo = min(rss)
+        prob, sol, hw = min((f for f, r in zip(fits, rss) if r <= 1.01**2 * lo),
+                            key=lambda f: (f[1].x.size, float(np.sum(f[1].fun ** 2))))
         return _law_from(sys, channel, prob, sol, hw, Q, R)
 
 
