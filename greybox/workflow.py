@@ -833,6 +833,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     notes.append(f"{ch.name}: second-order shared law failed: {e}")
                     return
                 if dl2 is None:
+                    notes.append(f"{ch.name}: no second-order shared law (unstable, or a gain or "
+                                 f"an interval the data do not determine)")
                     return
                 cands.append(CandidateScore(ch.name, "dynamic (sparse)", 2, se2, dl2.npar, "ok"))
                 tr2 = replace(tr_)  # its own key in ``sparse`` (the first-order law keeps tr_)
