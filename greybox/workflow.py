@@ -883,7 +883,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     continue
                 se_static = min((c[0] for c in scored
                                  if c[2].channel == ch and c[3] == "static"), default=np.inf)
-                if not se_ < SPARSE_IF * se_static:
+                if not se_ < se_static:
                     continue
                 _shared(tr_)
                 break

@@ -712,9 +712,13 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         bdrv, eterms, ref, theta0 = st
         with single_thread_blas():
             r = _shared_problem(sys, channel, y, u, dt, x0, k0, bdrv, eterms, ref).resid(theta0)
-        starts.append((float(np.sum(r**2)), bdrv, eterms, ref, theta0))
+        starts.append((float(np.sum(r**2)), bdrv, eterms, ref, theta0, own))
+    ranked = sorted(starts, key=lambda s: s[0])
+    # the two best starts, and the best of the touching-bodies template (a second effect
+    # elsewhere can spoil d^ and rank it low, while its refit is the sparse realization)
+    chosen = ranked[:2] + [next((s for s in ranked[2:] if s[5]), None)]
     laws = []
-    for _, bdrv, eterms, ref, theta0 in sorted(starts, key=lambda s: s[0])[:2]:
+    for _, bdrv, eterms, ref, theta0, _ in (s for s in chosen if s is not None):
         law = _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, theta0,
                                wrms)
         if law is not None:
