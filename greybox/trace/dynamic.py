@@ -319,7 +319,7 @@ def _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers, pole, 
     Levenberg-Marquardt; the one with the lowest BIC of the output error is
     added while that BIC drops. None when no driver lowers it.
     """
-    a_grid = [np.log(np.exp(-1.0 / t)) / dt for t in _OE_TAUS]
+    a_grid = [-1.0 / (t * dt) for t in _OE_TAUS]  # continuous poles [1/s]
     if pole is not None and 0 < pole < 1:
         a_grid.append(float(np.log(pole)) / dt)
     with single_thread_blas():
@@ -716,20 +716,22 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     ranked = sorted(starts, key=lambda s: s[0])
     # the two best starts, and the best of the touching-bodies template (a second effect
     # elsewhere can spoil d^ and rank it low, while its refit is the sparse realization)
-    chosen = ranked[:2] + [next((s for s in ranked[2:] if s[5]), None)]
-    laws = []
-    for _, bdrv, eterms, ref, theta0, _ in (s for s in chosen if s is not None):
+    extra = next((s for s in ranked[2:] if s[5]), None)
+    chosen = [(s, 0) for s in ranked[:2]] + ([(extra, 1)] if extra is not None else [])
+    laws = []  # (law, 1 for the extra template start)
+    for (_, bdrv, eterms, ref, theta0, _), flag in chosen:
         law = _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, theta0,
                                wrms)
         if law is not None:
-            laws.append(law)
+            laws.append((law, flag))
     if not laws:
         return None
     # the fewest terms among the fits within 1 % of the lowest output error (two starts
-    # can end in two realizations of one law, one with a spurious small term)
-    lo = min(lw.se_estimation for lw in laws)
-    return min((lw for lw in laws if lw.se_estimation <= 1.01 * lo),
-               key=lambda lw: (lw.npar, lw.se_estimation))
+    # can end in two realizations of one law, one with a spurious small term); the extra
+    # template start only when strictly sparser (at a tie, the same law in another scale)
+    lo = min(lw.se_estimation for lw, _ in laws)
+    return min(((lw, x) for lw, x in laws if lw.se_estimation <= 1.01 * lo),
+               key=lambda t: (t[0].npar, t[1], t[0].se_estimation))[0]
 
 
 def _shared_start(sys, channel, w, d, dt, pole, max_drivers, own=False):
