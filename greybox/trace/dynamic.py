@@ -467,7 +467,6 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
     n, k, dt = sys.nstates, len(drv), prob.dt
     a, b, e = float(theta[0]), theta[1:1 + k], theta[1 + k:]
     hb, he = hw[1:1 + k], hw[1 + k:]
-    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
     dn = [_driver_name(sys, dv) for dv in drv]
@@ -491,20 +490,9 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
         formula += (f"; {channel.input} reaches the plant through "
                     f"({1 + e[q]:.3g} s + {dc * -a:.3g})/(s + {-a:.3g}): DC gain {dc:.3g}, "
                     f"time constant {1 / -a:.3g} s")
-    Ad, Bd = prob.disc(theta)
-    Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
-    Qa = np.zeros((n + 1, n + 1))
-    Qa[:n, :n] = Q
-    Qa[n, n] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300)
-    states = list(sys.state_labels) + [_lag_state(sys)]
-    out = named_ss(Ad, Bd, Ca, D, dt, states=states, inputs=sys.input_labels,
-                   outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
-    Acn, Bcn = prob.cont(theta)
-    cont = named_ss(Acn, Bcn, Ca, D, 0, states=states, inputs=sys.input_labels,
-                    outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, [_lag_state(sys)])
     return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=np.array(b), e=np.array(e),
-                      ci=np.asarray(hw), npar=1 + 2 * k, formula=formula,
-                      model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
+                      ci=np.asarray(hw), npar=1 + 2 * k, formula=formula, model=model,
                       se_estimation=se, continuous=cont,
                       rows=tuple(i if kind == "x" else n + i if kind == "u" else -1
                                  for kind, i in drv), dt=dt,
@@ -925,30 +913,17 @@ def _sparsest_realization(prob, theta, wrms):
 
 def _shared_law_from(sys, channel, prob, theta, hw, Q, R) -> SharedLaw:
     """The SharedLaw record of ``prob`` at ``theta``, half-widths ``hw``."""
-    n, dt, md = sys.nstates, prob.dt, prob.md
+    dt, md = prob.dt, prob.md
     a, b, k, e = prob.split(theta)
     a = float(a)
     nb = len(prob.bdrv)
     hb = hw[1:1 + nb]
     hk = np.insert(hw[1 + nb:nb + md], prob.ref, np.nan)
     he = hw[nb + md:]
-    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
     zname = _lag_state(sys)
-    units = list(channel.units) if channel.units else [""] * md
-
-    def unit(c):
-        un = units[c] if c < len(units) else ""
-        return "" if not un else f" {un}" if un.startswith("[") else f" [{un}]"
-
-    lines = []
-    for c in range(md):
-        parts = [zname if c == prob.ref else f"{_pm(k[c], hk[c])}*{zname}"]
-        parts += [f"{_pm(ec, hc)}*{_driver_name(sys, dv)}"
-                  for (cc, dv), ec, hc in zip(prob.eterms, e, he) if cc == c]
-        lines.append(f"{channel.labels[c]} = " + " + ".join(parts).replace("+ (-", "- (") +
-                     unit(c))
+    lines, unit = _component_lines(sys, channel, prob.ref, zname, k, hk, prob.eterms, e, he)
     dn = [_driver_name(sys, dv) for dv in prob.bdrv]
     zpart = " + ".join(f"{_pm(bi, hbi)}/(s + {_pm(-a, hw[0])})*{nm}"
                        for nm, bi, hbi in zip(dn, b, hb)).replace("+ (-", "- (")
@@ -959,21 +934,53 @@ def _shared_law_from(sys, channel, prob, theta, hw, Q, R) -> SharedLaw:
         formula += (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if lo > 0
                     else " (not determined by the data)")
     formula += f" (one state shared by {', '.join(channel.labels)})"
-    Ad, Bd = prob.disc(theta)
-    Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
-    Qa = np.zeros((n + 1, n + 1))
-    Qa[:n, :n] = Q
-    Qa[n, n] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300)
-    states = list(sys.state_labels) + [zname]
-    out = named_ss(Ad, Bd, Ca, D, dt, states=states, inputs=sys.input_labels,
-                   outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
-    Acn, Bcn = prob.cont(theta)
-    cont = named_ss(Acn, Bcn, Ca, D, 0, states=states, inputs=sys.input_labels,
-                    outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, [zname])
     Bz, E = prob.rows(theta)
     feed = tuple((int(c), _driver_name(sys, dv), float(ec)) for (c, dv), ec in zip(prob.eterms, e))
     return SharedLaw(pole=a, tau=1 / -a, state=zname, drivers=tuple(dn), b=np.array(b),
                      k=np.array(k), reference=prob.ref, feedthrough=feed, Bz=Bz, E=E,
-                     ci=np.asarray(hw), npar=int(theta.size), formula=formula,
-                     model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
+                     ci=np.asarray(hw), npar=int(theta.size), formula=formula, model=model,
                      se_estimation=se, continuous=cont, dt=dt)
+
+
+def _component_lines(sys, channel, ref, zname, k, hk, eterms, e, he):
+    """The formula line of each component of a shared law, and the unit suffix per component.
+
+    ``d_c = k_c*z + sum e*driver`` with intervals (``zname`` alone in the
+    reference component ``ref``); ``eterms``: pairs (component, driver).
+    """
+    md = len(k)
+    units = list(channel.units) if channel.units else [""] * md
+
+    def unit(c):
+        un = units[c] if c < len(units) else ""
+        return "" if not un else f" {un}" if un.startswith("[") else f" [{un}]"
+
+    lines = []
+    for c in range(md):
+        parts = [zname if c == ref else f"{_pm(k[c], hk[c])}*{zname}"]
+        parts += [f"{_pm(ec, hc)}*{_driver_name(sys, dv)}"
+                  for (cc, dv), ec, hc in zip(eterms, e, he) if cc == c]
+        lines.append(f"{channel.labels[c]} = " + " + ".join(parts).replace("+ (-", "- (") +
+                     unit(c))
+    return lines, unit
+
+
+def _augmented_models(sys, Ac, Bc, dt, Q, R, znames):
+    """(UpdatedModel discretized exactly, continuous StateSpace) of ``sys`` with law states.
+
+    ``Ac, Bc``: the augmented continuous matrices (states ``[x; z]``); the
+    law states get a negligible process noise (1e-12 of the mean of Q's
+    diagonal) and are not measured.
+    """
+    n, nz = sys.nstates, len(znames)
+    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
+    Ca = np.hstack([C, np.zeros((C.shape[0], nz))])
+    Qa = np.zeros((n + nz, n + nz))
+    Qa[:n, :n] = Q
+    Qa[n:, n:] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300) * np.eye(nz)
+    kw = dict(states=list(sys.state_labels) + list(znames), inputs=sys.input_labels,
+              outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    out = named_ss(*zoh(Ac, Bc, dt), Ca, D, dt, **kw)
+    cont = named_ss(Ac, Bc, Ca, D, 0, **kw)
+    return UpdatedModel(sys=out, Q=Qa, R=R, order=n + nz, kind="dynamic"), cont

@@ -43,10 +43,10 @@ from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
 from .._lti import lti_states
-from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
-from .dynamic import SharedLaw, _driver_name, _gauss_newton_step, _pm, driver_weights
+from .dynamic import SharedLaw, _augmented_models, _component_lines, _driver_name, \
+    _gauss_newton_step, _pm, driver_weights
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["SharedLaw2", "fit_shared_order2"]
@@ -369,7 +369,7 @@ def _z_names(sys) -> tuple[str, str]:
 
 def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
     """The SharedLaw2 record at the solution ``sol`` with half-widths ``hw``."""
-    n, md, dt = prob.n, prob.md, prob.dt
+    md, dt = prob.md, prob.dt
     theta = sol.x
     alpha, beta, k, e = prob.split(theta)
     nb = len(prob.bterms)
@@ -380,19 +380,7 @@ def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
     r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
     z0, z1 = _z_names(sys)
-    units = list(channel.units) if channel.units else [""] * md
-
-    def unit(c):
-        un = units[c] if c < len(units) else ""
-        return "" if not un else f" {un}" if un.startswith("[") else f" [{un}]"
-
-    lines = []
-    for c in range(md):
-        parts = [z0 if c == prob.ref else f"{_pm(k[c], hk[c])}*{z0}"]
-        parts += [f"{_pm(ec, hc)}*{_driver_name(sys, dv)}"
-                  for (cc, dv), ec, hc in zip(prob.eterms, e, he) if cc == c]
-        lines.append(f"{channel.labels[c]} = " + " + ".join(parts).replace("+ (-", "- (") +
-                     unit(c))
+    lines, unit = _component_lines(sys, channel, prob.ref, z0, k, hk, prob.eterms, e, he)
     dnames, dlist = [], []
     for _, dv in prob.bterms:
         if dv not in dlist:
@@ -426,21 +414,11 @@ def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
                     f"1/s (natural frequency {abs(poles[0]):.3g} rad/s, damping "
                     f"{-poles[0].real / abs(poles[0]):.3g})")
     formula += f" (one second-order subsystem shared by {', '.join(channel.labels)})"
-    Ac, Bc = prob.cont(theta)
-    Ad, Bd = zoh(Ac, Bc, dt)
-    Qa = np.zeros((n + 2, n + 2))
-    Qa[:n, :n] = Q
-    Qa[n:, n:] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300) * np.eye(2)
-    st = list(sys.state_labels) + [z0, z1]
-    kw = dict(states=st, inputs=sys.input_labels, outputs=sys.output_labels,
-              name=f"{sys.name or 'model'}_updated")
-    out = named_ss(Ad, Bd, prob.Ca, prob.D, dt, **kw)
-    cont = named_ss(Ac, Bc, prob.Ca, prob.D, 0, **kw)
+    model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, [z0, z1])
     Bz, E = prob.rows(theta)
     feed = tuple((int(c), _driver_name(sys, dv), float(ec)) for (c, dv), ec in zip(prob.eterms, e))
     return SharedLaw2(order=2, poles=poles, pole_ci=np.asarray(hp), taus=taus,
                       alpha=np.array(alpha), states=(z0, z1), drivers=tuple(dnames), beta=B2,
                       k=np.array(k), reference=prob.ref, feedthrough=feed, Bz=Bz, E=E,
-                      ci=np.asarray(hw), npar=int(theta.size), formula=formula,
-                      model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 2, kind="dynamic"),
+                      ci=np.asarray(hw), npar=int(theta.size), formula=formula, model=model,
                       se_estimation=se, continuous=cont, dt=dt)
