@@ -1,7 +1,8 @@
 """What the trace names over seeds on the issue-8 plants whose tests run one or two seeds.
 
 ``python bench/trace_seeds.py [lag_spring|maxwell|thermal|thermal_three|thermal_row|
-thermal_row_ok] [seed ...]`` (default: all, seeds 0-4). Prints, per seed, the effects
+thermal_row_ok|thermal_chain|
+thermal_three_half] [seed ...]`` (default: all, seeds 0-4). Prints, per seed, the effects
 found with their laws, the validation SE after and the true model's SE. The plants are
 the tests' own (``tests/test_trace_scale.py::_lag_and_spring``,
 ``tests/test_trace_shared.py::_maxwell``);
@@ -13,7 +14,11 @@ third body, two effects over the several-effects loop, refitted jointly; issue 8
 ``tests/test_trace_shared_joint.py``); ``thermal_row`` (``plantlib.thermal_row``: six
 bodies in a row, a hidden mass touching three of them, a 6-state model above
 SCREEN_ABOVE; ``tests/test_trace_shared_group.py``) and ``thermal_row_ok`` (the same row
-without the hidden mass: the model is right and must stay unchanged). Each row also
+without the hidden mass: the model is right and must stay unchanged); ``thermal_chain``
+(``plantlib.thermal_chain_pair``: a hidden chain of two masses behind the pair, one
+second-order subsystem shared by eq(T1) and eq(T2); ``tests/test_trace_shared_order2.py``);
+``thermal_three_half`` (``thermal_three`` at N = 1e4).
+Each row also
 prints the time and the load average.
 """
 
@@ -31,7 +36,7 @@ import numpy as np  # noqa: E402
 import greybox as gb  # noqa: E402
 from test_trace_scale import _lag_and_spring  # noqa: E402
 from test_trace_shared import _maxwell  # noqa: E402
-from plantlib import thermal_pair, thermal_row, thermal_three  # noqa: E402
+from plantlib import thermal_chain_pair, thermal_pair, thermal_row, thermal_three  # noqa: E402
 
 
 def _with_floor(plant, **kw):
@@ -48,7 +53,9 @@ def _with_floor(plant, **kw):
 
 CASES = {"lag_spring": _lag_and_spring, "maxwell": _maxwell, "thermal": _with_floor(thermal_pair),
          "thermal_three": _with_floor(thermal_three), "thermal_row": _with_floor(thermal_row),
-         "thermal_row_ok": _with_floor(thermal_row, hidden=())}
+         "thermal_row_ok": _with_floor(thermal_row, hidden=()),
+         "thermal_chain": _with_floor(thermal_chain_pair),
+         "thermal_three_half": _with_floor(thermal_three, n_est=10000)}
 
 
 def main(names, seeds):

@@ -395,7 +395,12 @@ def augment_model(sys: ct.StateSpace, subsystem: Subsystem, *, unknown, Q: Array
     Rn = subsystem.noise_cov
     Kd = subsystem.K
     Qa = np.block([[Q + G @ Rn @ G.T, G @ Rn @ Kd.T], [Kd @ Rn @ G.T, Kd @ Rn @ Kd.T]])
-    states = list(base.state_labels) + [f"{state_prefix}[{i}]" for i in range(nd)]
+    states = list(base.state_labels)
+    k = 0
+    for _ in range(nd):  # the next free names: a base from an earlier pass may hold z[0]
+        while f"{state_prefix}[{k}]" in states:
+            k += 1
+        states.append(f"{state_prefix}[{k}]")
     outputs = list(base.output_labels)
     Da = D
     if output_unknown:

@@ -61,6 +61,7 @@ from .trace import (
     trace_channel,
 )
 from .trace.dynamic import DynamicLaw, SharedLaw, fit_shared_dynamic, fit_sparse_dynamic
+from .trace.shared_order2 import SharedLaw2, fit_shared_order2
 from .trace.joint import joint_effect, refine_jointly
 from .trace.channels import force_channel, relative_coordinates
 from .trace.laws import direction, sensor_states
@@ -146,9 +147,10 @@ class Effect:
         Which existing model parameters the law re-scales, and by how much.
     law : StaticLaw or None
     subsystem : Subsystem or None
-    dynamic_law : DynamicLaw or SharedLaw or None
+    dynamic_law : DynamicLaw or SharedLaw or SharedLaw2 or None
         A sparse first-order law in continuous time (pole, drivers, intervals);
-        a SharedLaw for one state shared by the equations of a pair.
+        a SharedLaw for one state shared by the equations of a pair; a
+        SharedLaw2 for a second-order subsystem shared by them.
     """
 
     kind: str
@@ -161,7 +163,7 @@ class Effect:
     parameter_notes: tuple[str, ...] = ()
     law: StaticLaw | None = field(default=None, repr=False)
     subsystem: Subsystem | None = field(default=None, repr=False)
-    dynamic_law: DynamicLaw | SharedLaw | None = field(default=None, repr=False)
+    dynamic_law: DynamicLaw | SharedLaw | SharedLaw2 | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         """JSON-ready summary."""
@@ -779,7 +781,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 try:
                     dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
                                             y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                            pole=pole0)
+                                            pole=pole0, d_noise=_d_noise(res_))
                 except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                     notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
                     continue
@@ -816,7 +818,28 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                                 "ok"))
                     sparse[id(tr_)] = dl
                     scored.append((se, dl.npar, tr_, "sparse"))
+                    _shared_order2(tr_, dl, res_, k0s)
                 return True
+
+            def _shared_order2(tr_, dl, res_, k0s):
+                """A second-order subsystem beside the first-order shared law ``dl``, scored."""
+                ch = tr_.channel
+                try:
+                    dl2 = fit_shared_order2(sys, ch, dl, y, u, Q=Q, R=R, dt=dt,
+                                            x0=res_.x_filt[:, 0], k0=k0s)
+                    se2 = np.inf if dl2 is None else _fit_error(dl2.model.sys, dl2.model.Q,
+                                                                dl2.model.R)
+                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+                    notes.append(f"{ch.name}: second-order shared law failed: {e}")
+                    return
+                if dl2 is None:
+                    notes.append(f"{ch.name}: no second-order shared law (unstable, or a gain or "
+                                 f"an interval the data do not determine)")
+                    return
+                cands.append(CandidateScore(ch.name, "dynamic (sparse)", 2, se2, dl2.npar, "ok"))
+                tr2 = replace(tr_)  # its own key in ``sparse`` (the first-order law keeps tr_)
+                sparse[id(tr2)] = dl2
+                scored.append((se2, dl2.npar, tr2, "sparse"))
 
             def _force_along(dl, se, ch):
                 """The force traced again along a one-direction shared law's k, if that fits better.
@@ -860,7 +883,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     continue
                 se_static = min((c[0] for c in scored
                                  if c[2].channel == ch and c[3] == "static"), default=np.inf)
-                if not se_ < SPARSE_IF * se_static:
+                if not se_ < se_static:
                     continue
                 _shared(tr_)
                 break
@@ -928,8 +951,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             gain = float(Nd * (ld0 - ld1))
             model = dl.model
             kind = "dynamic"
-            effect = Effect(kind="dynamic", order=1, formula=dl.formula, channel=ch.name,
-                            equations=ch.equations, dynamic_law=dl)
+            effect = Effect(kind="dynamic", order=getattr(dl, "order", 1), formula=dl.formula,
+                            channel=ch.name, equations=ch.equations, dynamic_law=dl)
         else:
             sub = tr.dynamic
             r = d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d
@@ -1163,6 +1186,18 @@ def _delta_baseline(nominal, y, u, Q, R, max_order, x0):
     with single_thread_blas():  # thin and small products: a second thread only stalls
         return delta_update(nominal, y, u, Q=Q, R=R, max_order=max_order, x0=x0,
                             refine_window=win)
+
+
+def _d_noise(res) -> float | None:
+    """The variance of d^'s estimation noise (Pd) of a one-component filter, or None.
+
+    None for a delayed or smoothed d^ (coloured noise: its variance says little
+    about the law, see ``greybox.trace.channel_trace``).
+    """
+    if res.smoothed or res.relative_degree != 1 or res.d_cov is None:
+        return None
+    Pd = np.atleast_2d(res.d_cov)
+    return float(Pd[0, 0]) if Pd.shape == (1, 1) else None
 
 
 def _sparse_start(tr):

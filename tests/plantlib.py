@@ -250,3 +250,27 @@ def thermal_row(seed, n_bodies=6, hidden=(1, 2, 3), n_est=20000):
                     states=st + ["Tm"] * (nt - n), inputs=ins, outputs=st,
                     name=f"thermal_row{n}_true")
     return nom, d, gb.discretize(true, 0.05)
+
+
+def thermal_chain_pair(seed, n_est=20000):
+    """``thermal_pair`` with a hidden chain of two masses: Tm1 (2 J/K), coupled to T1 and T2
+    (1.0, 0.8 W/K) as in ``thermal_pair``, and behind it Tm2 (4 J/K), coupled to Tm1 only
+    (1.0 W/K). One second-order hidden subsystem (poles -0.15 and -1.5 1/s: time constants
+    6.67 s and 0.667 s) whose output Tm1 enters eq(T1) and eq(T2) along no fixed direction:
+    d1 = (Tm1 - T1)/1, d2 = 0.8 (Tm1 - T2)/2. Returns (nominal, case, true discrete model)."""
+    c1, c2, cm1, cm2, l1, l2, g1, g2, g3 = 1.0, 2.0, 2.0, 4.0, 0.5, 0.4, 1.0, 0.8, 1.0
+    A = np.array([[-l1 / c1, 0.0], [0.0, -l2 / c2]])
+    B = np.diag([1 / c1, 1 / c2])
+    nom = named_ss(A, B, np.eye(2), np.zeros((2, 2)), 0, states=["T1", "T2"],
+                   inputs=["Q1", "Q2"], outputs=["T1", "T2"], name="thermal_chain_pair")
+    At = np.array([[-(l1 + g1) / c1, 0, g1 / c1, 0], [0, -(l2 + g2) / c2, g2 / c2, 0],
+                   [g1 / cm1, g2 / cm1, -(g1 + g2 + g3) / cm1, g3 / cm1],
+                   [0, 0, g3 / cm2, -g3 / cm2]])
+    Bt = np.vstack([B, np.zeros((2, 2))])
+    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=4, dt=0.05,
+             rng=np.random.default_rng(seed), q_std=np.array([1e-3, 1e-3]), r_std=1e-2,
+             n_est=n_est, n_val=4000, sub=2, bandwidth=0.2)
+    true = named_ss(At, Bt, np.eye(4)[:2], np.zeros((2, 2)), 0,
+                    states=["T1", "T2", "Tm1", "Tm2"], inputs=["Q1", "Q2"],
+                    outputs=["T1", "T2"], name="thermal_chain_pair_true")
+    return nom, d, gb.discretize(true, 0.05)

@@ -46,7 +46,29 @@ def _by_kind(rep):
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", SEEDS, ids=[f"seed{s}" for s in SEEDS])
 def test_both_effects_found_and_held_by_the_final_model(runs, seed):
-    nom, true, rep, floor = runs[seed]
+    _check_both(*runs[seed])
+
+
+@pytest.mark.slow
+def test_both_effects_found_with_half_the_data():
+    """Seed 3 at N = 1e4: the second effect spoils both pair fits (unstructured 22.9 %,
+    static 24.5 %), so the shared law was not offered (it needed a 20 % margin) and an
+    18-term nonlinear static pair law was chosen (validation SE 29 %, 51x the true
+    model's); offered, its d^ starts ended in an 8-term realization (drivers Q1, Q2). Now
+    offered whenever the unstructured fit is better, with the touching-bodies start
+    always refined."""
+    nom, d, true = thermal_three(3, n_est=10000)
+    rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    Qt = np.zeros((4, 4))
+    Qt[:3, :3] = d.Q
+    floor = gb.validate_model(true, d.y_val, d.u_val, Q=Qt + 1e-12 * np.eye(4),
+                              R=d.R).se.value
+    _check_both(nom, true, rep, floor)
+
+
+def _check_both(nom, true, rep, floor):
+    """Both effects named with their true terms, refitted jointly, at the floor."""
     assert rep.updated and len(rep.steps) == 2, rep.message
     shared, static = _by_kind(rep)
     assert len(shared) == 1 and shared[0].channel == "eq(T1)+eq(T2)", rep.message

@@ -43,6 +43,7 @@ from ..ident.regression import forward_selection
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
+from .channel_trace import _LOW_SNR
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["DynamicLaw", "SharedLaw", "fit_shared_dynamic", "fit_sparse_dynamic"]
@@ -195,7 +196,7 @@ def _pm(v, h):
 def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDArray,
                        y: NDArray, u: NDArray, *, Q: NDArray, R: NDArray, dt: float,
                        x0: NDArray, k0: int, pole: float | None = None,
-                       max_drivers: int = 3) -> DynamicLaw | None:
+                       max_drivers: int = 3, d_noise: float | None = None) -> DynamicLaw | None:
     """Fit a first-order law with sparse drivers for a one-component channel.
 
     Parameters
@@ -224,6 +225,12 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         poles that explain d^ best are refined and the better fit is kept.
     max_drivers : int
         Largest number of drivers.
+    d_noise : float, optional
+        Variance of d^'s own estimation noise (the filter's Pd). When the
+        variance of ``d`` exceeds it by less than ``_LOW_SNR`` (10 %), d^ is
+        mostly noise and regressions on it pick drivers at random: drivers
+        chosen by output error on y (:func:`_select_drivers_oe`) are then one
+        more start.
 
     Returns
     -------
@@ -251,12 +258,138 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         lone = [st for st in lone if st is not None]
         if lone:
             starts.append(min(lone, key=lambda st: st[0]))
+    if d_noise is not None and float(np.var(d)) < (1.0 + _LOW_SNR) * float(d_noise):
+        # d^ mostly noise: its regressions pick drivers at random; drivers chosen by output
+        # error on y as one more start (the lowest output error among them all is kept:
+        # d^'s drivers can also undo an earlier pass's borrowed terms, which the joint
+        # refinement of the effects then drops)
+        cand = [("x", i) for i in range(sys.nstates)] + \
+            [("u", j) for j in range(sys.ninputs)] + [("r", tuple(ij)) for ij in channel.relative]
+        sel = _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers,
+                                 pole, _oe_candidates(sys, cand, w, d))
+        if sel is not None:
+            starts.append((np.nan, *sel))
     best = None
     for _, drv, theta0 in starts:
         dl = _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
         if dl is not None and (best is None or dl.se_estimation < best.se_estimation):
             best = dl
     return best
+
+
+# Output-error driver selection (noise-dominated d^): start poles (time constants in
+# samples), candidates kept per step after the score test, and at most this many
+# candidate drivers (those whose first-order lags d^ correlates with most).
+_OE_TAUS = np.geomspace(2.0, 500.0, 7)
+_OE_TOP = 3
+_OE_MAX_CAND = 12
+
+
+def _oe_candidates(sys, cand, w, d):
+    """Indices of the ``_OE_MAX_CAND`` candidate drivers that d^ correlates with most.
+
+    Every input is kept (an actuator or servo lag); states and relative
+    coordinates are ranked by |corr(d^, lag(w))| over the lags of the pole grid.
+    """
+    if len(cand) <= _OE_MAX_CAND:
+        return list(range(len(cand)))
+    W = driver_weights(cand, sys.nstates, sys.ninputs) @ w
+    dm = d[0] - d[0].mean()
+    score = np.zeros(len(cand))
+    for tau in _OE_TAUS:
+        p = np.exp(-1.0 / tau)
+        f = lfilter([0.0, 1.0 - p], [1.0, -p], W, axis=1)
+        f = f - f.mean(axis=1, keepdims=True)
+        score = np.maximum(score, np.abs(f @ dm) / (np.linalg.norm(f, axis=1) *
+                                                     np.linalg.norm(dm) + 1e-300))
+    keep = [q for q, c in enumerate(cand) if c[0] == "u"]
+    rest = [q for q in np.argsort(-score) if cand[q][0] != "u"]
+    return sorted(keep + [int(q) for q in rest[:max(0, _OE_MAX_CAND - len(keep))]])
+
+
+def _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers, pole, allowed):
+    """Drivers and start ``(drv, theta)`` by forward selection on the output error of y (BIC).
+
+    For d^ that is mostly its own estimation noise. Each step scores every
+    candidate driver c not yet chosen by the score test: the drop of the
+    output-error RSS of one Gauss-Newton step in (b_c, e_c) from the current
+    law (two extra simulations per candidate; at the first step at every
+    pole of a log grid of time constants from 2 to 500 samples, and at
+    ``pole``). The ``_OE_TOP`` best are refitted in full (pole, b, e) by
+    Levenberg-Marquardt; the one with the lowest BIC of the output error is
+    added while that BIC drops. None when no driver lowers it.
+    """
+    a_grid = [-1.0 / (t * dt) for t in _OE_TAUS]  # continuous poles [1/s]
+    if pole is not None and 0 < pole < 1:
+        a_grid.append(float(np.log(pole)) / dt)
+    with single_thread_blas():
+        prob0 = _problem(sys, channel, y, u, dt, x0, k0, [cand[allowed[0]]])
+        r0 = prob0.resid(np.array([a_grid[0], 0.0, 0.0]))
+        ny = r0.size
+
+        def bic(rss, k):
+            return ny * np.log(max(rss / ny, 1e-300)) + k * np.log(ny)
+
+        best_bic, sel, theta = bic(float(r0 @ r0), 0), [], None
+        while len(sel) < max_drivers:
+            trials = []
+            for q in allowed:
+                c = cand[q]
+                if c in sel:
+                    continue
+                drv = sel + [c]
+                prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
+                k = len(sel)
+                for a in (a_grid if theta is None else [theta[0]]):
+                    th = np.r_[a, np.zeros(2)] if theta is None else \
+                        np.r_[theta[0], theta[1:1 + k], 0.0, theta[1 + k:], 0.0]
+                    step = _gauss_newton_step(prob, th, [1 + k, 2 + 2 * k])
+                    if step is not None:
+                        trials.append((step[0], drv, step[1]))
+            trials.sort(key=lambda t: -t[0])
+            fits, seen = [], set()
+            for _, drv, th in trials:
+                if drv[-1] in seen:
+                    continue
+                seen.add(drv[-1])
+                sol = _problem(sys, channel, y, u, dt, x0, k0, drv).fit(th)
+                if sol.x[0] < 0:
+                    fits.append((bic(float(np.sum(sol.fun ** 2)), 1 + 2 * len(drv)), drv, sol.x))
+                if len(seen) >= _OE_TOP:
+                    break
+            if not fits:
+                break
+            b, drv, th = min(fits, key=lambda f: f[0])
+            if not b < best_bic:
+                break
+            best_bic, sel, theta = b, drv, th
+    return (sel, theta) if sel else None
+
+
+def _gauss_newton_step(prob, theta, idx):
+    """(RSS drop, theta after) of one Gauss-Newton step in the entries ``idx`` of theta.
+
+    The Jacobian columns by forward differences (the output is affine in a
+    feedthrough or filtered gain of an input, and nearly so for a state's at a
+    small step); None when the columns carry no signal.
+    """
+    r0 = prob.resid(theta)
+    J = np.empty((r0.size, len(idx)))
+    for c, i in enumerate(idx):
+        for h in (1e-4, 1e-2, 1.0):
+            th = theta.copy()
+            th[i] += h
+            j = (prob.resid(th) - r0) / h
+            if np.max(np.abs(j)) * h > 1e-9 * (np.max(np.abs(r0)) + 1e-300):
+                break
+        J[:, c] = j
+    if not np.all(np.isfinite(J)):
+        return None
+    g, *_ = np.linalg.lstsq(J, -r0, rcond=None)
+    drop = float(r0 @ r0 - np.sum((r0 + J @ g) ** 2))
+    out = theta.copy()
+    out[idx] += g
+    return drop, out
 
 
 def _drivers_and_start(sys, w, d, dt, pole, max_drivers, drivers=None, relative=()):
@@ -334,7 +467,6 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
     n, k, dt = sys.nstates, len(drv), prob.dt
     a, b, e = float(theta[0]), theta[1:1 + k], theta[1 + k:]
     hb, he = hw[1:1 + k], hw[1 + k:]
-    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
     dn = [_driver_name(sys, dv) for dv in drv]
@@ -358,20 +490,9 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
         formula += (f"; {channel.input} reaches the plant through "
                     f"({1 + e[q]:.3g} s + {dc * -a:.3g})/(s + {-a:.3g}): DC gain {dc:.3g}, "
                     f"time constant {1 / -a:.3g} s")
-    Ad, Bd = prob.disc(theta)
-    Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
-    Qa = np.zeros((n + 1, n + 1))
-    Qa[:n, :n] = Q
-    Qa[n, n] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300)
-    states = list(sys.state_labels) + [_lag_state(sys)]
-    out = named_ss(Ad, Bd, Ca, D, dt, states=states, inputs=sys.input_labels,
-                   outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
-    Acn, Bcn = prob.cont(theta)
-    cont = named_ss(Acn, Bcn, Ca, D, 0, states=states, inputs=sys.input_labels,
-                    outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, [_lag_state(sys)])
     return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=np.array(b), e=np.array(e),
-                      ci=np.asarray(hw), npar=1 + 2 * k, formula=formula,
-                      model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
+                      ci=np.asarray(hw), npar=1 + 2 * k, formula=formula, model=model,
                       se_estimation=se, continuous=cont,
                       rows=tuple(i if kind == "x" else n + i if kind == "u" else -1
                                  for kind, i in drv), dt=dt,
@@ -579,20 +700,26 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
         bdrv, eterms, ref, theta0 = st
         with single_thread_blas():
             r = _shared_problem(sys, channel, y, u, dt, x0, k0, bdrv, eterms, ref).resid(theta0)
-        starts.append((float(np.sum(r**2)), bdrv, eterms, ref, theta0))
-    laws = []
-    for _, bdrv, eterms, ref, theta0 in sorted(starts, key=lambda s: s[0])[:2]:
+        starts.append((float(np.sum(r**2)), bdrv, eterms, ref, theta0, own))
+    ranked = sorted(starts, key=lambda s: s[0])
+    # the two best starts, and the best of the touching-bodies template (a second effect
+    # elsewhere can spoil d^ and rank it low, while its refit is the sparse realization)
+    extra = next((s for s in ranked[2:] if s[5]), None)
+    chosen = [(s, 0) for s in ranked[:2]] + ([(extra, 1)] if extra is not None else [])
+    laws = []  # (law, 1 for the extra template start)
+    for (_, bdrv, eterms, ref, theta0, _), flag in chosen:
         law = _shared_fit_from(sys, channel, y, u, Q, R, dt, x0, k0, bdrv, eterms, ref, theta0,
                                wrms)
         if law is not None:
-            laws.append(law)
+            laws.append((law, flag))
     if not laws:
         return None
     # the fewest terms among the fits within 1 % of the lowest output error (two starts
-    # can end in two realizations of one law, one with a spurious small term)
-    lo = min(lw.se_estimation for lw in laws)
-    return min((lw for lw in laws if lw.se_estimation <= 1.01 * lo),
-               key=lambda lw: (lw.npar, lw.se_estimation))
+    # can end in two realizations of one law, one with a spurious small term); the extra
+    # template start only when strictly sparser (at a tie, the same law in another scale)
+    lo = min(lw.se_estimation for lw, _ in laws)
+    return min(((lw, x) for lw, x in laws if lw.se_estimation <= 1.01 * lo),
+               key=lambda t: (t[0].npar, t[1], t[0].se_estimation))[0]
 
 
 def _shared_start(sys, channel, w, d, dt, pole, max_drivers, own=False):
@@ -786,30 +913,17 @@ def _sparsest_realization(prob, theta, wrms):
 
 def _shared_law_from(sys, channel, prob, theta, hw, Q, R) -> SharedLaw:
     """The SharedLaw record of ``prob`` at ``theta``, half-widths ``hw``."""
-    n, dt, md = sys.nstates, prob.dt, prob.md
+    dt, md = prob.dt, prob.md
     a, b, k, e = prob.split(theta)
     a = float(a)
     nb = len(prob.bdrv)
     hb = hw[1:1 + nb]
     hk = np.insert(hw[1 + nb:nb + md], prob.ref, np.nan)
     he = hw[nb + md:]
-    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
     r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
     zname = _lag_state(sys)
-    units = list(channel.units) if channel.units else [""] * md
-
-    def unit(c):
-        un = units[c] if c < len(units) else ""
-        return "" if not un else f" {un}" if un.startswith("[") else f" [{un}]"
-
-    lines = []
-    for c in range(md):
-        parts = [zname if c == prob.ref else f"{_pm(k[c], hk[c])}*{zname}"]
-        parts += [f"{_pm(ec, hc)}*{_driver_name(sys, dv)}"
-                  for (cc, dv), ec, hc in zip(prob.eterms, e, he) if cc == c]
-        lines.append(f"{channel.labels[c]} = " + " + ".join(parts).replace("+ (-", "- (") +
-                     unit(c))
+    lines, unit = _component_lines(sys, channel, prob.ref, zname, k, hk, prob.eterms, e, he)
     dn = [_driver_name(sys, dv) for dv in prob.bdrv]
     zpart = " + ".join(f"{_pm(bi, hbi)}/(s + {_pm(-a, hw[0])})*{nm}"
                        for nm, bi, hbi in zip(dn, b, hb)).replace("+ (-", "- (")
@@ -820,21 +934,53 @@ def _shared_law_from(sys, channel, prob, theta, hw, Q, R) -> SharedLaw:
         formula += (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if lo > 0
                     else " (not determined by the data)")
     formula += f" (one state shared by {', '.join(channel.labels)})"
-    Ad, Bd = prob.disc(theta)
-    Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
-    Qa = np.zeros((n + 1, n + 1))
-    Qa[:n, :n] = Q
-    Qa[n, n] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300)
-    states = list(sys.state_labels) + [zname]
-    out = named_ss(Ad, Bd, Ca, D, dt, states=states, inputs=sys.input_labels,
-                   outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
-    Acn, Bcn = prob.cont(theta)
-    cont = named_ss(Acn, Bcn, Ca, D, 0, states=states, inputs=sys.input_labels,
-                    outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, [zname])
     Bz, E = prob.rows(theta)
     feed = tuple((int(c), _driver_name(sys, dv), float(ec)) for (c, dv), ec in zip(prob.eterms, e))
     return SharedLaw(pole=a, tau=1 / -a, state=zname, drivers=tuple(dn), b=np.array(b),
                      k=np.array(k), reference=prob.ref, feedthrough=feed, Bz=Bz, E=E,
-                     ci=np.asarray(hw), npar=int(theta.size), formula=formula,
-                     model=UpdatedModel(sys=out, Q=Qa, R=R, order=n + 1, kind="dynamic"),
+                     ci=np.asarray(hw), npar=int(theta.size), formula=formula, model=model,
                      se_estimation=se, continuous=cont, dt=dt)
+
+
+def _component_lines(sys, channel, ref, zname, k, hk, eterms, e, he):
+    """The formula line of each component of a shared law, and the unit suffix per component.
+
+    ``d_c = k_c*z + sum e*driver`` with intervals (``zname`` alone in the
+    reference component ``ref``); ``eterms``: pairs (component, driver).
+    """
+    md = len(k)
+    units = list(channel.units) if channel.units else [""] * md
+
+    def unit(c):
+        un = units[c] if c < len(units) else ""
+        return "" if not un else f" {un}" if un.startswith("[") else f" [{un}]"
+
+    lines = []
+    for c in range(md):
+        parts = [zname if c == ref else f"{_pm(k[c], hk[c])}*{zname}"]
+        parts += [f"{_pm(ec, hc)}*{_driver_name(sys, dv)}"
+                  for (cc, dv), ec, hc in zip(eterms, e, he) if cc == c]
+        lines.append(f"{channel.labels[c]} = " + " + ".join(parts).replace("+ (-", "- (") +
+                     unit(c))
+    return lines, unit
+
+
+def _augmented_models(sys, Ac, Bc, dt, Q, R, znames):
+    """(UpdatedModel discretized exactly, continuous StateSpace) of ``sys`` with law states.
+
+    ``Ac, Bc``: the augmented continuous matrices (states ``[x; z]``); the
+    law states get a negligible process noise (1e-12 of the mean of Q's
+    diagonal) and are not measured.
+    """
+    n, nz = sys.nstates, len(znames)
+    C, D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
+    Ca = np.hstack([C, np.zeros((C.shape[0], nz))])
+    Qa = np.zeros((n + nz, n + nz))
+    Qa[:n, :n] = Q
+    Qa[n:, n:] = 1e-12 * max(float(np.trace(Q)) / n, 1e-300) * np.eye(nz)
+    kw = dict(states=list(sys.state_labels) + list(znames), inputs=sys.input_labels,
+              outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
+    out = named_ss(*zoh(Ac, Bc, dt), Ca, D, dt, **kw)
+    cont = named_ss(Ac, Bc, Ca, D, 0, **kw)
+    return UpdatedModel(sys=out, Q=Qa, R=R, order=n + nz, kind="dynamic"), cont
