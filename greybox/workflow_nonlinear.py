@@ -358,18 +358,20 @@ def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
     P_start g`` with the adjoint ``lam_s = A_{s+1}^T lam_{s+1} + h_{s+1}``,
     ``h_t = C^T S^-1 J_t``, ``g = h_0 + A_0^T lam_0``, and the sandwich
     ``(J^T J)^-1 Cov(J^T r) (J^T J)^-1`` is calibrated when (Q, R) are right.
-    It is used only where the residual agrees with the noise model: its mean
-    square over the one the noise model predicts (``C P_t C^T + R`` with
-    ``P_{t+1} = A_t P_t A_t^T + Q``, P_0 = P_start) within
-    ``FLOOR_NOTE**-2 .. FLOOR_NOTE**2`` (2x in RMS either way), and then
-    scaled by that ratio, as least squares estimates sigma^2 from its
-    residual. Outside it the noise model is contradicted (e.g. an overstated
-    Q on a plant without process noise predicts far more error than the fit
-    leaves, and would inflate the intervals many times) and the HAC
-    covariance is returned alone. The HAC covariance (data-driven) guards
-    against an understated Q's colour. As in :mod:`greybox.trace.oe`, the
-    result keeps the noise model's correlations with, per parameter, the
-    larger of the two variances.
+    The state error's part is used only where the residual agrees with it:
+    the residual's mean square beyond R's, over what the noise model predicts
+    for the state error (``C P_t C^T`` with ``P_{t+1} = A_t P_t A_t^T + Q``,
+    P_0 = P_start), at least ``FLOOR_NOTE**-2`` (the state error no less
+    than half, in RMS, what Q predicts); that part is then scaled by the
+    ratio, as least squares estimates sigma^2 from its residual (more error
+    than the noise model explains, e.g. the law's own approximation, widens
+    the intervals). Below it the noise model is contradicted (e.g. an
+    overstated Q on a plant without process noise predicts far more
+    coloured error than the fit leaves, and would inflate the intervals
+    ~10x) and the HAC covariance is returned alone. The HAC covariance
+    (data-driven) guards against an understated Q's colour. As in
+    :mod:`greybox.trace.oe`, the result keeps the noise model's correlations
+    with, per parameter, the larger of the two variances.
     """
     jac = np.asarray(jac, dtype=float)
     p, T = C.shape[0], x.shape[1]
@@ -378,26 +380,35 @@ def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
         return cov_hac
     J = jac.reshape(p, T, k) / scale[:, None, None]          # S^-1 J_t, (p, T, k)
     Rs = R / np.outer(scale, scale)
-    M = np.einsum("otk,oq,qtl->kl", J, Rs, J)
+    M_r = np.einsum("otk,oq,qtl->kl", J, Rs, J)             # measurement noise's part
     A = _state_jacobians(model, x, u)
     if not np.all(np.isfinite(A)):
         return cov_hac
-    P, pred = np.array(P_start, dtype=float), 0.0
-    for t in range(T):  # the residual's mean square the noise model predicts
-        pred += float(np.sum((np.einsum("on,nm,om->o", C, P, C) + np.diag(R)) / scale**2))
+    # the residual's mean square the noise model predicts: R's part and the part of the
+    # state error (process noise, initial state); the latter is scaled to what the residual
+    # leaves beyond R's, unless that is under 1/FLOOR_NOTE of it in RMS (Q contradicted)
+    P, pred_x = np.array(P_start, dtype=float), 0.0
+    for t in range(T):
+        pred_x += float(np.sum(np.einsum("on,nm,om->o", C, P, C) / scale**2))
         P = A[t] @ P @ A[t].T + Q
-    lam_scale = float(np.sum(np.asarray(resid, dtype=float) ** 2)) / pred if pred > 0 else 0.0
-    if not FLOOR_NOTE ** -2 <= lam_scale <= FLOOR_NOTE ** 2:  # the residual contradicts
-        return cov_hac                                        # the noise model: HAC alone
+    pred_r = T * float(np.sum(np.diag(R) / scale**2))
+    left = float(np.sum(np.asarray(resid, dtype=float) ** 2)) - pred_r
+    if pred_x > 0:
+        lam_scale = left / pred_x
+        if not lam_scale >= FLOOR_NOTE ** -2:  # the residual contradicts Q: HAC alone
+            return cov_hac
+    else:
+        lam_scale = 0.0
     h = np.einsum("on,otk->tnk", C, J)                        # h_t, (T, n, k)
     lam = np.zeros_like(h[0])
+    M = np.zeros_like(M_r)
     for s in range(T - 2, -1, -1):                             # lam_s, s = T-2 .. 0
         lam = A[s + 1].T @ lam + h[s + 1]
         M += lam.T @ Q @ lam
     g = h[0] + A[0].T @ lam
     M += g.T @ P_start @ g
     Ji = np.linalg.pinv(jac.T @ jac)
-    cn = lam_scale * (Ji @ M @ Ji)
+    cn = Ji @ (M_r + lam_scale * M) @ Ji
     vh, vn = np.diag(cov_hac), np.diag(cn)
     if not (np.all(np.isfinite(vn)) and np.all(vn > 0)):
         return cov_hac
