@@ -331,18 +331,32 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
 
 
 def _state_jacobians(model, x: NDArray, u: NDArray) -> NDArray[np.float64]:
-    """``dF/dx`` of a discrete model along a trajectory, shape (nsteps, n, n) (central diff.)."""
+    """``dF/dx`` of a discrete model along a trajectory, shape (nsteps, n, n) (central diff.).
+
+    The states of every sample go through ``updfcn`` in one call where the
+    model takes a batch (greybox's own models do), else one sample at a time
+    (a user's MODEL.py written for one state).
+    """
     n, T = x.shape
+
+    def F(X):
+        with np.errstate(all="ignore"):
+            try:
+                out = np.asarray(model.updfcn(0.0, X, u, {}), dtype=float)
+                if out.shape in ((n, T), (n * T,)) and T > 1:
+                    return out.reshape(n, T)
+            except (TypeError, ValueError, IndexError):
+                pass
+            return np.stack([np.asarray(model.updfcn(0.0, X[:, t], u[:, t], {}),
+                                        dtype=float).reshape(n) for t in range(T)], axis=1)
+
     out = np.empty((T, n, n))
     for i in range(n):
         h = 1e-6 * np.maximum(1.0, np.abs(x[i]))
         xp, xm = x.copy(), x.copy()
         xp[i] += h
         xm[i] -= h
-        with np.errstate(all="ignore"):
-            fp = np.asarray(model.updfcn(0.0, xp, u, {}), dtype=float).reshape(n, T)
-            fm = np.asarray(model.updfcn(0.0, xm, u, {}), dtype=float).reshape(n, T)
-        out[:, :, i] = ((fp - fm) / (2 * h)).T
+        out[:, :, i] = ((F(xp) - F(xm)) / (2 * h)).T
     return out
 
 
@@ -449,6 +463,38 @@ def _floor_ratio(model_d, se: float, y: NDArray, x_op, u_op, C, Q, R) -> float:
     fl = _noise_floor(A, C, Q, R, SKIP, N)
     with np.errstate(all="ignore"):
         return float(np.max(ms / fl))
+
+
+def _oe_likelihood_ratio(model_d, x_start, y, u, C, D, se_nom: float,
+                         se_upd: float) -> tuple[float, float]:
+    """(quasi likelihood ratio, colour) of an updated model against the nominal, by output error.
+
+    ``Ny log(se_nom^2 / se_upd^2) / c`` with Ny the residuals after SKIP: the
+    Gaussian likelihood ratio of two output-error fits (per output: exact for
+    one output, the mean relative error otherwise), divided by ``c >= 1``, the
+    updated model's residual's long-run variance over its variance (the
+    Bartlett-weighted sum of its autocorrelations, the bandwidth of
+    :func:`greybox.trace.intervals.hac_covariance`): a coloured residual carries
+    ~Ny / c independent samples. Unlike the Wald statistic at the fitted
+    coefficients it does not assume the simulation linear in them (a stiff
+    saturation hinge's coefficient is barely determined while "no hinge" is
+    far worse).
+    """
+    if not (np.isfinite(se_nom) and np.isfinite(se_upd) and se_upd > 0):
+        return 0.0, np.nan
+    try:
+        sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=x_start)
+    except GreyboxError:
+        return 0.0, np.nan
+    r = y[:, SKIP:] - C @ sim.x - D @ u[:, SKIP:]
+    if not np.all(np.isfinite(r)):
+        return 0.0, np.nan
+    r = r / np.maximum(np.std(r, axis=1, keepdims=True), 1e-300)
+    T = r.shape[1]
+    # long-run variance of the mean residual per output: hac_covariance of a constant fit
+    lr = [float(hac_covariance(np.ones((T, 1)), ro, 1)[0, 0]) * T for ro in r]
+    colour = max(1.0, float(np.mean(lr)) / float(np.mean(r**2)))
+    return float(r.size * 2 * np.log(se_nom / se_upd) / colour), colour
 
 
 def _wald_zero(theta: NDArray, cov: NDArray) -> float:
@@ -807,11 +853,15 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     # estimated on y, where the evidence is (see Notes of close_the_loop_nonlinear)
     Nd = N - 1 - SKIP
     if tr.relative_degree > 1 and evidence is not None:
-        gain, nfree = evidence
+        wald, nfree = evidence
         Ny = p * (N - SKIP)
+        gain, colour = _oe_likelihood_ratio(disc(upd), tr.filter_result.x_filt[:, SKIP], y, u,
+                                            C, D, se_nom, se_c)
         penalty = float(nfree * np.log(Ny))
-        gate["evidence"] = ("output error: Wald statistic of 'no law' on the output-error "
-                            f"fit, {nfree} free parameter(s), {Ny} residuals")
+        gate.update({"oe_wald": float(wald), "oe_colour": colour})
+        gate["evidence"] = ("output error: likelihood ratio of the law against the nominal "
+                            f"on the estimation outputs' simulation, divided by the residual's "
+                            f"colour ({colour:.3g}); {nfree} free parameter(s), {Ny} residuals")
     else:
         gain = float(law.bic_gain + law.npar * np.log(Nd))
         penalty = float(npar * np.log(Nd))
