@@ -75,30 +75,12 @@ def _term(law, name, truth):
     return float(law.coef[0, on[0]]), half, truth
 
 
-def _soft_truth(u, rng):
-    """The tests' tanks with a soft overflow -KO max(x1 - XO, 0) instead of the clip."""
-    N, h = u.shape[1], tk.TS / 20
-
-    def f(x, uk):
-        return tk.f_nom(x, uk) - np.array([KO * max(x[0] - XO, 0.0), 0.0])
-
-    x, xk = np.empty((2, N)), np.array([5.0, 5.0])
-    for k in range(N):
-        x[:, k] = xk
-        for _ in range(20):
-            a = f(xk, u[:, k])
-            b = f(xk + h / 2 * a, u[:, k])
-            c = f(xk + h / 2 * b, u[:, k])
-            d = f(xk + h * c, u[:, k])
-            xk = xk + h / 6 * (a + 2 * b + 2 * c + d)
-    return x, x[1:] + tk.R_STD * rng.standard_normal((1, N))
-
-
 def _overflow(seed, soft):
     rng = np.random.default_rng(seed)
     u, uv = tk.multisine(rng, 1024), tk.multisine(rng, 1024)
     if soft:
-        (_, y), (_, yv) = _soft_truth(u, rng), _soft_truth(uv, rng)
+        (_, y), (_, yv) = (tk.truth(u, np.inf, rng, soft=(KO, XO)),
+                           tk.truth(uv, np.inf, rng, soft=(KO, XO)))
     else:
         (_, y), (_, yv) = tk.truth(u, tk.XMAX, rng), tk.truth(uv, tk.XMAX, rng)
     rep = close_the_loop_nonlinear(tk.NOMINAL, y, u, yv, uv, Q=tk.Q, R=tk.R, dt=tk.TS,

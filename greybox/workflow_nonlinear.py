@@ -35,11 +35,16 @@ linear output map, the paper's (33)). The stages mirror the linear pipeline:
    the law on d^ (its BIC gain plus the penalty), except for a delayed
    channel (r = 2) whose law was refined by output error: there d^ is mostly
    estimation noise and the coefficients were estimated on y, so the
-   evidence is the Wald statistic of "no law" on the output-error fit,
-   ``theta^T Cov^-1 theta`` (asymptotically the likelihood ratio, its
-   covariance robust to the residual's colour), with k counting the hinge
-   levels too (they are searched: a penalty for each). The gate records
-   which (``gate["evidence"]``) and the ratio of the updated model's mean
+   evidence is the Gaussian likelihood ratio of the updated model against
+   the nominal on the estimation outputs' simulation error,
+   ``Ny log(SE_nom^2 / SE_upd^2)``, divided by the updated residual's colour
+   c (its long-run variance over its variance, >= 1: ~Ny / c independent
+   samples, a quasi-likelihood ratio), and the penalty is ``k log(Ny / c)``
+   with k counting the hinge levels too (they are searched). Not the Wald
+   statistic of the fitted coefficients (recorded as ``gate["oe_wald"]``):
+   the simulation is far from linear in a stiff hinge's coefficient, barely
+   determined while "no hinge" is far worse. The gate records which
+   evidence (``gate["evidence"]``) and the ratio of the updated model's mean
    squared simulation error to the noise model's (``gate["oe_floor_ratio"]``;
    above ``FLOOR_NOTE**2`` a note says the law may be partial).
 4. **Before/after.** The updated model is ``f(x, u) + G law(x, u)``
@@ -585,8 +590,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         The update must bring the estimation SE below this fraction.
     bic_factor : float
         The law's evidence must exceed this many times its BIC penalty: its
-        likelihood ratio on d^, or for a delayed channel (r = 2) the Wald
-        statistic of its output-error fit (see the module's stage 3).
+        likelihood ratio on d^, or for a delayed channel (r = 2) its quasi
+        likelihood ratio on the output error (see the module's stage 3).
     substeps : int, optional
         RK4 sub-steps per sample for a continuous model (default from
         :func:`greybox.rk4_substeps` at the operating point).
@@ -847,21 +852,23 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     tick("output-error refinement", 1, 1)
 
     # 3. gate. The evidence for the law: its likelihood-ratio statistic on d^ (the BIC gain
-    # plus its penalty), or for a delayed channel whose law was refined by output error, the
-    # Wald statistic of "no law" on the output-error fit (its covariance robust to the
-    # residual's colour): a delayed d^ is mostly estimation noise, and the coefficients were
-    # estimated on y, where the evidence is (see Notes of close_the_loop_nonlinear)
+    # plus its penalty), or for a delayed channel whose law was refined by output error, its
+    # quasi likelihood ratio on the output error: a delayed d^ is mostly estimation noise,
+    # and the coefficients were estimated on y, where the evidence is (module stage 3)
     Nd = N - 1 - SKIP
     if tr.relative_degree > 1 and evidence is not None:
         wald, nfree = evidence
         Ny = p * (N - SKIP)
         gain, colour = _oe_likelihood_ratio(disc(upd), tr.filter_result.x_filt[:, SKIP], y, u,
                                             C, D, se_nom, se_c)
-        penalty = float(nfree * np.log(Ny))
+        # BIC's log n with n the independent samples, Ny / colour
+        n_eff = Ny / colour if np.isfinite(colour) else Ny
+        penalty = float(nfree * np.log(max(n_eff, 2.0)))
         gate.update({"oe_wald": float(wald), "oe_colour": colour})
         gate["evidence"] = ("output error: likelihood ratio of the law against the nominal "
                             f"on the estimation outputs' simulation, divided by the residual's "
-                            f"colour ({colour:.3g}); {nfree} free parameter(s), {Ny} residuals")
+                            f"colour ({colour:.3g}); {nfree} free parameter(s), {Ny} residuals "
+                            f"({n_eff:.0f} independent)")
     else:
         gain = float(law.bic_gain + law.npar * np.log(Nd))
         penalty = float(npar * np.log(Nd))
