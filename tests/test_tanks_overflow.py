@@ -90,7 +90,9 @@ def run(xmax, seed):
 SEEDS = (5, 2, 9)
 
 
-@pytest.fixture(scope="module", params=SEEDS, ids=lambda s: f"seed{s}")
+@pytest.fixture(scope="module", params=[SEEDS[0]] + [pytest.param(s, marks=pytest.mark.slow)
+                                                     for s in SEEDS[1:]],
+                ids=lambda s: f"seed{s}")
 def overflow(request):
     return run(XMAX, request.param)
 
