@@ -407,9 +407,12 @@ def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
     # state error (process noise, initial state); the latter is scaled to what the residual
     # leaves beyond R's, unless that is under 1/FLOOR_NOTE of it in RMS (Q contradicted)
     P, pred_x = np.array(P_start, dtype=float), 0.0
-    for t in range(T):
-        pred_x += float(np.sum(np.einsum("on,nm,om->o", C, P, C) / scale**2))
-        P = A[t] @ P @ A[t].T + Q
+    with np.errstate(all="ignore"):  # an unstable linearization: inf, then HAC alone
+        for t in range(T):
+            pred_x += float(np.sum(np.einsum("on,nm,om->o", C, P, C) / scale**2))
+            P = A[t] @ P @ A[t].T + Q
+    if not np.isfinite(pred_x):
+        return cov_hac
     pred_r = T * float(np.sum(np.diag(R) / scale**2))
     left = float(np.sum(np.asarray(resid, dtype=float) ** 2)) - pred_r
     if pred_x > 0:
@@ -421,11 +424,14 @@ def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
     h = np.einsum("on,otk->tnk", C, J)                        # h_t, (T, n, k)
     lam = np.zeros_like(h[0])
     M = np.zeros_like(M_r)
-    for s in range(T - 2, -1, -1):                             # lam_s, s = T-2 .. 0
-        lam = A[s + 1].T @ lam + h[s + 1]
-        M += lam.T @ Q @ lam
-    g = h[0] + A[0].T @ lam
-    M += g.T @ P_start @ g
+    with np.errstate(all="ignore"):
+        for s in range(T - 2, -1, -1):                         # lam_s, s = T-2 .. 0
+            lam = A[s + 1].T @ lam + h[s + 1]
+            M += lam.T @ Q @ lam
+        g = h[0] + A[0].T @ lam
+        M += g.T @ P_start @ g
+    if not np.all(np.isfinite(M)):
+        return cov_hac
     Ji = np.linalg.pinv(jac.T @ jac)
     cn = Ji @ (M_r + lam_scale * M) @ Ji
     vh, vn = np.diag(cov_hac), np.diag(cn)
@@ -485,7 +491,7 @@ def _oe_likelihood_ratio(model_d, x_start, y, u, C, D, se_nom: float,
     saturation hinge's coefficient is barely determined while "no hinge" is
     far worse).
     """
-    if not (np.isfinite(se_nom) and np.isfinite(se_upd) and se_upd > 0):
+    if not (np.isfinite(se_upd) and se_upd > 0) or np.isnan(se_nom):
         return 0.0, np.nan
     try:
         sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=x_start)
@@ -499,6 +505,7 @@ def _oe_likelihood_ratio(model_d, x_start, y, u, C, D, se_nom: float,
     # long-run variance of the mean residual per output: hac_covariance of a constant fit
     lr = [float(hac_covariance(np.ones((T, 1)), ro, 1)[0, 0]) * T for ro in r]
     colour = max(1.0, float(np.mean(lr)) / float(np.mean(r**2)))
+    # a diverging nominal (SE inf) against a finite update: an infinite ratio
     return float(r.size * 2 * np.log(se_nom / se_upd) / colour), colour
 
 
