@@ -384,11 +384,13 @@ def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
     than half, in RMS, what Q predicts); that part is then scaled by the
     ratio, as least squares estimates sigma^2 from its residual (more error
     than the noise model explains, e.g. the law's own approximation, widens
-    the intervals). Below it the noise model is contradicted (e.g. an
-    overstated Q on a plant without process noise predicts far more
-    coloured error than the fit leaves, and would inflate the intervals
-    ~10x) and the HAC covariance is returned alone. The HAC covariance
-    (data-driven) guards against an understated Q's colour. As in
+    the intervals). Below it Q is contradicted (e.g. an overstated Q on a
+    plant without process noise predicts far more coloured error than the
+    fit leaves, and would inflate the intervals ~10x): Q's part is dropped,
+    R's and the initial state's kept (the latter is what HAC alone misses on
+    a slow plant: the simulated soft overflow's intervals were ~2x too
+    narrow). The HAC covariance (data-driven) guards against an understated
+    Q's colour. As in
     :mod:`greybox.trace.oe`, the result keeps the noise model's correlations
     with, per parameter, the larger of the two variances.
     """
@@ -405,7 +407,7 @@ def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
         return cov_hac
     # the residual's mean square the noise model predicts: R's part and the part of the
     # state error (process noise, initial state); the latter is scaled to what the residual
-    # leaves beyond R's, unless that is under 1/FLOOR_NOTE of it in RMS (Q contradicted)
+    # leaves beyond R's, or dropped if that is under 1/FLOOR_NOTE of it in RMS (Q contradicted)
     P, pred_x = np.array(P_start, dtype=float), 0.0
     with np.errstate(all="ignore"):  # an unstable linearization: inf, then HAC alone
         for t in range(T):
@@ -415,25 +417,23 @@ def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
         return cov_hac
     pred_r = T * float(np.sum(np.diag(R) / scale**2))
     left = float(np.sum(np.asarray(resid, dtype=float) ** 2)) - pred_r
-    if pred_x > 0:
-        lam_scale = left / pred_x
-        if not lam_scale >= FLOOR_NOTE ** -2:  # the residual contradicts Q: HAC alone
-            return cov_hac
-    else:
-        lam_scale = 0.0
+    lam_scale = left / pred_x if pred_x > 0 else 0.0
+    contradicted = not lam_scale >= FLOOR_NOTE ** -2
     h = np.einsum("on,otk->tnk", C, J)                        # h_t, (T, n, k)
     lam = np.zeros_like(h[0])
-    M = np.zeros_like(M_r)
+    M_q = np.zeros_like(M_r)
     with np.errstate(all="ignore"):
         for s in range(T - 2, -1, -1):                         # lam_s, s = T-2 .. 0
             lam = A[s + 1].T @ lam + h[s + 1]
-            M += lam.T @ Q @ lam
+            M_q += lam.T @ Q @ lam
         g = h[0] + A[0].T @ lam
-        M += g.T @ P_start @ g
-    if not np.all(np.isfinite(M)):
+        M_p = g.T @ P_start @ g
+    if not (np.all(np.isfinite(M_q)) and np.all(np.isfinite(M_p))):
         return cov_hac
     Ji = np.linalg.pinv(jac.T @ jac)
-    cn = Ji @ (M_r + lam_scale * M) @ Ji
+    # Q contradicted by the residual: its part dropped, R's and the initial state's kept
+    M = M_r + M_p if contradicted else M_r + lam_scale * (M_q + M_p)
+    cn = Ji @ M @ Ji
     vh, vn = np.diag(cov_hac), np.diag(cn)
     if not (np.all(np.isfinite(vn)) and np.all(vn > 0)):
         return cov_hac
