@@ -20,6 +20,9 @@ whether the reported 95 % interval of the law's coefficient contains the truth:
     it). Reported: the spread of the estimates over seeds against the stated half-widths
     (coverage of the seeds' median).
 
+For the tank cases each seed also prints the law, the validation SE before/after and
+the true model's (issue 12 item c: ``overflow --seeds 10``).
+
 A case that names another law (or none) counts as a miss of the right law, not of the
 interval; the coverage is over the seeds that named it. Printed per seed: estimate,
 half-width, covered; then per case: covered/named with the 95 % binomial band of the
@@ -41,7 +44,8 @@ import numpy as np  # noqa: E402
 from scipy.stats import binom  # noqa: E402
 
 import greybox as gb  # noqa: E402
-from greybox.workflow_nonlinear import close_the_loop_nonlinear  # noqa: E402
+from greybox.metrics import relative_error  # noqa: E402
+from greybox.workflow_nonlinear import SKIP, close_the_loop_nonlinear  # noqa: E402
 import test_tanks_overflow as tk  # noqa: E402
 from test_workflow_nonlinear import C3, DT, QD, RM, pendulum, record  # noqa: E402
 
@@ -79,12 +83,16 @@ def _overflow(seed, soft):
     rng = np.random.default_rng(seed)
     u, uv = tk.multisine(rng, 1024), tk.multisine(rng, 1024)
     if soft:
-        (_, y), (_, yv) = (tk.truth(u, np.inf, rng, soft=(KO, XO)),
-                           tk.truth(uv, np.inf, rng, soft=(KO, XO)))
+        (_, y), (xv, yv) = (tk.truth(u, np.inf, rng, soft=(KO, XO)),
+                            tk.truth(uv, np.inf, rng, soft=(KO, XO)))
     else:
-        (_, y), (_, yv) = tk.truth(u, tk.XMAX, rng), tk.truth(uv, tk.XMAX, rng)
+        (_, y), (xv, yv) = tk.truth(u, tk.XMAX, rng), tk.truth(uv, tk.XMAX, rng)
     rep = close_the_loop_nonlinear(tk.NOMINAL, y, u, yv, uv, Q=tk.Q, R=tk.R, dt=tk.TS,
                                    substeps=4)
+    floor = relative_error(yv[:, SKIP:], xv[1:, SKIP:]).value  # the true model's SE
+    print(f"{'':14s} seed {seed:2d}: updated {rep.updated}, {rep.effect.formula or '-'}; "
+          f"validation SE {rep.table['nominal'].se.value:.3g} % -> "
+          f"{rep.table['updated'].se.value:.3g} % (true model {floor:.3g} %)", flush=True)
     law = rep.effect.law if rep.updated else None
     if law is None:
         return rep, None
