@@ -27,11 +27,26 @@ linear output map, the paper's (33)). The stages mirror the linear pipeline:
    error before the channels are compared, and a law holding a hinge also
    competes reduced to its hinge(s), coefficients and levels refined by output
    error.
-3. **Choose and gate** exactly as the linear pipeline: lowest estimation SE
-   of the updated model, within ``parsimony`` the fewest parameters; update
-   only if some output rejects whiteness, the BIC gain exceeds
-   ``bic_factor`` times its penalty and the SE drops below ``min_se_drop``
-   times the nominal one.
+3. **Choose and gate** as the linear pipeline: lowest estimation SE of the
+   updated model, within ``parsimony`` the fewest parameters; update only if
+   some output rejects whiteness, the law's evidence exceeds ``bic_factor``
+   times its BIC penalty (k log N) and the SE drops below ``min_se_drop``
+   times the nominal one. The evidence is the likelihood-ratio statistic of
+   the law on d^ (its BIC gain plus the penalty), except for a delayed
+   channel (r = 2) whose law was refined by output error: there d^ is mostly
+   estimation noise and the coefficients were estimated on y, so the
+   evidence is the Gaussian likelihood ratio of the updated model against
+   the nominal on the estimation outputs' simulation error,
+   ``Ny log(SE_nom^2 / SE_upd^2)``, divided by the updated residual's colour
+   c (its long-run variance over its variance, >= 1: ~Ny / c independent
+   samples, a quasi-likelihood ratio), and the penalty is ``k log(Ny / c)``
+   with k counting the hinge levels too (they are searched). Not the Wald
+   statistic of the fitted coefficients (recorded as ``gate["oe_wald"]``):
+   the simulation is far from linear in a stiff hinge's coefficient, barely
+   determined while "no hinge" is far worse. The gate records which
+   evidence (``gate["evidence"]``) and the ratio of the updated model's mean
+   squared simulation error to the noise model's (``gate["oe_floor_ratio"]``;
+   above ``FLOOR_NOTE**2`` a note says the law may be partial).
 4. **Before/after.** The updated model is ``f(x, u) + G law(x, u)``
    (:func:`greybox.add_law`) in the nominal model's own time base; nominal
    and updated are simulated with the same RK4 discretization
@@ -95,6 +110,7 @@ from .progress import ProgressClock
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance
 from .trace.laws import _eval_terms, _fit_static, _law_line, hinge_name
+from .trace.oe import _noise_floor
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after, undefined_error
 from .workflow import CRITERION, CandidateScore, Effect, LoopReport
@@ -104,9 +120,12 @@ __all__ = ["NonlinearUpdate", "close_the_loop_nonlinear", "nonlinear_update_of_l
 SKIP = 20
 """Leading samples left out of SE, PE and whiteness (the filters' transient)."""
 _ALTERNATING = -0.5
+"""Below this lag-1 autocorrelation d^ is taken to alternate sign (as in the linear trace)."""
+FLOOR_NOTE = 2.0
+"""An update whose estimation RMS simulation error is above this many times the noise
+model's (:func:`greybox.trace.oe._noise_floor`) gets a note: the law may be partial."""
 OE_MAX_TERMS = 3
 """Laws with at most this many terms are refined by output error on y (cost ~ terms)."""
-"""Below this lag-1 autocorrelation d^ is taken to alternate sign (as in the linear trace)."""
 
 
 @dataclass(frozen=True)
@@ -240,13 +259,19 @@ def _delay_of(model_cd, labels, x_op, u_op, Q, R):
     return r, G, np.einsum("icc->ci", w)
 
 
-def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
-    """The law's selected coefficients refitted by output error on y; (law, model) or None.
+def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
+    """The law's selected coefficients refitted by output error on y.
 
     Residual: the outputs simulated from ``x_start`` at sample SKIP, each scaled
     by its standard deviation; a diverging simulation counts as a large
-    residual. 95 % half-widths from the output-error Jacobian with the
-    autocorrelation-robust covariance of the linear pipeline.
+    residual. Covariance of the fitted parameters (:func:`_oe_covariance`):
+    per parameter the larger variance of the autocorrelation-robust one of
+    the linear pipeline (:func:`greybox.trace.intervals.hac_covariance`) and
+    the sandwich under the noise model ``noise = (Q, R, P_start)`` along the
+    fitted simulation. Returns ``(law, model, (wald, nfree))`` with the
+    law's 95 % half-widths in ``ci``, ``wald`` the Wald statistic of "all
+    coefficients zero" and ``nfree`` the parameters fitted (coefficients and
+    hinge levels); None when the fit fails.
     """
     sel = [(c, j) for c in range(law.coef.shape[0]) for j in np.flatnonzero(law.coef[c])]
     if not sel:
@@ -286,9 +311,18 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
         return None
     if not np.all(np.isfinite(sol.x)) or sol.fun is big:
         return None
+    cov = hac_covariance(sol.jac, sol.fun, yy.shape[0])
+    if noise is not None:
+        model = disc(add_law(base, ch.G, law_at(sol.x).evaluate))
+        try:
+            xs = simulate_nonlinear(model, uu, x0=x_start).x
+        except GreyboxError:
+            xs = None
+        if xs is not None:
+            cov = _oe_covariance(cov, sol.jac, sol.fun, model, xs, uu, C, scale[:, 0],
+                                 *noise)
     half = np.full_like(law.coef, np.nan)
-    half[rows, cols] = 1.96 * np.sqrt(np.clip(np.diag(
-        hac_covariance(sol.jac, sol.fun, yy.shape[0])), 0, None))[:nc]
+    half[rows, cols] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))[:nc]
     new = law_at(sol.x)
     lines = []
     for c in range(new.coef.shape[0]):
@@ -297,7 +331,193 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D):
                                ch.units[c] if c < len(ch.units) else "", half[c, idx]))
     new = replace(new, ci=half, formula="; ".join(lines), time_base="continuous"
                   if base.isctime(strict=True) else "discrete")
-    return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated")
+    evidence = (_wald_zero(sol.x[:nc], cov[:nc, :nc]), int(sol.x.size))
+    return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated"), evidence
+
+
+def _state_jacobians(model, x: NDArray, u: NDArray) -> NDArray[np.float64]:
+    """``dF/dx`` of a discrete model along a trajectory, shape (nsteps, n, n) (central diff.).
+
+    The states of every sample go through ``updfcn`` in one call where the
+    model takes a batch (greybox's own models do), else one sample at a time
+    (a user's MODEL.py written for one state).
+    """
+    n, T = x.shape
+
+    def F(X):
+        with np.errstate(all="ignore"):
+            try:
+                out = np.asarray(model.updfcn(0.0, X, u, {}), dtype=float)
+                if out.shape in ((n, T), (n * T,)) and T > 1:
+                    return out.reshape(n, T)
+            except (TypeError, ValueError, IndexError):
+                pass
+            return np.stack([np.asarray(model.updfcn(0.0, X[:, t], u[:, t], {}),
+                                        dtype=float).reshape(n) for t in range(T)], axis=1)
+
+    out = np.empty((T, n, n))
+    for i in range(n):
+        h = 1e-6 * np.maximum(1.0, np.abs(x[i]))
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        out[:, :, i] = ((F(xp) - F(xm)) / (2 * h)).T
+    return out
+
+
+def _oe_covariance(cov_hac, jac, resid, model, x, u, C, scale, Q, R, P_start):
+    """Covariance of output-error coefficients: the HAC one or the noise model's, the larger.
+
+    Under the noise model the scaled output error of the right law is
+    ``r[t] = S^-1 (C e[t] + v[t])`` with ``e[t+1] = A_t e[t] + w[t]``
+    (``A_t`` the discrete model's Jacobian along the fitted simulation x,
+    ``w ~ N(0, Q)``, ``v ~ N(0, R)``, ``e[0] ~ N(0, P_start)``: the error of
+    the filtered state the simulation starts from). Then
+    ``Cov(J^T r) = sum_t J_t^T S^-1 R S^-1 J_t + sum_s lam_s^T Q lam_s + g^T
+    P_start g`` with the adjoint ``lam_s = A_{s+1}^T lam_{s+1} + h_{s+1}``,
+    ``h_t = C^T S^-1 J_t``, ``g = h_0 + A_0^T lam_0``, and the sandwich
+    ``(J^T J)^-1 Cov(J^T r) (J^T J)^-1`` is calibrated when (Q, R) are right.
+    The state error's part is used only where the residual agrees with it:
+    the residual's mean square beyond R's, over what the noise model predicts
+    for the state error (``C P_t C^T`` with ``P_{t+1} = A_t P_t A_t^T + Q``,
+    P_0 = P_start), at least ``FLOOR_NOTE**-2`` (the state error no less
+    than half, in RMS, what Q predicts); that part is then scaled by the
+    ratio, as least squares estimates sigma^2 from its residual (more error
+    than the noise model explains, e.g. the law's own approximation, widens
+    the intervals). Below it Q is contradicted (e.g. an overstated Q on a
+    plant without process noise predicts far more coloured error than the
+    fit leaves, and would inflate the intervals ~10x): Q's part is dropped,
+    R's and the initial state's kept (the latter is what HAC alone misses on
+    a slow plant: the simulated soft overflow's intervals were ~2x too
+    narrow). The HAC covariance (data-driven) guards against an understated
+    Q's colour. As in
+    :mod:`greybox.trace.oe`, the result keeps the noise model's correlations
+    with, per parameter, the larger of the two variances.
+    """
+    jac = np.asarray(jac, dtype=float)
+    p, T = C.shape[0], x.shape[1]
+    k = jac.shape[1]
+    if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(x))):
+        return cov_hac
+    J = jac.reshape(p, T, k) / scale[:, None, None]          # S^-1 J_t, (p, T, k)
+    Rs = R / np.outer(scale, scale)
+    M_r = np.einsum("otk,oq,qtl->kl", J, Rs, J)             # measurement noise's part
+    A = _state_jacobians(model, x, u)
+    if not np.all(np.isfinite(A)):
+        return cov_hac
+    # the residual's mean square the noise model predicts: R's part and the part of the
+    # state error (process noise, initial state); the latter is scaled to what the residual
+    # leaves beyond R's, or dropped if that is under 1/FLOOR_NOTE of it in RMS (Q contradicted)
+    P, pred_x = np.array(P_start, dtype=float), 0.0
+    with np.errstate(all="ignore"):  # an unstable linearization: inf, then HAC alone
+        for t in range(T):
+            pred_x += float(np.sum(np.einsum("on,nm,om->o", C, P, C) / scale**2))
+            P = A[t] @ P @ A[t].T + Q
+    if not np.isfinite(pred_x):
+        return cov_hac
+    pred_r = T * float(np.sum(np.diag(R) / scale**2))
+    left = float(np.sum(np.asarray(resid, dtype=float) ** 2)) - pred_r
+    lam_scale = left / pred_x if pred_x > 0 else 0.0
+    contradicted = not lam_scale >= FLOOR_NOTE ** -2
+    h = np.einsum("on,otk->tnk", C, J)                        # h_t, (T, n, k)
+    lam = np.zeros_like(h[0])
+    M_q = np.zeros_like(M_r)
+    with np.errstate(all="ignore"):
+        for s in range(T - 2, -1, -1):                         # lam_s, s = T-2 .. 0
+            lam = A[s + 1].T @ lam + h[s + 1]
+            M_q += lam.T @ Q @ lam
+        g = h[0] + A[0].T @ lam
+        M_p = g.T @ P_start @ g
+    if not (np.all(np.isfinite(M_q)) and np.all(np.isfinite(M_p))):
+        return cov_hac
+    Ji = np.linalg.pinv(jac.T @ jac)
+    # Q contradicted by the residual: its part dropped, R's and the initial state's kept
+    M = M_r + M_p if contradicted else M_r + lam_scale * (M_q + M_p)
+    cn = Ji @ M @ Ji
+    vh, vn = np.diag(cov_hac), np.diag(cn)
+    if not (np.all(np.isfinite(vn)) and np.all(vn > 0)):
+        return cov_hac
+    gsc = np.sqrt(np.maximum(vh, vn) / vn)
+    return cn * np.outer(gsc, gsc)
+
+
+def _noise_of(res: FilterResult, Q: NDArray, R: NDArray, P_nominal: NDArray):
+    """(Q, R, P_start) for :func:`_oe_covariance`: P_start a filter's converged P[k|k].
+
+    The channel's own filter's for r = 1; for a delayed filter (r = 2) its P
+    describes z = x - G~ d (d's whole uncertainty folded in, far larger than
+    the error of the smoothed x^[k|k+1] the simulation starts from): the
+    nominal UKF's ``P_nominal`` stands in.
+    """
+    n = Q.shape[0]
+    P = np.asarray(res.P_filt if getattr(res, "relative_degree", 1) == 1 else P_nominal,
+                   dtype=float)
+    P = P[:n, :n] if P.ndim == 2 and P.shape[0] >= n else np.zeros((n, n))
+    return Q, R, np.where(np.isfinite(P), P, 0.0)
+
+
+def _floor_ratio(model_d, se: float, y: NDArray, x_op, u_op, C, Q, R) -> float:
+    """Mean squared simulation error (from SE [%]) over the noise model's, worst output.
+
+    The noise model's is :func:`greybox.trace.oe._noise_floor` on the model's
+    linearization at the operating point (1: the simulation is as good as
+    (Q, R) allow).
+    """
+    if not np.isfinite(se):
+        return np.inf
+    try:
+        A = np.asarray(linearize_at(model_d, x_op, u_op).A, dtype=float)
+    except GreyboxError:
+        return np.nan
+    N = y.shape[1] - SKIP
+    ms = (se / 100) ** 2 * np.mean(y[:, SKIP:] ** 2, axis=1)
+    fl = _noise_floor(A, C, Q, R, SKIP, N)
+    with np.errstate(all="ignore"):
+        return float(np.max(ms / fl))
+
+
+def _oe_likelihood_ratio(model_d, x_start, y, u, C, D, se_nom: float,
+                         se_upd: float) -> tuple[float, float]:
+    """(quasi likelihood ratio, colour) of an updated model against the nominal, by output error.
+
+    ``Ny log(se_nom^2 / se_upd^2) / c`` with Ny the residuals after SKIP: the
+    Gaussian likelihood ratio of two output-error fits (per output: exact for
+    one output, the mean relative error otherwise), divided by ``c >= 1``, the
+    updated model's residual's long-run variance over its variance (the
+    Bartlett-weighted sum of its autocorrelations, the bandwidth of
+    :func:`greybox.trace.intervals.hac_covariance`): a coloured residual carries
+    ~Ny / c independent samples. Unlike the Wald statistic at the fitted
+    coefficients it does not assume the simulation linear in them (a stiff
+    saturation hinge's coefficient is barely determined while "no hinge" is
+    far worse).
+    """
+    if not (np.isfinite(se_upd) and se_upd > 0) or np.isnan(se_nom):
+        return 0.0, np.nan
+    try:
+        sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=x_start)
+    except GreyboxError:
+        return 0.0, np.nan
+    r = y[:, SKIP:] - C @ sim.x - D @ u[:, SKIP:]
+    if not np.all(np.isfinite(r)):
+        return 0.0, np.nan
+    r = r / np.maximum(np.std(r, axis=1, keepdims=True), 1e-300)
+    T = r.shape[1]
+    # long-run variance of the mean residual per output: hac_covariance of a constant fit
+    lr = [float(hac_covariance(np.ones((T, 1)), ro, 1)[0, 0]) * T for ro in r]
+    colour = max(1.0, float(np.mean(lr)) / float(np.mean(r**2)))
+    # a diverging nominal (SE inf) against a finite update: an infinite ratio
+    return float(r.size * 2 * np.log(se_nom / se_upd) / colour), colour
+
+
+def _wald_zero(theta: NDArray, cov: NDArray) -> float:
+    """``theta^T cov^-1 theta``: the Wald statistic of "no law" (0 when cov is unusable)."""
+    if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(theta))):
+        return 0.0
+    try:
+        w = float(theta @ np.linalg.solve(cov, theta))
+    except np.linalg.LinAlgError:
+        return 0.0
+    return w if np.isfinite(w) and w > 0 else 0.0
 
 
 _HINGE_KINDS = ("x_hi", "x_lo")
@@ -376,7 +596,9 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     min_se_drop : float
         The update must bring the estimation SE below this fraction.
     bic_factor : float
-        The law's BIC gain on d^ must exceed this many times its penalty.
+        The law's evidence must exceed this many times its BIC penalty: its
+        likelihood ratio on d^, or for a delayed channel (r = 2) its quasi
+        likelihood ratio on the output error (see the module's stage 3).
     substeps : int, optional
         RK4 sub-steps per sample for a continuous model (default from
         :func:`greybox.rk4_substeps` at the operating point).
@@ -565,20 +787,22 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
             continue
         upd = add_law(base, ch.G, law.evaluate, name=f"{base.name}_updated")
         se = _se_from(disc(upd), u, res.x_filt[:, SKIP], y, C, D)
-        refined = False
+        refined, evidence = False, None
         if r > 1 and law.npar <= OE_MAX_TERMS:
             # a delayed d^ is noisy (d shows in y only through C A G~): its law's
             # coefficients are refined by output error before the channels are compared
-            ref_d = _refine_law_oe(law, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D)
+            ref_d = _refine_law_oe(law, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D,
+                                   _noise_of(res, Q, R, kf.P_filt))
             if ref_d is not None:
                 se_d = _se_from(disc(ref_d[1]), u, res.x_filt[:, SKIP], y, C, D)
                 if se_d < se:
                     law, upd, se, refined = ref_d[0], ref_d[1], se_d, True
+                    evidence = ref_d[2]
                     tr = replace(tr, static=law)
         cands.append(CandidateScore(ch.name, "static", 0, se, law.npar, "ok",
                                     "delayed d^ law refined by output error" if refined
                                     else ""))
-        scored.append((se, law.npar, tr, upd, refined))
+        scored.append((se, law.npar, tr, upd, refined, evidence))
         # a law with a saturation hinge beside other terms: the hinges alone, their
         # coefficients and levels refined by output error, compete as a sparser candidate
         # (d^ of a delayed estimate is noisy and correlated with x^: its other terms are
@@ -588,14 +812,15 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         except (GreyboxError, np.linalg.LinAlgError):
             hl = None
         if hl is not None and hl.npar and (ch.md == 1 or np.all(np.any(hl.coef, axis=1))):
-            ref_h = _refine_law_oe(hl, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D)
+            ref_h = _refine_law_oe(hl, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D,
+                                   _noise_of(res, Q, R, kf.P_filt))
             if ref_h is not None:
-                hl, upd_h = ref_h
+                hl, upd_h, ev_h = ref_h
                 se_h = _se_from(disc(upd_h), u, res.x_filt[:, SKIP], y, C, D)
                 cands.append(CandidateScore(ch.name, "static", 0, se_h, hl.npar, "ok",
                                             "saturation hinge(s) only, coefficient(s) and "
                                             "level(s) refined by output error"))
-                scored.append((se_h, hl.npar, replace(tr, static=hl), upd_h, True))
+                scored.append((se_h, hl.npar, replace(tr, static=hl), upd_h, True, ev_h))
     tick("trace candidate channels", len(chans), len(chans))
     finite = [s for s in scored if np.isfinite(s[0])]
     if not finite:
@@ -604,7 +829,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                        "(see candidates)", True, cands=cands)
     best = min(s[0] for s in finite)
     near = [s for s in finite if s[0] <= parsimony * best]
-    se_c, npar, tr, upd, refined = min(near, key=lambda s: (s[1], s[2].channel.md, s[0]))
+    se_c, npar, tr, upd, refined, evidence = min(near,
+                                                 key=lambda s: (s[1], s[2].channel.md, s[0]))
     ch, law = tr.channel, tr.static
     # refine the law's coefficients by output error on y, in the nominal's time base with
     # the same RK4 (PAPER_NOTES §9.3, §9.5); kept only if the estimation SE drops
@@ -617,24 +843,48 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         notes.append(f"{ch.name}: the delayed d^ law was refined by output error on y before "
                      f"the channels were compared")
     elif law.npar <= OE_MAX_TERMS:
-        ref = _refine_law_oe(law, base, ch, disc, y, u, tr.filter_result.x_filt[:, SKIP], C, D)
+        ref = _refine_law_oe(law, base, ch, disc, y, u, tr.filter_result.x_filt[:, SKIP], C, D,
+                             _noise_of(tr.filter_result, Q, R, kf.P_filt))
     else:
         notes.append(f"{ch.name}: the law has {law.npar} terms (> {OE_MAX_TERMS}): not refined "
                      f"by output error (each term costs a simulation per iteration)")
     if ref is not None:
-        law_r, upd_r = ref
+        law_r, upd_r, ev_r = ref
         se_r = _se_from(disc(upd_r), u, tr.filter_result.x_filt[:, SKIP], y, C, D)
         if se_r < se_c:
             notes.append(f"{ch.name}: law refined by output error on y: estimation SE "
                          f"{se_c:.3g}% -> {se_r:.3g}%")
-            law, upd, se_c = law_r, upd_r, se_r
+            law, upd, se_c, evidence = law_r, upd_r, se_r, ev_r
             tr = replace(tr, static=law)
     tick("output-error refinement", 1, 1)
 
-    # 3. gate
+    # 3. gate. The evidence for the law: its likelihood-ratio statistic on d^ (the BIC gain
+    # plus its penalty), or for a delayed channel whose law was refined by output error, its
+    # quasi likelihood ratio on the output error: a delayed d^ is mostly estimation noise,
+    # and the coefficients were estimated on y, where the evidence is (module stage 3)
     Nd = N - 1 - SKIP
-    gain = float(law.bic_gain + law.npar * np.log(Nd))
-    penalty = float(npar * np.log(Nd))
+    if tr.relative_degree > 1 and evidence is not None:
+        wald, nfree = evidence
+        Ny = p * (N - SKIP)
+        gain, colour = _oe_likelihood_ratio(disc(upd), tr.filter_result.x_filt[:, SKIP], y, u,
+                                            C, D, se_nom, se_c)
+        # BIC's log n with n the independent samples, Ny / colour
+        n_eff = Ny / colour if np.isfinite(colour) else Ny
+        penalty = float(nfree * np.log(max(n_eff, 2.0)))
+        gate.update({"oe_wald": float(wald), "oe_colour": colour})
+        gate["evidence"] = ("output error: likelihood ratio of the law against the nominal "
+                            f"on the estimation outputs' simulation, divided by the residual's "
+                            f"colour ({colour:.3g}); {nfree} free parameter(s), {Ny} residuals "
+                            f"({n_eff:.0f} independent)")
+    else:
+        gain = float(law.bic_gain + law.npar * np.log(Nd))
+        penalty = float(npar * np.log(Nd))
+        gate["evidence"] = "d^: likelihood ratio of the law against d = 0 (BIC gain + penalty)"
+    gain = float(gain)
+    # the updated model's simulation error against what the noise model alone allows
+    # (a diagnostic, not a criterion: real data rarely reach their noise model)
+    floor_ratio = _floor_ratio(disc(upd), se_c, y, x_op, u_mean, C, Q, R)
+    gate["oe_floor_ratio"] = floor_ratio
     passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
               "se_drop": se_c < min_se_drop * se_nom}
     gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
@@ -647,6 +897,11 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                        f"candidate ({ch.name}, static) failed the gate: {', '.join(failed)}; "
                        f"model unchanged", True, cands=cands, tr=tr)
 
+    if floor_ratio > FLOOR_NOTE ** 2:
+        notes.append(f"{ch.name}: the updated model's simulation error on the estimation data "
+                     f"is {np.sqrt(floor_ratio):.1f}x (RMS) what the noise model (Q, R) "
+                     f"allows: the law explains part of the error; it may be incomplete, or a "
+                     f"proxy for another law (e.g. a term of the right one missing)")
     weak = _weak_terms(law)
     if weak:
         notes.append(f"{ch.name}: {len(weak)} of the law's {law.npar} terms ({', '.join(weak)}) "

@@ -410,9 +410,10 @@ if tr is not None and tr.static is not None:
     print(f"   the law added anyway (not what greybox does): test simulation RMS "
           f"{best['rms_forced']:.3g} V")
     g = rep.gate
-    print(f"   gate: BIC gain on d^ {g['bic_gain']:.3g} (needs > {g['bic_factor']:g} x "
-          f"{g['bic_penalty']:.3g}); estimation SE {g['se_estimation_nominal']:.3g} % -> "
-          f"{g['se_estimation_updated']:.3g} % (needs < {g['min_se_drop']:g} x)")
+    print(f"   gate: evidence {g['bic_gain']:.3g} (needs > {g['bic_factor']:g} x "
+          f"{g['bic_penalty']:.3g}; {g['evidence']}); estimation SE "
+          f"{g['se_estimation_nominal']:.3g} % -> {g['se_estimation_updated']:.3g} % "
+          f"(needs < {g['min_se_drop']:g} x)")
 SUMMARY["tanks"] = {"message": rep.message, "updated": rep.updated,
                     "detected": rep.model_error_detected,
                     "channel": rep.channel.name if rep.channel is not None else None,
@@ -421,7 +422,8 @@ SUMMARY["tanks"] = {"message": rep.message, "updated": rep.updated,
                     "candidates": [c.__dict__.copy() for c in rep.candidates],
                     "best": best,
                     "gate": {k: float(np.min(v)) for k, v in rep.gate.items()
-                             if k not in ("passed", "measure")},
+                             if k not in ("passed", "measure", "evidence")},
+                    "evidence": rep.gate.get("evidence"),
                     "cli": cli(*paths, "tanks")}
 if best is not None and best["channel"] == "eq(x1)":
     print("   -> the trace names the upper tank's equation eq(x1) and a saturation of its "
