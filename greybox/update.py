@@ -329,6 +329,30 @@ class UpdatedModel:
     kind: str
 
 
+def free_state_names(labels, count: int, prefix: str = "z") -> list[str]:
+    """The first ``count`` names ``prefix[k]`` (k = 0, 1, ...) not among ``labels``.
+
+    Parameters
+    ----------
+    labels : sequence of str
+        Names already taken (a model's state labels).
+    count : int
+        How many new names.
+    prefix : str
+        Stem of the names.
+
+    Returns
+    -------
+    list of str
+    """
+    out, k = [], 0
+    while len(out) < count:
+        if f"{prefix}[{k}]" not in labels:
+            out.append(f"{prefix}[{k}]")
+        k += 1
+    return out
+
+
 def augment_model(sys: ct.StateSpace, subsystem: Subsystem, *, unknown, Q: ArrayLike,
                   R: ArrayLike, state_prefix: str = "z",
                   output_unknown: bool = False) -> UpdatedModel:
@@ -395,12 +419,8 @@ def augment_model(sys: ct.StateSpace, subsystem: Subsystem, *, unknown, Q: Array
     Rn = subsystem.noise_cov
     Kd = subsystem.K
     Qa = np.block([[Q + G @ Rn @ G.T, G @ Rn @ Kd.T], [Kd @ Rn @ G.T, Kd @ Rn @ Kd.T]])
-    states = list(base.state_labels)
-    k = 0
-    for _ in range(nd):  # the next free names: a base from an earlier pass may hold z[0]
-        while f"{state_prefix}[{k}]" in states:
-            k += 1
-        states.append(f"{state_prefix}[{k}]")
+    # the next free names: a base from an earlier pass may hold z[0]
+    states = list(base.state_labels) + free_state_names(base.state_labels, nd, state_prefix)
     outputs = list(base.output_labels)
     Da = D
     if output_unknown:

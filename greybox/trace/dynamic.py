@@ -41,7 +41,7 @@ from scipy.signal import lfilter
 from .._blas import single_thread_blas
 from ..ident.regression import forward_selection
 from ..system import named_ss
-from ..update import UpdatedModel
+from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .channel_trace import _LOW_SNR
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
@@ -501,10 +501,7 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
 
 def _lag_state(sys) -> str:
     """Name of a new law state: z[0], or z[1] if the model already has z[0], ..."""
-    k = 0
-    while f"z[{k}]" in sys.state_labels:
-        k += 1
-    return f"z[{k}]"
+    return free_state_names(sys.state_labels, 1)[0]
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
 from .._lti import lti_states
-from ..update import UpdatedModel
+from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .dynamic import SharedLaw, _augmented_models, _component_lines, _driver_name, \
     _gauss_newton_step, _pm, driver_weights
@@ -359,12 +359,7 @@ def _pole_halfwidths(prob, sol, Q, R):
 
 def _z_names(sys) -> tuple[str, str]:
     """Names of the two law states: the first two free ``z[k]``."""
-    out, k = [], 0
-    while len(out) < 2:
-        if f"z[{k}]" not in sys.state_labels:
-            out.append(f"z[{k}]")
-        k += 1
-    return out[0], out[1]
+    return tuple(free_state_names(sys.state_labels, 2))
 
 
 def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
