@@ -21,6 +21,20 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     _BLAS_LIMIT = threadpool_limits(limits=1, user_api="blas")
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Tests that share a module-scoped fixture run in one worker (``--dist loadgroup``).
+
+    Spread over two workers, each would run the fixture (a close-the-loop run per seed,
+    up to a minute each) once: the shared-state law's three seeds ran twice.
+    """
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        defs = info.name2fixturedefs.values() if info is not None else ()
+        if any(d[-1].scope == "module" for d in defs):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     """A fresh seeded generator for each test (no global seeding)."""

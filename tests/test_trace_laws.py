@@ -95,3 +95,51 @@ def test_filtered_products_equal_the_products_of_the_filtered_terms():
     # the same sums in another order: rounding only (1e-12 relative)
     np.testing.assert_allclose(gram, W @ W.T, rtol=1e-12)
     np.testing.assert_allclose(cross, W @ dw, rtol=1e-12, atol=1e-12 * np.abs(W @ dw).max())
+
+
+class _LinearProblem:
+    """A linear output error r = X theta - y; ``collapse``: a refit without that column
+    ends in a worse minimum (its residual tripled), as a nonlinear refit can."""
+
+    def __init__(self, X, y, collapse=None):
+        self.X, self.y, self.collapse = X, y, collapse
+
+    def fit(self, theta0, active):
+        from types import SimpleNamespace
+
+        Xa = self.X[:, active]
+        th = np.linalg.lstsq(Xa, self.y, rcond=None)[0]
+        fun = Xa @ th - self.y
+        if self.collapse is not None and self.collapse not in active:
+            fun = 3.0 * fun
+        return SimpleNamespace(x=th, fun=fun, jac=Xa)
+
+    def halfwidths(self, sol, active, Q, R):
+        s2 = float(np.mean(sol.fun ** 2))
+        return 1.96 * np.sqrt(s2 * np.diag(np.linalg.inv(self.X[:, active].T @ self.X[:, active])))
+
+
+@pytest.mark.parametrize("collapse", [None, 1])
+def test_joint_pruning_keeps_a_term_whose_drop_collapses_the_fit(collapse):
+    """The joint refit's drop loop: terms inside their interval are dropped one at a time,
+    but a drop whose refit ends far above the local prediction (another minimum) is undone
+    and its term kept; the loop used to accept it."""
+    from greybox.trace.joint import _Param, _prune
+
+    rng = np.random.default_rng(0)
+    X = np.linalg.qr(rng.standard_normal((500, 3)))[0]  # orthonormal columns
+    e = rng.standard_normal(500)
+    e -= X @ (X.T @ e)  # noise orthogonal to every term: coefficients exactly (2, 0, 0)
+    prob = _LinearProblem(X, 2.0 * X[:, 0] + 0.1 * e, collapse)
+    z = np.zeros((1, 1))
+    ps = [_Param(0, ("s", 0, j), z, z, 0.0, f"t{j}", True, group=None) for j in range(3)]
+    sol = prob.fit(np.zeros(3), [0, 1, 2])
+    hw = prob.halfwidths(sol, [0, 1, 2], None, None)
+    # the two zero coefficients go, unless dropping t1 collapses the fit: then t1 stays
+    rss_full = float(np.sum(sol.fun ** 2))
+    active, sol, hw, dropped = _prune(prob, ps, [0, 1, 2], sol, hw, None, None)
+    assert sorted(dropped) == (["t1", "t2"] if collapse is None else ["t2"])
+    assert active == ([0] if collapse is None else [0, 1])
+    np.testing.assert_allclose(sol.x[0], 2.0, rtol=1e-12)  # a linear fit: exact
+    # never the collapsed fit: the same residual as the full fit (rounding only)
+    np.testing.assert_allclose(float(np.sum(sol.fun ** 2)), rss_full, rtol=1e-9)

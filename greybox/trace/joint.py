@@ -260,19 +260,8 @@ def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: 
         se0 = prob.se(theta, active)
         sol = prob.fit(theta, active)
         hw = prob.halfwidths(sol, active, Q, R)
-        dropped = list(merged)
-        while True:  # drop the weakest prunable term whose interval contains 0; refit
-            t = np.abs(sol.x) / np.where(np.isfinite(hw) & (hw > 0), hw, np.inf)
-            weak = [q for q in range(len(active)) if ps[active[q]].prunable and t[q] < 1.0
-                    and not _last_of_effect(ps, active, q)]
-            if not weak:
-                break
-            q = min(weak, key=lambda q: t[q])
-            dropped.append(ps[active[q]].name)
-            keep = [i for i in range(len(active)) if i != q]
-            active = [active[i] for i in keep]
-            sol = prob.fit(sol.x[keep], active)
-            hw = prob.halfwidths(sol, active, Q, R)
+        active, sol, hw, pruned = _prune(prob, ps, active, sol, hw, Q, R)
+        dropped = list(merged) + pruned
         se1 = prob.se(sol.x, active)
     values = dict(zip(active, sol.x))
     halves = dict(zip(active, hw))
@@ -322,6 +311,44 @@ def _independent(ps, theta):
         keep.append(q)
         vals[q] = t
     return keep, np.array([vals[q] for q in keep]), merged
+
+
+# A drop's refit may raise the squared output error by at most this many times the
+# local (Gauss-Newton) prediction of fixing the term at 0, plus 1e-6 of it: more means
+# the refit left the fit's basin (a collapse), and the term is kept.
+_COLLAPSE = 3.0
+
+
+def _prune(prob, ps, active, sol, hw, Q, R):
+    """Drop the weakest prunable term whose interval contains 0, refit; repeat.
+
+    A drop whose refit raises the squared output error far above the local
+    prediction ``theta_q^2 / [(J^T J)^-1]_qq`` (``_COLLAPSE`` times) is undone
+    and its term kept: the refit fell into another minimum, which a term inside
+    its interval cannot justify (the loop once ended with a fit worse than the
+    unpruned one, kept only because the workflow rejects a worse refit).
+    Returns ``(active, sol, hw, dropped names)``.
+    """
+    dropped, kept = [], set()
+    while True:
+        t = np.abs(sol.x) / np.where(np.isfinite(hw) & (hw > 0), hw, np.inf)
+        weak = [q for q in range(len(active)) if ps[active[q]].prunable and t[q] < 1.0
+                and active[q] not in kept and not _last_of_effect(ps, active, q)]
+        if not weak:
+            return active, sol, hw, dropped
+        q = min(weak, key=lambda q: t[q])
+        keep = [i for i in range(len(active)) if i != q]
+        new = prob.fit(sol.x[keep], [active[i] for i in keep])
+        rss0, rss1 = float(np.sum(sol.fun ** 2)), float(np.sum(new.fun ** 2))
+        JtJ = sol.jac.T @ sol.jac
+        inv_qq = float(np.linalg.pinv(JtJ)[q, q])
+        pred = sol.x[q] ** 2 / inv_qq if inv_qq > 0 else np.inf
+        if not rss1 - rss0 <= _COLLAPSE * pred + 1e-6 * rss0:
+            kept.add(active[q])
+            continue
+        dropped.append(ps[active[q]].name)
+        active = [active[i] for i in keep]
+        sol, hw = new, prob.halfwidths(new, active, Q, R)
 
 
 def _last_of_effect(ps, active, q) -> bool:

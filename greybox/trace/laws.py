@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import control as ct
 import numpy as np
@@ -283,7 +284,19 @@ class StaticLaw:
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
-        return self.coef @ _eval_terms(self.spec, self.eps, x, u)
+        keep, spec = self._selected
+        return self.coef[:, keep] @ _eval_terms(spec, self.eps, x, u)
+
+    @cached_property
+    def _selected(self) -> tuple[NDArray, tuple]:
+        """(indices, spec) of the selected terms: only these are evaluated.
+
+        A simulation evaluates the law once per sample: over all ~30-100
+        candidate terms, 1.1 s per 2e4 samples; over the 1-3 selected ones, a
+        few times less.
+        """
+        keep = np.flatnonzero(np.any(self.coef != 0, axis=0))
+        return keep, tuple(self.spec[j] for j in keep)
 
     def term_scale(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """RMS of every candidate term on (x (nstates, K), u (ninputs, K)), shape (nterms,)."""
@@ -573,13 +586,13 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
     x = np.empty((A.shape[0], N))
     xk = np.asarray(x0, dtype=float).copy()
     Bu = B @ u
-    for k in range(N):
-        x[:, k] = xk
-        with np.errstate(over="ignore", invalid="ignore"):  # a diverging law: inf, caught below
+    with np.errstate(over="ignore", invalid="ignore"):  # a diverging law: inf, caught below
+        for k in range(N):
+            x[:, k] = xk
             xk = _step(A, xk, Bu[:, k], G, law, u[:, k:k + 1])
-        if not np.all(np.isfinite(xk)) or np.max(np.abs(xk)) > 1e100:
-            x[:, k + 1:] = np.nan
-            break
+            if not xk @ xk < 1e200:  # |x| > 1e100, inf or nan (one dot product per sample)
+                x[:, k + 1:] = np.nan
+                break
     y = C @ x + D @ u
     if law.output is not None:  # a sensor-error law
         y[law.output] += law.evaluate(x, u)[0]
