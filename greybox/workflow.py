@@ -1052,11 +1052,16 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                              x0="estimate", name="updated", lags=lags, alpha=alpha, skip=20)
         return jr, row
 
-    rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
-    rep = _with_record(rep, y, u, Q, R)
-    tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
-    from .workflow_nonlinear import nonlinear_update_of_linear  # a nonlinear law: its nlsys
-    return nonlinear_update_of_linear(rep)
+    # one BLAS thread for the whole search: thousands of small-matrix products, solves and
+    # expm, for which a second thread only waits (a 6x6 expm: 7.8 ms with two threads on a
+    # busy machine, 0.05 ms with one; bench/workflow.py's 1e5-sample chain at load ~2.5:
+    # 41 s vs 54 s wall)
+    with single_thread_blas():
+        rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
+        rep = _with_record(rep, y, u, Q, R)
+        tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
+        from .workflow_nonlinear import nonlinear_update_of_linear  # a nonlinear law: its nlsys
+        return nonlinear_update_of_linear(rep)
 
 
 def _noise_by_likelihood(model: UpdatedModel, Q, y, u, skip, notes) -> UpdatedModel:
