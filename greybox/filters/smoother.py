@@ -259,6 +259,19 @@ def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_cova
                    P_filt_history=Phist, smoothed=True)
 
 
+def _smooth_feedthrough_of(fwd: FilterResult, sys: ct.StateSpace, y, u, *, unknown, Q,
+                           R) -> FilterResult:
+    """``smooth_uikf(sys, y, u, unknown=unknown, Q=Q, R=R, relative_degree=0)``, from
+    ``fwd = feedthrough_uikf(sys, y, u, unknown=unknown, Q=Q, R=R)`` (default options):
+    the forward filter is not run a second time.
+    """
+    model, A, B, C, D, G, labels, y, u, Q, R, x0, P0 = _prepare(
+        sys, y, u, unknown, Q, R, None, None, allow_no_unknown=False, check_rank=False)
+    H = _unknown_feedthrough(sys, labels)
+    _check_feedthrough_rank(H, labels)
+    return _smooth_feedthrough(fwd, A, C, G, H, Q, R, P0, 1e-12, False)
+
+
 def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
                 unknown: int | str | Sequence[int | str], Q: ArrayLike, R: ArrayLike,
                 relative_degree: int | str = 1, x0: ArrayLike | None = None,

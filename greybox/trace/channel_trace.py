@@ -25,6 +25,7 @@ from ..filters import (
     uikf,
 )
 from ..filters.delayed import first_order_hold
+from ..filters.smoother import _smooth_feedthrough_of
 from ..metrics import autocorrelation
 from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
@@ -177,7 +178,7 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
     est = res
     if smooth is not False:  # the whole record: smoothed x^ and d^ (no delay here)
         try:
-            est = smooth_uikf(model, y, u, unknown=labels, Q=Q, R=R, relative_degree=0)
+            est = _smooth_feedthrough_of(res, model, y, u, unknown=labels, Q=Q, R=R)
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
     N = y.shape[1]
