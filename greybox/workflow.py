@@ -793,6 +793,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 scored.append((se, dl.npar, tr_, "sparse"))
             # one state shared by a pair of equations along no fixed direction (a thermal
             # mass between two bodies): the best pair with evidence of dynamics
+            white_shared = []  # the groups whose first-order shared law leaves white innovations
+
             def _shared(tr_):
                 """Fit one shared state for the channel of ``tr_``; False if the fit failed."""
                 ch = tr_.channel
@@ -818,13 +820,18 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                                                 "ok"))
                     sparse[id(tr_)] = dl
                     scored.append((se, dl.npar, tr_, "sparse"))
-                    # a second order only where the first leaves coloured innovations (on a
-                    # first-order hidden mass, the order-2 fit cost 18 s of 41 s)
-                    if not _leaves_white(dl.model, y, u, Q, R, k0, lags, alpha):
-                        _shared_order2(tr_, dl, res_, k0s)
-                    else:
+                    # a second order only where the first leaves coloured innovations, and no
+                    # earlier group's shared law left white ones (on a first-order hidden
+                    # mass, the order-2 fits cost 18 s of 41 s)
+                    if white_shared:
+                        notes.append(f"{ch.name}: no second-order shared law tried: "
+                                     f"{white_shared[0]}'s leaves white innovations")
+                    elif _leaves_white(dl.model, y, u, Q, R, k0, lags, alpha):
+                        white_shared.append(ch.name)
                         notes.append(f"{ch.name}: no second-order shared law tried: the "
                                      f"first-order one leaves white innovations")
+                    else:
+                        _shared_order2(tr_, dl, res_, k0s)
                 return True
 
             def _shared_order2(tr_, dl, res_, k0s):
