@@ -145,3 +145,40 @@ def test_evaluate_matches_an_independent_zoh_simulation():
     want = dl.k[:, None] * z1[None, :] + dl.E @ w
     # two exact ZOH discretizations (expm): equal to rounding
     np.testing.assert_allclose(dl.evaluate(x, u), want, rtol=1e-9, atol=1e-12)
+
+
+def test_the_second_order_law_takes_part_in_the_joint_refit():
+    """SharedLaw2 in the several-effects loop's joint output-error refit (greybox.trace.joint;
+    before, any order-2 law made joint_effect None and the whole refit was skipped). The law
+    fitted from the truth's terms, refitted jointly on its own, must stay at its optimum (one
+    effect: the same output error) and come back as a SharedLaw2 with every term."""
+    from greybox.trace import resolve_channel_spec
+    from greybox.trace.joint import JointEffect, joint_effect, refine_jointly
+    from greybox.trace.shared_order2 import _law_from, _Problem
+
+    nom, d, true = thermal_chain_pair(1)
+    tl = _true_law(nom, true)
+    ch = resolve_channel_spec(nom, [("T1", "T2")])[0]
+    p1, p2 = tl["poles"]
+    bterms = [(0, ("x", 0)), (0, ("x", 1)), (1, ("x", 0)), (1, ("x", 1))]
+    eterms = [(0, ("x", 0)), (1, ("x", 1))]
+    theta = np.r_[-(p1 + p2), p1 * p2, tl["beta"][0], tl["beta"][1], tl["k2"], tl["e11"],
+                  tl["e22"]]
+    prob = _Problem(nom, ch, d.y, d.u, d.dt, np.zeros(2), 20, bterms, eterms, 0)
+    sol = prob.fit(theta)
+    law = _law_from(nom, ch, prob, sol, prob.halfwidths(sol, d.Q, d.R), d.Q, d.R)
+    ef = joint_effect(nom, ch, law)
+    assert isinstance(ef, JointEffect)
+    jr = refine_jointly([ef], law.continuous, d.y, d.u, Q=law.model.Q, R=d.R, dt=d.dt,
+                        x0=np.zeros(4), k0=20)
+    assert jr.npar_before == 9 and jr.npar_after == 9, jr.dropped  # every term significant
+    back = jr.laws[0]
+    assert isinstance(back, SharedLaw2) and back.states == law.states
+    # the same optimum: Levenberg-Marquardt's stopping tolerance (1e-8 relative) leaves
+    # ~1e-5 on the coefficients; 1e-3 would be a different fit
+    np.testing.assert_allclose(back.alpha, law.alpha, rtol=1e-3)
+    np.testing.assert_allclose(back.beta, law.beta, rtol=1e-3)
+    assert jr.se_after <= jr.se_before * (1 + 1e-6)
+    # and the truth: poles within 3 of their 95 % half-widths (~6 sigma: a gross error)
+    assert np.all(np.abs(back.poles.real - tl["poles"]) <= 3 * back.pole_ci), back.formula
+    assert jr.model.sys.nstates == 4 and "poles" in back.formula

@@ -14,12 +14,15 @@ Every effect enters the continuous model affinely:
 covers every law kind. A shared-state law (:class:`~greybox.trace.dynamic.SharedLaw`)
 is affine too once its scale is fixed (the reference component's gain is 1):
 its pole, the state's drivers' gains b, the other components' gains k and the
-feedthrough e each move one entry (or one outer product) of A and B.
+feedthrough e each move one entry (or one outer product) of A and B. So does a
+second-order one (:class:`~greybox.trace.shared_order2.SharedLaw2`, observer
+canonical form): alpha_1, alpha_0, the numerators' beta, k and e.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 
 import control as ct
 import numpy as np
@@ -34,6 +37,9 @@ from .dynamic import DynamicLaw, SharedLaw, _law_from, _problem, _shared_law_fro
     _shared_problem
 from .laws import StaticLaw, _law_line, _one_direction, linear_part
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
+from .shared_order2 import SharedLaw2
+from .shared_order2 import _law_from as _shared2_law_from
+from .shared_order2 import _Problem as _Shared2Problem
 
 __all__ = ["JointEffect", "JointRefinement", "refine_jointly"]
 
@@ -126,6 +132,8 @@ def _params(effects, nf: int, m: int) -> list[_Param]:
                                       f"{ef.channel.name}: {law.spec[j][0]}", True))
         elif isinstance(law, SharedLaw):
             out += _shared_params(i, ef, nf, m)
+        elif isinstance(law, SharedLaw2):
+            out += _shared2_params(i, ef, nf, m)
         else:
             g = G[:, 0]
             dA = np.zeros((nf, nf))
@@ -169,6 +177,48 @@ def _shared_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
         dA[:n, n] = G[:, c]
         out.append(_Param(i, ("k", c), dA, np.zeros((nf, m)), float(law.k[c]),
                           f"{nm}: {law.state} in {ef.channel.labels[c]}", False))
+    for q, (c, dn, e) in enumerate(law.feedthrough):
+        w = np.zeros(n + m)
+        w[rows[dn]] = 1.0
+        dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
+        dA[:n, :n], dB[:n] = np.outer(G[:, c], w[:n]), np.outer(G[:, c], w[n:])
+        out.append(_Param(i, ("e", q), dA, dB, float(e), f"{nm}: {ef.channel.labels[c]} {dn}",
+                          True, group=None))
+    return out
+
+
+def _shared2_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
+    """A second-order shared law's coefficients (observer canonical form, see
+    :mod:`greybox.trace.shared_order2`): alpha_1, alpha_0, beta (one stays), k (not the
+    reference's), e. Each moves one entry (or one outer product) of A and B."""
+    law, base, nm = ef.law, ef.base, ef.channel.name
+    n = base.nstates
+    G = np.asarray(ef.channel.G, dtype=float)
+    rows = _rows_of(base)
+    out = []
+    for key, (r, c), val in ((("a1",), (n, n), law.alpha[0]), (("a0",), (n + 1, n),
+                                                               law.alpha[1])):
+        dA = np.zeros((nf, nf))
+        dA[r, c] = -1.0  # dz1/dt = -alpha_1 z1 + z2 + ..., dz2/dt = -alpha_0 z1 + ...
+        out.append(_Param(i, key, dA, np.zeros((nf, m)), float(val),
+                          f"{nm}: alpha_{key[0][1]}", False))
+    for r in (0, 1):
+        for q, dn in enumerate(law.drivers):
+            if law.beta[r, q] == 0:
+                continue
+            w = np.zeros(n + m)
+            w[rows[dn]] = 1.0
+            dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
+            dA[n + r, :n], dB[n + r] = w[:n], w[n:]
+            out.append(_Param(i, ("b", r, q), dA, dB, float(law.beta[r, q]),
+                              f"{nm}: {law.states[r]} <- {dn}", True, group=(i, "b")))
+    for c in range(law.k.size):
+        if c == law.reference:
+            continue
+        dA = np.zeros((nf, nf))
+        dA[:n, n] = G[:, c]
+        out.append(_Param(i, ("k", c), dA, np.zeros((nf, m)), float(law.k[c]),
+                          f"{nm}: {law.states[0]} in {ef.channel.labels[c]}", False))
     for q, (c, dn, e) in enumerate(law.feedthrough):
         w = np.zeros(n + m)
         w[rows[dn]] = 1.0
@@ -390,6 +440,8 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
                        npar=int(np.count_nonzero(coef)))
     if isinstance(law, SharedLaw):
         return _rebuild_shared(ef, mine, values, halves, y, u, Q, R, dt, k0, prob)
+    if isinstance(law, SharedLaw2):
+        return _rebuild_shared2(ef, mine, values, halves, y, u, Q, R, dt, k0, prob)
     # dynamic: keep the drivers whose gains are left
     a = values[next(q for q, p in mine if p.key == ("a",))]
     ha = halves[next(q for q, p in mine if p.key == ("a",))]
@@ -438,6 +490,45 @@ def _rebuild_shared(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
     return _shared_law_from(base, ch, sprob, theta, half, Q[:n, :n], R)
 
 
+def _rebuild_shared2(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
+    """A second-order shared law's record at the jointly refitted values (dropped terms left
+    out). The coefficients' half-widths are the joint fit's; the poles' come from the law's
+    own output-error Jacobian at those values (the other effects held), as
+    :func:`greybox.trace.shared_order2.fit_shared_order2` gives them."""
+    law, ch, base = ef.law, ef.channel, ef.base
+    n, nm, im = base.nstates, list(base.state_labels), list(base.input_labels)
+
+    def drv(name):
+        return ("x", nm.index(name)) if name in nm else ("u", im.index(name))
+
+    th, hw, bterms, eterms = {}, {}, [], []
+    for q, p in mine:
+        if q not in values:
+            continue
+        kind = p.key[0]
+        th.setdefault(kind, []).append(values[q])
+        hw.setdefault(kind, []).append(halves[q])
+        if kind == "b":
+            bterms.append((p.key[1], drv(law.drivers[p.key[2]])))
+        elif kind == "e":
+            c, dn, _ = law.feedthrough[p.key[1]]
+            eterms.append((c, drv(dn)))
+    keys = ("a1", "a0", "b", "k", "e")
+    theta = np.concatenate([np.asarray(th.get(k, []), dtype=float) for k in keys])
+    half = np.concatenate([np.asarray(hw.get(k, []), dtype=float) for k in keys])
+    sprob = _Shared2Problem(base, ch, y, u, dt, _x0_of(prob, n), k0, bterms, eterms,
+                            law.reference)
+    r0 = sprob.resid(theta)
+    jac = np.empty((r0.size, theta.size))
+    for j in range(theta.size):  # forward differences, as least_squares' default
+        h = 1e-7 * max(1.0, abs(theta[j]))
+        tj = theta.copy()
+        tj[j] += h
+        jac[:, j] = (sprob.resid(tj) - r0) / h
+    sol = SimpleNamespace(x=theta, fun=r0, jac=jac)
+    return _shared2_law_from(base, ch, sprob, sol, half, Q[:n, :n], R)
+
+
 def _driver_of(wq, n):
     """The driver tuple of a weight row (see greybox.trace.dynamic.driver_weights)."""
     nz = np.flatnonzero(wq)
@@ -456,13 +547,13 @@ def joint_effect(base: ct.StateSpace, channel: Channel, law) -> JointEffect | No
     """The effect as the joint refinement takes it, or None if it cannot be refitted.
 
     Continuous-time linear static laws, sparse first-order laws and shared-state
-    laws qualify.
+    laws of order 1 and 2 qualify.
     """
     if channel.kind == "output":  # a sensor law acts on C and D, not on the state equations
         return None
     if isinstance(law, DynamicLaw) and channel.md == 1:
         return JointEffect(base=base, channel=channel, law=law)
-    if isinstance(law, SharedLaw) and channel.md == law.k.size:
+    if isinstance(law, (SharedLaw, SharedLaw2)) and channel.md == law.k.size:
         return JointEffect(base=base, channel=channel, law=law)
     if isinstance(law, StaticLaw) and law.time_base == "continuous" and not law.nonlinear:
         return JointEffect(base=base, channel=channel, law=law)
