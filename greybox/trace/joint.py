@@ -157,7 +157,6 @@ def _shared_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
     """A shared-state law's coefficients: pole, b (one stays), k (not the reference's), e."""
     law, base, nm = ef.law, ef.base, ef.channel.name
     n = base.nstates
-    G = np.asarray(ef.channel.G, dtype=float)
     rows = _rows_of(base)
     out = []
     dA = np.zeros((nf, nf))
@@ -170,13 +169,24 @@ def _shared_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
         dA[n, :n], dB[n] = w[:n], w[n:]
         out.append(_Param(i, ("b", q), dA, dB, float(b), f"{nm}: {law.state} <- {dn}", True,
                           group=(i, "b")))
+    return out + _gain_params(i, ef, nf, m, law.state)
+
+
+def _gain_params(i: int, ef: JointEffect, nf: int, m: int, state: str) -> list[_Param]:
+    """A shared law's k (its first state's gain in each component but the reference's) and
+    feedthrough e: the same entries of A and B at orders 1 and 2."""
+    law, base, nm = ef.law, ef.base, ef.channel.name
+    n = base.nstates
+    G = np.asarray(ef.channel.G, dtype=float)
+    rows = _rows_of(base)
+    out = []
     for c in range(law.k.size):
         if c == law.reference:
             continue
         dA = np.zeros((nf, nf))
         dA[:n, n] = G[:, c]
         out.append(_Param(i, ("k", c), dA, np.zeros((nf, m)), float(law.k[c]),
-                          f"{nm}: {law.state} in {ef.channel.labels[c]}", False))
+                          f"{nm}: {state} in {ef.channel.labels[c]}", False))
     for q, (c, dn, e) in enumerate(law.feedthrough):
         w = np.zeros(n + m)
         w[rows[dn]] = 1.0
@@ -193,7 +203,6 @@ def _shared2_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
     reference's), e. Each moves one entry (or one outer product) of A and B."""
     law, base, nm = ef.law, ef.base, ef.channel.name
     n = base.nstates
-    G = np.asarray(ef.channel.G, dtype=float)
     rows = _rows_of(base)
     out = []
     for key, (r, c), val in ((("a1",), (n, n), law.alpha[0]), (("a0",), (n + 1, n),
@@ -212,21 +221,7 @@ def _shared2_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
             dA[n + r, :n], dB[n + r] = w[:n], w[n:]
             out.append(_Param(i, ("b", r, q), dA, dB, float(law.beta[r, q]),
                               f"{nm}: {law.states[r]} <- {dn}", True, group=(i, "b")))
-    for c in range(law.k.size):
-        if c == law.reference:
-            continue
-        dA = np.zeros((nf, nf))
-        dA[:n, n] = G[:, c]
-        out.append(_Param(i, ("k", c), dA, np.zeros((nf, m)), float(law.k[c]),
-                          f"{nm}: {law.states[0]} in {ef.channel.labels[c]}", False))
-    for q, (c, dn, e) in enumerate(law.feedthrough):
-        w = np.zeros(n + m)
-        w[rows[dn]] = 1.0
-        dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
-        dA[:n, :n], dB[:n] = np.outer(G[:, c], w[:n]), np.outer(G[:, c], w[n:])
-        out.append(_Param(i, ("e", q), dA, dB, float(e), f"{nm}: {ef.channel.labels[c]} {dn}",
-                          True, group=None))
-    return out
+    return out + _gain_params(i, ef, nf, m, law.states[0])
 
 
 def _rows_of(base: ct.StateSpace) -> dict:
@@ -462,41 +457,15 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
     return _law_from(base, ch, dprob, drv, np.r_[a, b, e], np.r_[ha, hb, he], Qb, R)
 
 
-def _rebuild_shared(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
-    """A shared-state law's record at the jointly refitted values (dropped terms left out)."""
-    law, ch, base = ef.law, ef.channel, ef.base
-    n, nm, im = base.nstates, list(base.state_labels), list(base.input_labels)
+def _kept(ef, mine, values, halves, keys):
+    """A shared law's kept coefficients: ``(theta, half-widths, b drivers, e terms)``.
 
-    def drv(name):
-        return ("x", nm.index(name)) if name in nm else ("u", im.index(name))
-
-    th, hw, bdrv, eterms = {}, {}, [], []
-    for q, p in mine:
-        if q not in values:
-            continue
-        kind = p.key[0]
-        th.setdefault(kind, []).append(values[q])
-        hw.setdefault(kind, []).append(halves[q])
-        if kind == "b":
-            bdrv.append(drv(law.drivers[p.key[1]]))
-        elif kind == "e":
-            c, dn, _ = law.feedthrough[p.key[1]]
-            eterms.append((c, drv(dn)))
-    keys = ("a", "b", "k", "e")
-    theta = np.concatenate([np.asarray(th.get(k, []), dtype=float) for k in keys])
-    half = np.concatenate([np.asarray(hw.get(k, []), dtype=float) for k in keys])
-    sprob = _shared_problem(base, ch, y, u, dt, _x0_of(prob, n), k0, bdrv, eterms,
-                            law.reference)
-    return _shared_law_from(base, ch, sprob, theta, half, Q[:n, :n], R)
-
-
-def _rebuild_shared2(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
-    """A second-order shared law's record at the jointly refitted values (dropped terms left
-    out). The coefficients' half-widths are the joint fit's; the poles' come from the law's
-    own output-error Jacobian at those values (the other effects held), as
-    :func:`greybox.trace.shared_order2.fit_shared_order2` gives them."""
-    law, ch, base = ef.law, ef.channel, ef.base
-    n, nm, im = base.nstates, list(base.state_labels), list(base.input_labels)
+    theta and the half-widths are ordered by ``keys`` (the law problem's order); a b
+    term is ``(row, driver)`` for a second-order law (key ``("b", row, q)``), the driver
+    for a first-order one; an e term is ``(component, driver)``.
+    """
+    law, base = ef.law, ef.base
+    nm, im = list(base.state_labels), list(base.input_labels)
 
     def drv(name):
         return ("x", nm.index(name)) if name in nm else ("u", im.index(name))
@@ -509,13 +478,34 @@ def _rebuild_shared2(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
         th.setdefault(kind, []).append(values[q])
         hw.setdefault(kind, []).append(halves[q])
         if kind == "b":
-            bterms.append((p.key[1], drv(law.drivers[p.key[2]])))
+            d = drv(law.drivers[p.key[-1]])
+            bterms.append((p.key[1], d) if len(p.key) == 3 else d)
         elif kind == "e":
             c, dn, _ = law.feedthrough[p.key[1]]
             eterms.append((c, drv(dn)))
-    keys = ("a1", "a0", "b", "k", "e")
     theta = np.concatenate([np.asarray(th.get(k, []), dtype=float) for k in keys])
     half = np.concatenate([np.asarray(hw.get(k, []), dtype=float) for k in keys])
+    return theta, half, bterms, eterms
+
+
+def _rebuild_shared(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
+    """A shared-state law's record at the jointly refitted values (dropped terms left out)."""
+    law, ch, base = ef.law, ef.channel, ef.base
+    n = base.nstates
+    theta, half, bdrv, eterms = _kept(ef, mine, values, halves, ("a", "b", "k", "e"))
+    sprob = _shared_problem(base, ch, y, u, dt, _x0_of(prob, n), k0, bdrv, eterms,
+                            law.reference)
+    return _shared_law_from(base, ch, sprob, theta, half, Q[:n, :n], R)
+
+
+def _rebuild_shared2(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
+    """A second-order shared law's record at the jointly refitted values (dropped terms left
+    out). The coefficients' half-widths are the joint fit's; the poles' come from the law's
+    own output-error Jacobian at those values (the other effects held), as
+    :func:`greybox.trace.shared_order2.fit_shared_order2` gives them."""
+    law, ch, base = ef.law, ef.channel, ef.base
+    n = base.nstates
+    theta, half, bterms, eterms = _kept(ef, mine, values, halves, ("a1", "a0", "b", "k", "e"))
     sprob = _Shared2Problem(base, ch, y, u, dt, _x0_of(prob, n), k0, bterms, eterms,
                             law.reference)
     r0 = sprob.resid(theta)
