@@ -23,7 +23,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Tests that share a module-scoped fixture run in one worker (``--dist loadgroup``).
+    """Tests that share a module-scoped fixture run in one worker (``--dist loadgroup``);
+    modules with slow tests run first.
 
     Spread over two workers, each would run the fixture (a close-the-loop run per seed,
     up to a minute each) once: the shared-state law's three seeds ran twice.
@@ -33,6 +34,10 @@ def pytest_collection_modifyitems(config, items):
         defs = info.name2fixturedefs.values() if info is not None else ()
         if any(d[-1].scope == "module" for d in defs):
             item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+    # modules with slow tests first (each kept whole: a module fixture is set up once): the
+    # workers take the long ones early and the short ones fill in at the end
+    slow = {item.module.__name__ for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.module.__name__ not in slow)
 
 
 @pytest.fixture
