@@ -27,13 +27,27 @@ linear output map, the paper's (33)). The stages mirror the linear pipeline:
    error before the channels are compared, and a law holding a hinge also
    competes reduced to its hinge(s), coefficients and levels refined by output
    error.
+   **Terms chosen by output error.** For a delayed channel, or an r = 1
+   channel whose d^ variance is less than 10 % above its estimation
+   variance, d^ is mostly noise and its regression picks terms at random; the
+   terms are then also chosen by output error on y (:func:`_select_law_oe`:
+   forward selection over every candidate term, hinges at a fine grid of
+   levels, each fitted on the nonlinear model's simulation error, a term
+   added while its quasi likelihood ratio exceeds ``bic_factor`` times its
+   BIC penalty on the effective sample count Ny / c; terms whose interval
+   contains 0, or that do not improve the simulation of held-out samples,
+   are dropped), one more start beside d^'s law: the lower output-error BIC
+   (on Ny / c) of the two is kept. That channel's simulations start from the
+   state (its filter's or the nominal UKF's at SKIP) whose nominal
+   simulation follows y best over the first samples.
 3. **Choose and gate** as the linear pipeline: lowest estimation SE of the
    updated model, within ``parsimony`` the fewest parameters; update only if
    some output rejects whiteness, the law's evidence exceeds ``bic_factor``
    times its BIC penalty (k log N) and the SE drops below ``min_se_drop``
    times the nominal one. The evidence is the likelihood-ratio statistic of
    the law on d^ (its BIC gain plus the penalty), except for a delayed
-   channel (r = 2) whose law was refined by output error: there d^ is mostly
+   channel (r = 2) whose law was refined by output error, or a law whose
+   terms were chosen by output error: there d^ is mostly
    estimation noise and the coefficients were estimated on y, so the
    evidence is the Gaussian likelihood ratio of the updated model against
    the nominal on the estimation outputs' simulation error,
@@ -135,10 +149,13 @@ _GRID = 10.0 ** np.arange(-3.0, 0.75, 0.5)
 line search, in units of d^'s spread over the term's RMS."""
 _FINE = 10.0 ** np.linspace(-0.25, 0.25, 21)
 """Factors around the best coarse coefficient tried before a candidate's fit."""
-_FINE_HI = np.linspace(0.5, 0.995, 15)
-_FINE_LO = np.linspace(0.005, 0.5, 15)
+_FINE_HI = np.linspace(0.5, 0.99, 9)
+_FINE_LO = np.linspace(0.01, 0.5, 9)
 """Quantiles of a state's filtered record where the output-error selection offers upper and
 lower saturation hinges (the d^ law's are at ``greybox.trace.laws.SAT_QUANTILES``)."""
+_LS_WINDOW = 1000
+"""Samples simulated by the output-error selection's line search (a ranking: its cost is
+then bounded; the fits use the whole record)."""
 _START_WINDOW = 50
 """Samples after SKIP over which the start of a noisy channel's simulations is chosen."""
 _LOW_SNR = 0.1
@@ -408,11 +425,11 @@ class _LawOutputError:
             self._mask[c, q] = 1.0
         self._th = TH
 
-    def _run(self, X0, TH):
-        """States (nsteps, n, K) from X0 (n, K), the coefficient columns TH (nsel, K)."""
+    def _run(self, X0, TH, T=None):
+        """States (T, n, K) from X0 (n, K), the coefficient columns TH (nsel, K)."""
         upd = self.model.updfcn
         n, K = X0.shape
-        T = self.uu.shape[1]
+        T = self.uu.shape[1] if T is None else T
         xs = np.full((T, n, K), np.nan)
         X = X0
         with np.errstate(all="ignore"):
@@ -428,17 +445,17 @@ class _LawOutputError:
                     X[:, bad] = np.nan
         return xs
 
-    def simulate(self, sel, TH):
-        """States (nsteps, nstates, K) for the coefficient columns TH (nsel, K)."""
+    def simulate(self, sel, TH, T=None):
+        """States (T, nstates, K) for the coefficient columns TH (nsel, K): T samples (all)."""
         self._set(sel, TH[:, :1])
         K = TH.shape[1]
         X0 = np.repeat(self.x_start[:, None], K, axis=1)
         if self._batched is None and K > 1:  # does the model take a batch of states?
             self._batched = self._takes_batch(X0[:, :2], TH[:, :2])
         if K == 1 or self._batched:
-            return self._run(X0, TH)
-        return np.concatenate([self._run(X0[:, i:i + 1], TH[:, i:i + 1]) for i in range(K)],
-                              axis=2)
+            return self._run(X0, TH, T)
+        return np.concatenate([self._run(X0[:, i:i + 1], TH[:, i:i + 1], T)
+                               for i in range(K)], axis=2)
 
     def _takes_batch(self, X, TH) -> bool:
         """Whether the model's update of two state columns equals its update of each."""
@@ -453,13 +470,15 @@ class _LawOutputError:
                                       dtype=float).reshape(-1))
         except (TypeError, ValueError, IndexError):
             return False
-        return two.shape == X.shape and bool(np.allclose(two, np.stack(one, axis=1),
-                                                         rtol=1e-12, atol=0))
+        one = np.stack(one, axis=1)
+        return two.shape == X.shape and bool(np.allclose(
+            two, one, rtol=1e-12, atol=1e-12 * (float(np.max(np.abs(one))) + 1e-300)))
 
     def _resids(self, xs):
-        """Scaled flat residuals (K, noutputs * nsteps) of the simulated states."""
-        Y = np.einsum("pn,tnk->kpt", self.C, xs) + (self.D @ self.uu)[None]
-        r = ((self.yy[None] - Y) / self.scale[None, :, None]).reshape(xs.shape[2], -1)
+        """Scaled flat residuals (K, noutputs * T) of the simulated states (first T samples)."""
+        T = xs.shape[0]
+        Y = np.einsum("pn,tnk->kpt", self.C, xs) + (self.D @ self.uu[:, :T])[None]
+        r = ((self.yy[None, :, :T] - Y) / self.scale[None, :, None]).reshape(xs.shape[2], -1)
         return np.where(np.isfinite(r), np.clip(r, -1e3, 1e3), 1e3)
 
     def _eval(self, theta, sel):
@@ -505,7 +524,7 @@ class _LawOutputError:
         """Each candidate's best coefficient on a grid, the current law held: (RSS, start).
 
         ``steps`` (ncands, ngrid): the coefficient values tried per candidate,
-        all simulated at once (a global version of the score test: the
+        all simulated at once over the first ``_LS_WINDOW`` samples (a global version of the score test: the
         missing law's simulation is far from linear in a coefficient started
         at 0, and a delayed d^ can give it the wrong sign).
         """
@@ -515,7 +534,7 @@ class _LawOutputError:
         TH[:k] = theta[:, None]
         for q in range(nc):
             TH[k + q, q * ng:(q + 1) * ng] = steps[q]
-        R = self._resids(self.simulate(list(sel) + list(cands), TH))
+        R = self._resids(self.simulate(list(sel) + list(cands), TH, _LS_WINDOW))
         rss = np.einsum("kt,kt->k", R, R).reshape(nc, ng)
         best = np.argmin(rss, axis=1)
         return rss[np.arange(nc), best], steps[np.arange(nc), best]
@@ -713,21 +732,30 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
 
     For a channel whose d^ is mostly estimation noise (delayed, r = 2, or an
     r = 1 estimate barely above its own variance): regressions on d^ then
-    choose terms at random, and refining their coefficients by output error
-    cannot repair a wrong choice. Every candidate term of ``law.spec`` (x,
-    u, x^3, tanh, |x|, products, saturation hinges at their quantile levels,
-    the offset) is a candidate; each step fits the ``_OE_TOP`` that the score
-    test ranks highest (:meth:`_LawOutputError.rank`) by Levenberg-Marquardt
-    on the simulation error of the nonlinear model with the law, and keeps
-    the best while the BIC of the output error drops, with n the
-    residuals' effective count Ny / c (c: the trial residual's colour,
-    :func:`_residual_colour`; a simulation error integrates the process
-    noise, and a BIC on Ny would take terms that fit its colour); then terms
-    whose 95 % interval contains 0 are dropped
-    (:func:`greybox.trace.oe.forward_select_oe`, shared with the linear
-    trace). Returns the law on the chosen terms (coefficients as fitted,
-    no intervals yet: :func:`_refine_law_oe` refines them with the hinge
-    levels), or None when no term is chosen.
+    choose terms at random (on the positions-only pendulum a linear damping
+    instead of the cubic drag, or a law in the kinematic equation), and
+    refining their coefficients by output error cannot repair a wrong
+    choice. Candidates: every term of ``law.spec`` (x, u, x^3, tanh, |x|,
+    products, the offset), the saturation hinges at a fine grid of levels
+    (the quantiles ``_FINE_HI``, ``_FINE_LO`` of the filtered state: a stiff
+    clip's level matters). Each step ranks the candidates by the simulation
+    error at their best coefficient on a grid (``_GRID`` times d^'s spread
+    over the term's RMS, both signs; the current terms held; one batched
+    simulation, :meth:`_LawOutputError.line_search`: a global version of the
+    score test, which at the nominal model, far from the law, ranks at
+    random), keeps the best ``_OE_TOP`` (one level per hinge), refines each
+    start on a finer grid (``_FINE``) and fits them by Levenberg-Marquardt on
+    the simulation error of the nonlinear model with the law. The best is
+    added while its likelihood ratio exceeds ``factor`` (the gate's
+    ``bic_factor``) times its BIC penalty, with n the residuals' effective
+    count Ny / c (c: the colour of the residual, :func:`_residual_colour`,
+    the larger of the two models'; a simulation error integrates the process
+    noise, and a BIC on Ny would take terms that fit its colour) and a hinge
+    counting 2 parameters (its level was searched); then terms whose 95 %
+    interval contains 0 are dropped (:func:`greybox.trace.oe.forward_select_oe`,
+    shared with the linear trace). Returns the law on the chosen terms
+    (coefficients as fitted, no intervals yet: :func:`_refine_law_oe` refines
+    them with the hinge levels), or None when no term is chosen.
     """
     # saturation hinges at a fine grid of levels (a stiff clip's level matters: the
     # law's five quantile levels may miss it by more than the hinge can make up)
@@ -748,7 +776,8 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
     # the grid of each candidate's coefficient: d^'s spread over the term's RMS, times
     # +-10^(-3 .. 0.5) (d^ of a delayed channel is mostly noise: its spread bounds d's)
     sd = np.std(d[:, np.all(np.isfinite(d), axis=0)], axis=1)
-    rms = law.term_scale(x, uw)
+    ok = np.all(np.isfinite(x), axis=0) & np.all(np.isfinite(uw), axis=0)
+    rms = law.term_scale(x[:, ok], uw[:, ok])  # (a delayed x^ ends in NaN)
     grid = np.r_[-_GRID, _GRID]
     starts = {}
 
@@ -836,8 +865,8 @@ def _refine_pruned(law, base, ch, disc, y, u, x_start, C, D, noise):
 
     The refinement moves the hinge levels with the coefficients and can leave
     a term the selection kept without support; each drop is refitted. Hinges
-    are not dropped on their interval (see :func:`_clip_contradicted` and the
-    gate). None when a fit fails.
+    are not dropped on their interval (:func:`_held_out_terms` and the gate
+    weigh them). None when a fit fails.
     """
     ref = _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise)
     while ref is not None and ref[0].npar > 1:
