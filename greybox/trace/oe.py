@@ -698,8 +698,10 @@ def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=
 
     n is the number of residuals ``nres``, or with ``colour`` (a function of
     a residual returning its colour c >= 1, the long-run variance over the
-    variance) ``nres / c``, c the larger of the two models' compared (the
-    trials of a step are ranked with the current model's): an output-error
+    variance) ``nres / c``, c the trial's colour for the first term (as a
+    gate weighs a law against none), then the larger of the two models'
+    compared (the trials of a step are ranked with the current model's): an
+    output-error
     residual is coloured
     (the simulation error integrates the process noise), so its ``nres``
     samples carry about ``nres / c`` independent ones, and a BIC on nres
@@ -760,9 +762,11 @@ def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=
                 trial = (rss, cj, sol.x, sol.fun, b)
         if trial is None:
             break
-        # the residual's colour: the larger of the two models' (a term that leaves a few
-        # large transients lowers the colour estimate: the smaller n is the cautious one)
-        n = nres / max(colour(fun), colour(trial[3])) if colour is not None else nres
+        # the residual's colour: the trial's for the first term (against no law, as the
+        # gate weighs a law), then the larger of the two models' (a term can lower the
+        # colour estimate without a better law: the smaller n is the cautious one)
+        n = nres if colour is None else nres / (colour(trial[3]) if not sel else
+                                                 max(colour(fun), colour(trial[3])))
         lr = n * np.log(max(rss_best / nres, 1e-300)) - n * np.log(max(trial[0] / nres, 1e-300))
         if factor == 1.0:
             if bic(trial[0], npar(sel + [trial[1]]), n) >= bic(rss_best, npar(sel), n):
