@@ -26,8 +26,9 @@ whether the reported 95 % interval of the law's coefficient contains the truth:
 
 For the tank cases each seed also prints the law, the validation SE before/after and
 the true model's, and a verdict: ``right`` (eq(x1), one upper hinge on x1 at the level
-within 2 %), ``refused`` or ``WRONG`` (``overflow --seeds 10``; issue 12). The verdicts
-are counted per case at the end.
+within 2 %), ``refused`` or ``WRONG`` (``overflow --seeds 10``; issue 12), and whether
+the hinge level's 95 % interval (in the formula) covers 8. The verdicts and the level
+coverage are counted per case at the end.
 
 A case that names another law (or none) counts as a miss of the right law, not of the
 interval; the coverage is over the seeds that named it. Printed per seed: estimate,
@@ -39,6 +40,7 @@ stated standard error (1 when calibrated), time and the load average.
 from __future__ import annotations
 
 import os
+import re
 import sys
 import time
 
@@ -59,6 +61,8 @@ KO, XO = 0.1, 8.0
 """Soft overflow of the upper tank: coefficient [1/s] and level of the hinge."""
 
 
+LEVELS = {}
+"""Per tank case, whether each seed's hinge-level interval covers the truth (8)."""
 VERDICTS = {}
 """Per case, the verdict of each seed: 'right' law, 'refused' (no update) or 'WRONG'."""
 
@@ -135,6 +139,14 @@ def _overflow(seed, soft):
              f"{rep.effect.equations} {rep.effect.formula or '-'}", floor)
     if not one:
         return rep, None
+    # the hinge level's 95 % interval (shown in the formula) against the truth XO = XMAX = 8
+    m = re.search(r"\(([-+0-9.e]+) ± ([0-9.e+-]+)\), 0\)", law.formula)
+    if m:
+        lv, hl = float(m.group(1)), float(m.group(2))
+        LEVELS.setdefault("overflow_soft" if soft else "overflow", []).append(
+            abs(lv - XO) <= hl)
+        print(f"{'':14s} seed {seed:2d}: level {lv:.5g} +- {hl:.2g} (truth {XO:g}) "
+              f"{'covered' if abs(lv - XO) <= hl else 'MISSED'}", flush=True)
     half = np.nan if law.ci is None else float(law.ci[0, on[0]])
     return rep, (float(law.coef[0, on[0]]), half, -KO if soft else np.nan)
 
@@ -182,6 +194,8 @@ def main(argv):
         spread = float(np.std(est - truth) / np.mean(half / 1.96))
         summary.append((case, hit, n, f"[{lo:.0f}, {hi:.0f}]", spread, time.time() - t0))
     print(f"\nload average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f}")
+    for case, vs in LEVELS.items():
+        print(f"{case:18s} hinge level's 95 % interval covers 8 on {sum(vs)} of {len(vs)}")
     for case, vs in VERDICTS.items():  # the law named (issue 12): right, refused, wrong
         counts = ", ".join(f"{v} {vs.count(v)}" for v in sorted(set(vs)))
         print(f"{case:18s} over {len(vs)} seeds: {counts}")

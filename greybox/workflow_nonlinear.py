@@ -370,12 +370,16 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
             cov = _oe_covariance(cov, sol.jac, sol.fun, model, xs, uu, C, scale[:, 0],
                                  *noise)
     half = np.full_like(law.coef, np.nan)
-    half[rows, cols] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))[:nc]
+    hw_all = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+    half[rows, cols] = hw_all[:nc]
     new = law_at(sol.x)
+    # the hinge levels' 95 % half-widths (same covariance) shown in the formula's terms
+    shown = {j: _level_text(new.spec[j], h) for j, h in zip(hinges, hw_all[nc:])}
     lines = []
     for c in range(new.coef.shape[0]):
         idx = np.flatnonzero(new.coef[c])
-        lines.append(_law_line(ch.labels[c], new.coef[c, idx], [new.spec[j][0] for j in idx],
+        lines.append(_law_line(ch.labels[c], new.coef[c, idx],
+                               [shown.get(j, new.spec[j][0]) for j in idx],
                                ch.units[c] if c < len(ch.units) else "", half[c, idx]))
     new = replace(new, ci=half, formula="; ".join(lines), time_base="continuous"
                   if base.isctime(strict=True) else "discrete")
@@ -963,6 +967,21 @@ _HINGE_KINDS = ("x_hi", "x_lo")
 def _hinge_name(name: str, kind: str, level: float) -> str:
     """The name of a hinge term (:func:`greybox.trace.laws.hinge_name`) at a new level."""
     return hinge_name(name[4:-4].rsplit(" ", 2)[0], kind, level)
+
+
+def _level_text(spec_j, h: float) -> str:
+    """A hinge's name with its level's 95 % interval: ``max(x1 - (7.995 ± 0.012), 0)``.
+
+    The half-width is the output-error covariance's (:func:`_refine_law_oe`,
+    the level fitted with the coefficients); the plain name when it is not
+    finite.
+    """
+    name, kind, (_, level) = spec_j
+    if not np.isfinite(h):
+        return name
+    state = name[4:-4].rsplit(" ", 2)[0]
+    return f"{kind[2:].replace('hi', 'max').replace('lo', 'min')}({state} - ({level:.4g} ± " \
+           f"{h:.2g}), 0)"
 
 
 def _hinge_law(law, d, x, u, sys, labels, units, align, relative):
