@@ -440,8 +440,12 @@ class _LawOutputError:
             for k in range(T):
                 xs[k] = X
                 self._th = TH
-                X = np.asarray(upd(0.0, X, np.repeat(self.uu[:, k:k + 1], K, axis=1), {}),
-                               dtype=float).reshape(n, K)
+                if K == 1:  # one state vector, as any model (a user's MODEL.py) takes it
+                    X = np.asarray(upd(0.0, X[:, 0], self.uu[:, k], {}),
+                                   dtype=float).reshape(n, 1)
+                else:
+                    X = np.asarray(upd(0.0, X, np.repeat(self.uu[:, k:k + 1], K, axis=1),
+                                       {}), dtype=float).reshape(n, K)
                 bad = ~np.all(np.isfinite(X) & (np.abs(X) < 1e100), axis=0)
                 if bad.any():  # a diverged column stays NaN (1e3 per residual)
                     if bad.all():
@@ -763,8 +767,15 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
     """
     # saturation hinges at a fine grid of levels (a stiff clip's level matters: the
     # law's five quantile levels may miss it by more than the hinge can make up)
-    base_spec = [sp for sp in law.spec if sp[1] not in _HINGE_KINDS]
-    states = sorted({sp[2][0] for sp in law.spec if sp[1] in _HINGE_KINDS})
+    # a model that takes one state vector at a time (a user's MODEL.py) simulates every grid
+    # point apart: then the law's own hinge levels, every other grid point, a shorter fine
+    # grid (the real tanks: 100 s -> see README)
+    probe = _LawOutputError(law, base, ch.G, disc, y, u, x_start, C, D)
+    batched = probe._takes_batch(np.repeat(np.asarray(x_start, float)[:, None], 2, axis=1),
+                                 np.zeros((0, 2)))
+    base_spec = [sp for sp in law.spec if sp[1] not in _HINGE_KINDS] if batched else \
+        list(law.spec)
+    states = sorted({sp[2][0] for sp in law.spec if sp[1] in _HINGE_KINDS}) if batched else []
     hinges = []
     names = list(base.state_labels)
     for i in states:
@@ -782,7 +793,8 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
     sd = np.std(d[:, np.all(np.isfinite(d), axis=0)], axis=1)
     ok = np.all(np.isfinite(x), axis=0) & np.all(np.isfinite(uw), axis=0)
     rms = law.term_scale(x[:, ok], uw[:, ok])  # (a delayed x^ ends in NaN)
-    grid = np.r_[-_GRID, _GRID]
+    grid = np.r_[-_GRID, _GRID] if batched else np.r_[-_GRID[::2], _GRID[::2]]
+    fine_f = _FINE if batched else _FINE[::2]
     starts = {}
 
     def rank(sel, theta, cs):  # the _OE_TOP terms whose best coefficient lowers the RSS most
@@ -801,7 +813,7 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
         # simulation error of a swinging plant is rough in a coefficient: a start 10 % off
         # can converge to a local minimum far above the right law's)
         top = [cs[q] for q in order]
-        fine = np.array([st[q] * _FINE for q in order])
+        fine = np.array([st[q] * fine_f for q in order])
         _, st2 = prob.line_search(sel, theta, top, fine)
         starts.update({cj: float(v) for cj, v in zip(top, st2)})
         return top

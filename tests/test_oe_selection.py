@@ -114,6 +114,18 @@ def test_batched_simulation_equals_column_by_column_and_the_plain_simulation():
     prob._batched = False
     xs1 = prob.simulate(sel, TH)
     np.testing.assert_allclose(xs, xs1, rtol=1e-12, atol=1e-12)  # the same arithmetic
+    # a model written for one state vector at a time (a user's MODEL.py: float(x[0]))
+    f = pendulum().updfcn
+
+    def scalar_only(t, xk, uk, p):
+        return f(t, np.array([float(xk[0]), float(xk[1])]), np.array([float(uk[0])]), p)
+
+    import control as ct
+    one = ct.nlsys(scalar_only, lambda t, xk, uk, p: xk, states=2, inputs=1, outputs=2)
+    prob1 = _LawOutputError(law, one, G, disc, y, u, x0, np.eye(2), np.zeros((2, 1)))
+    xs2 = prob1.simulate(sel, TH)
+    assert not prob1._batched  # detected: column by column
+    np.testing.assert_allclose(xs2, xs, rtol=1e-12, atol=1e-12)
     coef = np.zeros((1, len(spec)))
     coef[0, names.index("omega^3")], coef[0, names.index("theta")] = -0.5, 0.3
     ref = gb.simulate_nonlinear(disc(add_law(pendulum(), G, replace_coef(law, coef).evaluate)),
