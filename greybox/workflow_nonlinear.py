@@ -986,10 +986,12 @@ def _level_text(spec_j, h: float) -> str:
 
     The half-width is the output-error covariance's (:func:`_refine_law_oe`,
     the level fitted with the coefficients); the plain name when it is not
-    finite.
+    finite or wider than ``max(|level|, 1)`` (a degenerate covariance: a hinge
+    that already clips barely moves the simulation, e.g. ``± 1.6e+70`` on
+    the simulated overflow's seed 3).
     """
     name, kind, (_, level) = spec_j
-    if not np.isfinite(h):
+    if not (np.isfinite(h) and h <= max(abs(level), 1.0)):
         return name
     state = name[4:-4].rsplit(" ", 2)[0]
     return f"{kind[2:].replace('hi', 'max').replace('lo', 'min')}({state} - ({level:.4g} ± " \
