@@ -11,6 +11,10 @@ whether the reported 95 % interval of the law's coefficient contains the truth:
 ``pendulum_pos``
     the same, theta alone measured: eq(omega) has relative degree 2 (the delayed filter);
     the chosen candidate's law (``rep.trace.static``), whether or not the gate took it.
+    Each seed also gets a verdict (issue 12): ``right`` (updated with ``-c omega^3`` alone in
+    eq(omega), c within its 95 % interval of 0.5), ``refused`` (no update) or ``WRONG``
+    (another law accepted), and the true model (with its drag, theta alone) is run on the
+    same records: ``unchanged`` or ``CHANGED``.
 ``overflow_soft``
     the two tanks of ``tests/test_tanks_overflow.py`` (lower tank measured) whose upper
     tank loses ``KO * max(x1 - XO, 0)`` above XO: a hinge the law can express, so its
@@ -21,7 +25,10 @@ whether the reported 95 % interval of the law's coefficient contains the truth:
     (coverage of the seeds' median).
 
 For the tank cases each seed also prints the law, the validation SE before/after and
-the true model's (issue 12 item c: ``overflow --seeds 10``).
+the true model's, and a verdict: ``right`` (eq(x1), one upper hinge on x1 at the level
+within 2 %), ``refused`` or ``WRONG`` (``overflow --seeds 10``; issue 12), and whether
+the hinge level's 95 % interval (in the formula) covers 8. The verdicts and the level
+coverage are counted per case at the end.
 
 A case that names another law (or none) counts as a miss of the right law, not of the
 interval; the coverage is over the seeds that named it. Printed per seed: estimate,
@@ -33,6 +40,7 @@ stated standard error (1 when calibrated), time and the load average.
 from __future__ import annotations
 
 import os
+import re
 import sys
 import time
 
@@ -53,15 +61,45 @@ KO, XO = 0.1, 8.0
 """Soft overflow of the upper tank: coefficient [1/s] and level of the hinge."""
 
 
+LEVELS = {}
+"""Per tank case, whether each seed's hinge-level interval covers the truth (8)."""
+VERDICTS = {}
+"""Per case, the verdict of each seed: 'right' law, 'refused' (no update) or 'WRONG'."""
+
+
+def _verdict(case, seed, rep, right: bool, line: str, se_true: float):
+    v = "right" if rep.updated and right else "refused" if not rep.updated else "WRONG"
+    VERDICTS.setdefault(case, []).append(v)
+    print(f"{'':14s} seed {seed:2d}: {v:7s} {line}; validation SE "
+          f"{rep.table['nominal'].se.value:.3g} % -> {rep.table['updated'].se.value:.3g} % "
+          f"(true model {se_true:.3g} %)", flush=True)
+
+
+def _theta_only(c3):
+    return ct.nlsys(pendulum(c3).updfcn, lambda t, x, u, p: x[:1], states=["theta", "omega"],
+                    inputs=["T"], outputs=["theta"], name="pendulum_theta_only")
+
+
 def _pendulum(seed, positions_only):
     est = record(3000, seed, process_noise=True)
     val = record(2000, seed + 100, process_noise=False)
     if positions_only:
-        nom = ct.nlsys(pendulum().updfcn, lambda t, x, u, p: x[:1], states=["theta", "omega"],
-                       inputs=["T"], outputs=["theta"], name="pendulum_theta_only")
-        rep = gb.close_the_loop(nom, est.y[:1], est.u, val.y[:1], val.u, Q=QD, R=RM[:1, :1],
-                                dt=DT)
+        rep = gb.close_the_loop(_theta_only(0.0), est.y[:1], est.u, val.y[:1], val.u, Q=QD,
+                                R=RM[:1, :1], dt=DT)
         law = rep.trace.static if rep.trace is not None else None
+        true = gb.close_the_loop(_theta_only(C3), est.y[:1], est.u, val.y[:1], val.u, Q=QD,
+                                 R=RM[:1, :1], dt=DT)
+        got = _term(rep.effect.law if rep.updated else None, "omega^3", -C3)
+        right = (got is not None and rep.effect.equations == ("omega",)
+                 and abs(got[0] - got[2]) <= got[1])
+        _verdict("pendulum_pos", seed, rep, right,
+                 f"{rep.effect.equations} {rep.effect.formula or '-'}",
+                 true.table["nominal"].se.value)
+        VERDICTS.setdefault("pendulum_pos_true", []).append(
+            "unchanged" if not true.updated else "CHANGED")
+        print(f"{'':14s} seed {seed:2d}: true model "
+              f"{'unchanged' if not true.updated else 'CHANGED: ' + true.effect.formula}",
+              flush=True)
     else:
         rep = gb.close_the_loop(pendulum(), est.y, est.u, val.y, val.u, Q=QD, R=RM, dt=DT)
         law = rep.effect.law if rep.updated else None
@@ -90,15 +128,25 @@ def _overflow(seed, soft):
     rep = close_the_loop_nonlinear(tk.NOMINAL, y, u, yv, uv, Q=tk.Q, R=tk.R, dt=tk.TS,
                                    substeps=4)
     floor = relative_error(yv[:, SKIP:], xv[1:, SKIP:]).value  # the true model's SE
-    print(f"{'':14s} seed {seed:2d}: updated {rep.updated}, {rep.effect.formula or '-'}; "
-          f"validation SE {rep.table['nominal'].se.value:.3g} % -> "
-          f"{rep.table['updated'].se.value:.3g} % (true model {floor:.3g} %)", flush=True)
     law = rep.effect.law if rep.updated else None
-    if law is None:
+    on = np.flatnonzero(law.coef[0]) if law is not None else []
+    one = (law is not None and rep.effect.equations == ("x1",) and len(on) == 1
+           and law.spec[on[0]][1] == "x_hi" and law.spec[on[0]][2][0] == 0)
+    # the right law: eq(x1), one upper hinge on x1 at the clip (hard: 8 within 2 %) or at
+    # the soft overflow's level within its 2 % too
+    right = one and abs(law.spec[on[0]][2][1] - XO) <= 0.02 * XO
+    _verdict("overflow_soft" if soft else "overflow", seed, rep, right,
+             f"{rep.effect.equations} {rep.effect.formula or '-'}", floor)
+    if not one:
         return rep, None
-    on = np.flatnonzero(law.coef[0])
-    if len(on) != 1 or law.spec[on[0]][1] != "x_hi" or law.spec[on[0]][2][0] != 0:
-        return rep, None
+    # the hinge level's 95 % interval (shown in the formula) against the truth XO = XMAX = 8
+    m = re.search(r"\(([-+0-9.e]+) ± ([0-9.e+-]+)\), 0\)", law.formula)
+    if m:
+        lv, hl = float(m.group(1)), float(m.group(2))
+        LEVELS.setdefault("overflow_soft" if soft else "overflow", []).append(
+            abs(lv - XO) <= hl)
+        print(f"{'':14s} seed {seed:2d}: level {lv:.5g} +- {hl:.2g} (truth {XO:g}) "
+              f"{'covered' if abs(lv - XO) <= hl else 'MISSED'}", flush=True)
     half = np.nan if law.ci is None else float(law.ci[0, on[0]])
     return rep, (float(law.coef[0, on[0]]), half, -KO if soft else np.nan)
 
@@ -146,6 +194,11 @@ def main(argv):
         spread = float(np.std(est - truth) / np.mean(half / 1.96))
         summary.append((case, hit, n, f"[{lo:.0f}, {hi:.0f}]", spread, time.time() - t0))
     print(f"\nload average {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f}")
+    for case, vs in LEVELS.items():
+        print(f"{case:18s} hinge level's 95 % interval covers 8 on {sum(vs)} of {len(vs)}")
+    for case, vs in VERDICTS.items():  # the law named (issue 12): right, refused, wrong
+        counts = ", ".join(f"{v} {vs.count(v)}" for v in sorted(set(vs)))
+        print(f"{case:18s} over {len(vs)} seeds: {counts}")
     print(f"{'case':14s} {'covered':>8s} {'named':>6s} {'band(95%)':>10s} "
           f"{'rms err/se':>11s} {'time [s]':>9s}")
     for case, hit, n, band, spread, tt in summary:

@@ -27,13 +27,27 @@ linear output map, the paper's (33)). The stages mirror the linear pipeline:
    error before the channels are compared, and a law holding a hinge also
    competes reduced to its hinge(s), coefficients and levels refined by output
    error.
+   **Terms chosen by output error.** For a delayed channel, or an r = 1
+   channel whose d^ variance is less than 10 % above its estimation
+   variance, d^ is mostly noise and its regression picks terms at random; the
+   terms are then also chosen by output error on y (:func:`_select_law_oe`:
+   forward selection over every candidate term, hinges at a fine grid of
+   levels, each fitted on the nonlinear model's simulation error, a term
+   added while its quasi likelihood ratio exceeds ``bic_factor`` times its
+   BIC penalty on the effective sample count Ny / c; terms whose interval
+   contains 0, or that do not improve the simulation of held-out samples,
+   are dropped), one more start beside d^'s law: the lower output-error BIC
+   (on Ny / c) of the two is kept. That channel's simulations start from the
+   state (its filter's or the nominal UKF's at SKIP) whose nominal
+   simulation follows y best over the first samples.
 3. **Choose and gate** as the linear pipeline: lowest estimation SE of the
    updated model, within ``parsimony`` the fewest parameters; update only if
    some output rejects whiteness, the law's evidence exceeds ``bic_factor``
    times its BIC penalty (k log N) and the SE drops below ``min_se_drop``
    times the nominal one. The evidence is the likelihood-ratio statistic of
    the law on d^ (its BIC gain plus the penalty), except for a delayed
-   channel (r = 2) whose law was refined by output error: there d^ is mostly
+   channel (r = 2) whose law was refined by output error, or a law whose
+   terms were chosen by output error: there d^ is mostly
    estimation noise and the coefficients were estimated on y, so the
    evidence is the Gaussian likelihood ratio of the updated model against
    the nominal on the estimation outputs' simulation error,
@@ -109,8 +123,9 @@ from .nonlinear import (
 from .progress import ProgressClock
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance
-from .trace.laws import _eval_terms, _fit_static, _law_line, hinge_name
-from .trace.oe import _noise_floor
+from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line, aligned,
+                         hinge_name, linear_part)
+from .trace.oe import _noise_floor, forward_select_oe
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after, undefined_error
 from .workflow import CRITERION, CandidateScore, Effect, LoopReport
@@ -125,7 +140,28 @@ FLOOR_NOTE = 2.0
 """An update whose estimation RMS simulation error is above this many times the noise
 model's (:func:`greybox.trace.oe._noise_floor`) gets a note: the law may be partial."""
 OE_MAX_TERMS = 3
-"""Laws with at most this many terms are refined by output error on y (cost ~ terms)."""
+"""Laws with at most this many terms are refined by output error on y (cost ~ terms), and
+an output-error term selection stops at this many."""
+_OE_TOP = 3
+"""Candidate terms fitted per step of an output-error selection (the score test's best)."""
+_GRID = 10.0 ** np.arange(-3.0, 0.75, 0.5)
+"""Relative coefficients tried per candidate term (both signs) by the output-error selection's
+line search, in units of d^'s spread over the term's RMS."""
+_FINE = 10.0 ** np.linspace(-0.25, 0.25, 21)
+"""Factors around the best coarse coefficient tried before a candidate's fit."""
+_FINE_HI = np.linspace(0.5, 0.99, 9)
+_FINE_LO = np.linspace(0.01, 0.5, 9)
+"""Quantiles of a state's filtered record where the output-error selection offers upper and
+lower saturation hinges (the d^ law's are at ``greybox.trace.laws.SAT_QUANTILES``)."""
+_LS_WINDOW = 1000
+"""Samples simulated by the output-error selection's line search (a ranking: its cost is
+then bounded; the fits use the whole record)."""
+_START_WINDOW = 50
+"""Samples after SKIP over which the start of a noisy channel's simulations is chosen."""
+_LOW_SNR = 0.1
+"""An r = 1 d^ whose variance is less than this fraction above its own estimation variance
+(the filter's Pd) is mostly noise: its law's terms are chosen by output error too (as
+:mod:`greybox.trace.channel_trace` does)."""
 
 
 @dataclass(frozen=True)
@@ -259,6 +295,18 @@ def _delay_of(model_cd, labels, x_op, u_op, Q, R):
     return r, G, np.einsum("icc->ci", w)
 
 
+def _law_fn(law):
+    """``law.evaluate`` restricted to the law's selected terms (the others cost at every RK4
+    stage: 22 candidate terms evaluated for 3 took half of an overflow trace's time)."""
+    on = np.flatnonzero(np.any(law.coef != 0, axis=0))
+    spec, coef, eps = [law.spec[j] for j in on], law.coef[:, on], law.eps
+
+    def evaluate(x, u):
+        return coef @ _eval_terms(spec, eps, x, u)
+
+    return evaluate
+
+
 def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
     """The law's selected coefficients refitted by output error on y.
 
@@ -294,7 +342,7 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
         return replace(law, coef=coef, spec=tuple(spec))
 
     def resid(theta):
-        model = disc(add_law(base, ch.G, law_at(theta).evaluate))
+        model = disc(add_law(base, ch.G, _law_fn(law_at(theta))))
         try:
             sim = simulate_nonlinear(model, uu, x0=x_start)
         except GreyboxError:
@@ -313,7 +361,7 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
         return None
     cov = hac_covariance(sol.jac, sol.fun, yy.shape[0])
     if noise is not None:
-        model = disc(add_law(base, ch.G, law_at(sol.x).evaluate))
+        model = disc(add_law(base, ch.G, _law_fn(law_at(sol.x))))
         try:
             xs = simulate_nonlinear(model, uu, x0=x_start).x
         except GreyboxError:
@@ -322,17 +370,182 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
             cov = _oe_covariance(cov, sol.jac, sol.fun, model, xs, uu, C, scale[:, 0],
                                  *noise)
     half = np.full_like(law.coef, np.nan)
-    half[rows, cols] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))[:nc]
+    hw_all = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+    half[rows, cols] = hw_all[:nc]
     new = law_at(sol.x)
+    # the hinge levels' 95 % half-widths (same covariance) shown in the formula's terms
+    shown = {j: _level_text(new.spec[j], h) for j, h in zip(hinges, hw_all[nc:])}
     lines = []
     for c in range(new.coef.shape[0]):
         idx = np.flatnonzero(new.coef[c])
-        lines.append(_law_line(ch.labels[c], new.coef[c, idx], [new.spec[j][0] for j in idx],
+        lines.append(_law_line(ch.labels[c], new.coef[c, idx],
+                               [shown.get(j, new.spec[j][0]) for j in idx],
                                ch.units[c] if c < len(ch.units) else "", half[c, idx]))
     new = replace(new, ci=half, formula="; ".join(lines), time_base="continuous"
                   if base.isctime(strict=True) else "discrete")
     evidence = (_wald_zero(sol.x[:nc], cov[:nc, :nc]), int(sol.x.size))
-    return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated"), evidence
+    return new, add_law(base, ch.G, _law_fn(new), name=f"{base.name}_updated"), evidence
+
+
+class _LawOutputError:
+    """Output error on y of ``f(x, u) + G law(x, u)`` for a law on the terms ``sel``.
+
+    The nonlinear counterpart of :class:`greybox.trace.oe._OutputErrorLaw`
+    (its protocol: ``resid``, ``fit``, ``halfwidths``, for
+    :func:`greybox.trace.oe.forward_select_oe`). The law's coefficients
+    ``theta`` on the terms ``sel`` (pairs (component of d, term index) of
+    ``law.spec``) enter the nominal model in its own time base; the model is
+    discretized by ``disc`` (RK4 as everywhere in this module) and simulated
+    from ``x_start`` at sample SKIP. Several coefficient vectors are simulated
+    at once, one per column of the state, when the model's update function
+    takes a batch of states (then a forward-difference Jacobian, or the score
+    of every candidate term, costs one simulation); else column by column.
+    Residual: the outputs' error after SKIP, each scaled by its standard
+    deviation, as :func:`_refine_law_oe`; a diverging simulation counts 1e3
+    per residual.
+    """
+
+    def __init__(self, law, base, G, disc, y, u, x_start, C, D, noise=None):
+        self.law, self.noise, self.C, self.D = law, noise, C, D
+        self.yy, self.uu = y[:, SKIP:], u[:, SKIP:]
+        self.scale = np.maximum(np.std(self.yy, axis=1), 1e-300)
+        self.x_start = np.asarray(x_start, dtype=float)
+        self.nres = self.yy.size
+        self._spec, self._mask, self._th = [], np.zeros((law.coef.shape[0], 0)), None
+
+        def lawfun(x, u):  # the terms of the current sel at the current coefficient columns
+            terms = _eval_terms(self._spec, law.eps, x, u)
+            th = self._th if terms.ndim == 2 else self._th[:, 0]
+            return self._mask @ (th * terms)
+
+        self.model = disc(add_law(base, G, lawfun))
+        self._batched = None
+        self._cache = (None, None, None)
+
+    def _set(self, sel, TH):
+        self._spec = [self.law.spec[j] for _, j in sel]
+        self._mask = np.zeros((self.law.coef.shape[0], len(sel)))
+        for q, (c, _) in enumerate(sel):
+            self._mask[c, q] = 1.0
+        self._th = TH
+
+    def _run(self, X0, TH, T=None):
+        """States (T, n, K) from X0 (n, K), the coefficient columns TH (nsel, K)."""
+        upd = self.model.updfcn
+        n, K = X0.shape
+        T = self.uu.shape[1] if T is None else T
+        xs = np.full((T, n, K), np.nan)
+        X = X0
+        with np.errstate(all="ignore"):
+            for k in range(T):
+                xs[k] = X
+                self._th = TH
+                if K == 1:  # one state vector, as any model (a user's MODEL.py) takes it
+                    X = np.asarray(upd(0.0, X[:, 0], self.uu[:, k], {}),
+                                   dtype=float).reshape(n, 1)
+                else:
+                    X = np.asarray(upd(0.0, X, np.repeat(self.uu[:, k:k + 1], K, axis=1),
+                                       {}), dtype=float).reshape(n, K)
+                bad = ~np.all(np.isfinite(X) & (np.abs(X) < 1e100), axis=0)
+                if bad.any():  # a diverged column stays NaN (1e3 per residual)
+                    if bad.all():
+                        break
+                    X[:, bad] = np.nan
+        return xs
+
+    def simulate(self, sel, TH, T=None):
+        """States (T, nstates, K) for the coefficient columns TH (nsel, K): T samples (all)."""
+        self._set(sel, TH[:, :1])
+        K = TH.shape[1]
+        X0 = np.repeat(self.x_start[:, None], K, axis=1)
+        if self._batched is None and K > 1:  # does the model take a batch of states?
+            self._batched = self._takes_batch(X0[:, :2], TH[:, :2])
+        if K == 1 or self._batched:
+            return self._run(X0, TH, T)
+        return np.concatenate([self._run(X0[:, i:i + 1], TH[:, i:i + 1], T)
+                               for i in range(K)], axis=2)
+
+    def _takes_batch(self, X, TH) -> bool:
+        """Whether the model's update of two state columns equals its update of each."""
+        u2 = np.repeat(self.uu[:, :1], 2, axis=1)
+        try:
+            self._th = TH
+            two = np.asarray(self.model.updfcn(0.0, X, u2, {}), dtype=float)
+            one = []
+            for i in range(2):
+                self._th = TH[:, i:i + 1]
+                one.append(np.asarray(self.model.updfcn(0.0, X[:, i:i + 1], u2[:, :1], {}),
+                                      dtype=float).reshape(-1))
+        except (TypeError, ValueError, IndexError):
+            return False
+        one = np.stack(one, axis=1)
+        return two.shape == X.shape and bool(np.allclose(
+            two, one, rtol=1e-12, atol=1e-12 * (float(np.max(np.abs(one))) + 1e-300)))
+
+    def _resids(self, xs):
+        """Scaled flat residuals (K, noutputs * T) of the simulated states (first T samples)."""
+        T = xs.shape[0]
+        Y = np.einsum("pn,tnk->kpt", self.C, xs) + (self.D @ self.uu[:, :T])[None]
+        r = ((self.yy[None, :, :T] - Y) / self.scale[None, :, None]).reshape(xs.shape[2], -1)
+        return np.where(np.isfinite(r), np.clip(r, -1e3, 1e3), 1e3)
+
+    def _eval(self, theta, sel):
+        """(residual, Jacobian) at theta, in one simulation of 1 + len(sel) columns."""
+        theta = np.asarray(theta, dtype=float)
+        key = (tuple(sel), theta.tobytes())
+        if self._cache[0] == key:
+            return self._cache[1], self._cache[2]
+        h = 1.49e-8 * np.maximum(1.0, np.abs(theta))
+        TH = np.c_[theta, theta[:, None] + np.diag(h)] if sel else np.zeros((0, 1))
+        R = self._resids(self.simulate(sel, TH))
+        J = ((R[1:] - R[0]) / h[:, None]).T
+        self._cache = (key, R[0], J)
+        return R[0], J
+
+    def resid(self, theta, sel):
+        """Scaled output error at theta on the terms sel, flat."""
+        if not len(sel):
+            return self._resids(self.simulate([], np.zeros((0, 1))))[0]
+        return self._eval(theta, sel)[0]
+
+    def fit(self, sel, start, max_nfev=20):
+        """Levenberg-Marquardt from ``start`` (Jacobian by one batched simulation)."""
+        return least_squares(self.resid, np.asarray(start, dtype=float), args=(sel,),
+                             jac=lambda th, s: self._eval(th, s)[1], method="lm",
+                             x_scale="jac", max_nfev=max_nfev, ftol=1e-4, xtol=1e-4)
+
+    def halfwidths(self, sol, sel):
+        """95 % half-widths of the fitted coefficients (:func:`_oe_covariance`)."""
+        jac, fun = np.asarray(sol.jac, dtype=float), np.asarray(sol.fun, dtype=float)
+        if not (np.all(np.isfinite(jac)) and np.max(np.abs(fun)) < 1e3):
+            return np.full(sol.x.size, np.nan)
+        cov = hac_covariance(jac, fun, self.yy.shape[0])
+        if self.noise is not None:
+            xs = self.simulate(sel, np.asarray(sol.x, dtype=float)[:, None])[:, :, 0].T
+            self._set(sel, np.asarray(sol.x, dtype=float)[:, None])
+            if np.all(np.isfinite(xs)):
+                cov = _oe_covariance(cov, jac, fun, self.model, xs, self.uu, self.C,
+                                     self.scale, *self.noise)
+        return 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+
+    def line_search(self, sel, theta, cands, steps):
+        """Each candidate's best coefficient on a grid, the current law held: (RSS, start).
+
+        ``steps`` (ncands, ngrid): the coefficient values tried per candidate,
+        all simulated at once over the first ``_LS_WINDOW`` samples (a global version of the score test: the
+        missing law's simulation is far from linear in a coefficient started
+        at 0, and a delayed d^ can give it the wrong sign).
+        """
+        theta = np.asarray(theta, dtype=float)
+        k, nc, ng = len(sel), len(cands), steps.shape[1]
+        TH = np.zeros((k + nc, nc * ng))
+        TH[:k] = theta[:, None]
+        for q in range(nc):
+            TH[k + q, q * ng:(q + 1) * ng] = steps[q]
+        R = self._resids(self.simulate(list(sel) + list(cands), TH, _LS_WINDOW))
+        rss = np.einsum("kt,kt->k", R, R).reshape(nc, ng)
+        best = np.argmin(rss, axis=1)
+        return rss[np.arange(nc), best], steps[np.arange(nc), best]
 
 
 def _state_jacobians(model, x: NDArray, u: NDArray) -> NDArray[np.float64]:
@@ -500,13 +713,253 @@ def _oe_likelihood_ratio(model_d, x_start, y, u, C, D, se_nom: float,
     r = y[:, SKIP:] - C @ sim.x - D @ u[:, SKIP:]
     if not np.all(np.isfinite(r)):
         return 0.0, np.nan
+    colour = _residual_colour(r)
+    # a diverging nominal (SE inf) against a finite update: an infinite ratio
+    return float(r.size * 2 * np.log(se_nom / se_upd) / colour), colour
+
+
+def _residual_colour(r: NDArray) -> float:
+    """Colour c >= 1 of residuals r (noutputs, nsteps): long-run variance over variance.
+
+    Per output (scaled to unit variance) the long-run variance of its mean
+    (:func:`greybox.trace.intervals.hac_covariance` of a constant fit: the
+    Bartlett-weighted sum of its autocorrelations), averaged over outputs,
+    over the mean square: the residual carries about nsteps / c independent
+    samples per output.
+    """
     r = r / np.maximum(np.std(r, axis=1, keepdims=True), 1e-300)
     T = r.shape[1]
     # long-run variance of the mean residual per output: hac_covariance of a constant fit
     lr = [float(hac_covariance(np.ones((T, 1)), ro, 1)[0, 0]) * T for ro in r]
-    colour = max(1.0, float(np.mean(lr)) / float(np.mean(r**2)))
-    # a diverging nominal (SE inf) against a finite update: an infinite ratio
-    return float(r.size * 2 * np.log(se_nom / se_upd) / colour), colour
+    return max(1.0, float(np.mean(lr)) / float(np.mean(r**2)))
+
+
+def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, align,
+                   factor):
+    """The law's terms chosen by output error on y (forward selection, BIC on Ny / c).
+
+    For a channel whose d^ is mostly estimation noise (delayed, r = 2, or an
+    r = 1 estimate barely above its own variance): regressions on d^ then
+    choose terms at random (on the positions-only pendulum a linear damping
+    instead of the cubic drag, or a law in the kinematic equation), and
+    refining their coefficients by output error cannot repair a wrong
+    choice. Candidates: every term of ``law.spec`` (x, u, x^3, tanh, |x|,
+    products, the offset), the saturation hinges at a fine grid of levels
+    (the quantiles ``_FINE_HI``, ``_FINE_LO`` of the filtered state: a stiff
+    clip's level matters). Each step ranks the candidates by the simulation
+    error at their best coefficient on a grid (``_GRID`` times d^'s spread
+    over the term's RMS, both signs; the current terms held; one batched
+    simulation, :meth:`_LawOutputError.line_search`: a global version of the
+    score test, which at the nominal model, far from the law, ranks at
+    random), keeps the best ``_OE_TOP`` (one level per hinge), refines each
+    start on a finer grid (``_FINE``) and fits them by Levenberg-Marquardt on
+    the simulation error of the nonlinear model with the law. The best is
+    added while its likelihood ratio exceeds ``factor`` (the gate's
+    ``bic_factor``) times its BIC penalty, with n the residuals' effective
+    count Ny / c (c: the colour of the residual, :func:`_residual_colour`,
+    the larger of the two models'; a simulation error integrates the process
+    noise, and a BIC on Ny would take terms that fit its colour) and a hinge
+    counting 2 parameters (its level was searched); then terms whose 95 %
+    interval contains 0 are dropped (:func:`greybox.trace.oe.forward_select_oe`,
+    shared with the linear trace). Returns the law on the chosen terms
+    (coefficients as fitted, no intervals yet: :func:`_refine_law_oe` refines
+    them with the hinge levels), or None when no term is chosen.
+    """
+    # saturation hinges at a fine grid of levels (a stiff clip's level matters: the
+    # law's five quantile levels may miss it by more than the hinge can make up)
+    # a model that takes one state vector at a time (a user's MODEL.py) simulates every grid
+    # point apart: then the law's own hinge levels, every other grid point, a shorter fine
+    # grid (the real tanks: 100 s -> see README)
+    probe = _LawOutputError(law, base, ch.G, disc, y, u, x_start, C, D)
+    batched = probe._takes_batch(np.repeat(np.asarray(x_start, float)[:, None], 2, axis=1),
+                                 np.zeros((0, 2)))
+    base_spec = [sp for sp in law.spec if sp[1] not in _HINGE_KINDS] if batched else \
+        list(law.spec)
+    states = sorted({sp[2][0] for sp in law.spec if sp[1] in _HINGE_KINDS}) if batched else []
+    hinges = []
+    names = list(base.state_labels)
+    for i in states:
+        for kind, qs in (("x_hi", _FINE_HI), ("x_lo", _FINE_LO)):
+            for lv in np.unique(np.nanquantile(x[i], qs)):
+                hinges.append((hinge_name(names[i], kind, float(lv)), kind, (i, float(lv))))
+    spec = tuple(base_spec[:-1] + hinges + base_spec[-1:]) if base_spec and \
+        base_spec[-1][1] == "const" else tuple(base_spec + hinges)
+    law = replace(law, spec=spec, coef=np.zeros((law.coef.shape[0], len(spec))))
+    prob = _LawOutputError(law, base, ch.G, disc, y, u, x_start, C, D, noise)
+    cands = [(c, j) for c in range(law.coef.shape[0]) for j in range(len(law.spec))]
+    p = y.shape[0]
+    # the grid of each candidate's coefficient: d^'s spread over the term's RMS, times
+    # +-10^(-3 .. 0.5) (d^ of a delayed channel is mostly noise: its spread bounds d's)
+    sd = np.std(d[:, np.all(np.isfinite(d), axis=0)], axis=1)
+    ok = np.all(np.isfinite(x), axis=0) & np.all(np.isfinite(uw), axis=0)
+    rms = law.term_scale(x[:, ok], uw[:, ok])  # (a delayed x^ ends in NaN)
+    grid = np.r_[-_GRID, _GRID] if batched else np.r_[-_GRID[::2], _GRID[::2]]
+    fine_f = _FINE if batched else _FINE[::2]
+    starts = {}
+
+    def rank(sel, theta, cs):  # the _OE_TOP terms whose best coefficient lowers the RSS most
+        steps = np.array([sd[c] / max(rms[j], 1e-300) * grid for c, j in cs])
+        rss, st = prob.line_search(sel, theta, cs, steps)
+        order, seen = [], set()
+        for q in np.argsort(rss):  # one level per hinge (state, side): the best
+            sp = law.spec[cs[q][1]]
+            key = (cs[q][0], sp[1], sp[2][0]) if sp[1] in _HINGE_KINDS else cs[q]
+            if key not in seen:
+                seen.add(key)
+                order.append(q)
+            if len(order) == _OE_TOP:
+                break
+        # each kept term's start on a fine grid around its best coarse value (the
+        # simulation error of a swinging plant is rough in a coefficient: a start 10 % off
+        # can converge to a local minimum far above the right law's)
+        top = [cs[q] for q in order]
+        fine = np.array([st[q] * fine_f for q in order])
+        _, st2 = prob.line_search(sel, theta, top, fine)
+        starts.update({cj: float(v) for cj, v in zip(top, st2)})
+        return top
+
+    sel, theta, _ = forward_select_oe(
+        prob, cands, OE_MAX_TERMS, prob.nres, rank=rank,
+        colour=lambda r: _residual_colour(np.asarray(r).reshape(p, -1)), max_nfev=20,
+        start=lambda sl, th, cj: starts[cj],
+        cost=lambda cj: 2 if law.spec[cj[1]][1] in _HINGE_KINDS else 1, factor=factor)
+    if not sel:
+        return None
+    coef = np.zeros_like(law.coef)
+    for (c, j), t in zip(sel, theta):
+        coef[c, j] = t
+    nonlin = any(law.spec[j][1] not in LINEAR_KINDS for _, j in sel)
+    Ddx, Ddu = linear_part(law.spec, coef, law.Ddx.shape[1], law.Ddu.shape[1])
+    return replace(law, coef=coef, npar=len(sel), ci=None, nonlinear=nonlin, Ddx=Ddx, Ddu=Ddu)
+
+
+def _held_out_terms(chosen, base, ch, disc, y, u, x_start, C, D, noise, notes):
+    """Drop the terms of a law chosen by output error that do not predict held-out samples.
+
+    With process noise a nonlinear simulation can be so sensitive to a few
+    samples (a pendulum swinging over) that output error takes a term that
+    only fits this record's path, e.g. a stiff limiter on a velocity (the
+    lesson of :func:`greybox.trace.oe._refine_nonlinear_oe`). Each term is
+    put to the test: the law with and without it, fitted on the first half of
+    the estimation samples, simulated on through the second; the term is
+    dropped (and the rest refined again) when the law without it simulates
+    the held-out half as well. ``chosen`` is ``(law, model, evidence)`` of
+    :func:`_refine_law_oe`.
+    """
+    law = chosen[0]
+    N = y.shape[1]
+    half = SKIP + (N - SKIP) // 2
+    first = _LawOutputError(law, base, ch.G, disc, y[:, :half], u[:, :half], x_start, C, D)
+    whole = _LawOutputError(law, base, ch.G, disc, y, u, x_start, C, D)
+    sel = [(int(c), int(j)) for c, j in zip(*np.nonzero(law.coef))]
+    theta = np.array([law.coef[c, j] for c, j in sel])
+
+    def held(sl, th):
+        sol = first.fit(sl, th)
+        r = whole.resid(sol.x, sl).reshape(y.shape[0], -1)[:, half - SKIP:]
+        return float(np.sum(r**2))
+
+    try:
+        full = held(sel, theta)
+        for q in range(len(sel)):
+            keep = [k for k in range(len(sel)) if k != q]
+            if held([sel[k] for k in keep], theta[keep]) <= full:
+                c, j = sel[q]
+                notes.append(f"{ch.name}: the term {law.spec[j][0]} chosen by output error "
+                             f"does not improve the simulation of held-out samples: dropped")
+                coef = law.coef.copy()
+                coef[c, j] = 0.0
+                return _refine_pruned(replace(law, coef=coef, npar=law.npar - 1), base, ch,
+                                      disc, y, u, x_start, C, D, noise)
+    except (GreyboxError, np.linalg.LinAlgError, ValueError):
+        return chosen
+    return chosen
+
+
+def _refine_pruned(law, base, ch, disc, y, u, x_start, C, D, noise):
+    """:func:`_refine_law_oe`, then its weakest term dropped while an interval contains 0.
+
+    The refinement moves the hinge levels with the coefficients and can leave
+    a term the selection kept without support; each drop is refitted. Hinges
+    are not dropped on their interval (:func:`_held_out_terms` and the gate
+    weigh them). None when a fit fails.
+    """
+    ref = _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise)
+    while ref is not None and ref[0].npar > 1:
+        new = ref[0]
+        t = np.abs(new.coef) / np.where(np.isfinite(new.ci) & (new.ci > 0), new.ci, np.inf)
+        # not a hinge: a stiff hinge's simulation is far from linear in its coefficient
+        # (barely determined while no hinge is far worse; the selection's BIC took it)
+        hinge = np.array([sp[1] in _HINGE_KINDS for sp in new.spec])[None, :]
+        t = np.where((new.coef != 0) & ~hinge, t, np.inf)
+        c, j = np.unravel_index(int(np.argmin(t)), t.shape)
+        if not t[c, j] < 1.0:
+            break
+        coef = new.coef.copy()
+        coef[c, j] = 0.0
+        ref = _refine_law_oe(replace(new, coef=coef, npar=new.npar - 1), base, ch, disc, y, u,
+                             x_start, C, D, noise)
+    return ref
+
+
+def _start_state(model_d, starts, y, u, C, D) -> NDArray[np.float64]:
+    """Of the candidate states at sample SKIP, the one whose simulation follows y best early.
+
+    The simulation error of ``model_d`` (the nominal) over the first
+    ``_START_WINDOW`` samples after SKIP, where a missing law has not yet
+    moved the simulation far: a wrong start (e.g. a delayed filter's
+    velocity before it converged) shows there, and an output-error fit from
+    it takes terms that make up for the start (a stiff limiter).
+    """
+    W = min(_START_WINDOW, y.shape[1] - SKIP)
+    best, out = np.inf, np.asarray(starts[0], dtype=float)
+    for x0 in starts:
+        x0 = np.asarray(x0, dtype=float)
+        if not np.all(np.isfinite(x0)):
+            continue
+        try:
+            sim = simulate_nonlinear(model_d, u[:, SKIP:SKIP + W], x0=x0)
+        except GreyboxError:
+            continue
+        e = float(np.sum((y[:, SKIP:SKIP + W] - C @ sim.x - D @ u[:, SKIP:SKIP + W]) ** 2))
+        if e < best:
+            best, out = e, x0
+    return out
+
+
+def _excess(res: FilterResult, d: NDArray) -> float:
+    """var(d^) over its estimation variance (the filter's Pd), minus 1 (inf: not known)."""
+    dv = np.asarray(getattr(res, "d_var", np.full((1, 1), np.nan)), dtype=float)
+    noise = float(np.nanmean(dv[:, SKIP:])) if dv.size and np.any(np.isfinite(dv)) else np.nan
+    if not (np.isfinite(noise) and noise > 0):
+        return np.inf
+    return float(np.mean(np.var(d, axis=1)) / noise - 1.0)
+
+
+def _oe_bic(oe, entry, y, u, disc, x0, C, D) -> bool:
+    """Whether the law chosen by output error ``oe`` has a lower output-error BIC than ``entry``.
+
+    ``n log(SE^2) + k log(n)`` for each (SE [%] of the estimation simulation, k
+    the free parameters: coefficients and hinge levels), n = Ny / c with c the
+    colour of the chosen law's residual (:func:`_residual_colour`).
+    """
+    def nfree(e):
+        law = e[2].static
+        return int(e[5][1]) if e[5] is not None else int(law.npar)
+
+    se_o, se_e = oe[0], entry[0]
+    if not np.isfinite(se_o):
+        return False
+    if not np.isfinite(se_e):
+        return True
+    try:
+        sim = simulate_nonlinear(disc(oe[3]), u[:, SKIP:], x0=x0)
+        colour = _residual_colour(y[:, SKIP:] - C @ sim.x - D @ u[:, SKIP:])
+    except GreyboxError:
+        colour = 1.0
+    n = y[:, SKIP:].size / colour
+    return bool(n * np.log(se_o**2) + nfree(oe) * np.log(n)
+                < n * np.log(se_e**2) + nfree(entry) * np.log(n))
 
 
 def _wald_zero(theta: NDArray, cov: NDArray) -> float:
@@ -526,6 +979,23 @@ _HINGE_KINDS = ("x_hi", "x_lo")
 def _hinge_name(name: str, kind: str, level: float) -> str:
     """The name of a hinge term (:func:`greybox.trace.laws.hinge_name`) at a new level."""
     return hinge_name(name[4:-4].rsplit(" ", 2)[0], kind, level)
+
+
+def _level_text(spec_j, h: float) -> str:
+    """A hinge's name with its level's 95 % interval: ``max(x1 - (7.995 ± 0.012), 0)``.
+
+    The half-width is the output-error covariance's (:func:`_refine_law_oe`,
+    the level fitted with the coefficients); the plain name when it is not
+    finite or wider than ``max(|level|, 1)`` (a degenerate covariance: a hinge
+    that already clips barely moves the simulation, e.g. ``± 1.6e+70`` on
+    the simulated overflow's seed 3).
+    """
+    name, kind, (_, level) = spec_j
+    if not (np.isfinite(h) and h <= max(abs(level), 1.0)):
+        return name
+    state = name[4:-4].rsplit(" ", 2)[0]
+    return f"{kind[2:].replace('hi', 'max').replace('lo', 'min')}({state} - ({level:.4g} ± " \
+           f"{h:.2g}), 0)"
 
 
 def _hinge_law(law, d, x, u, sys, labels, units, align, relative):
@@ -723,6 +1193,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                  "operating point; static laws only (dynamic subsystem laws are linear and "
                  "not offered)")
     cands, scored = [], []
+    x0_of = {}  # where each channel's simulations start
     N = y.shape[1]
     for kc, ch in enumerate(chans):
         tick("trace candidate channels", kc, len(chans))
@@ -777,32 +1248,78 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                              for c in range(len(labels))))
         tr = ChannelTrace(channel=ch, status="ok", model=model_cd, filter_result=res,
                           static=law, relative_degree=r)
-        if law.npar == 0:
+        noise_ch = _noise_of(res, Q, R, kf.P_filt)
+        # d^ mostly estimation noise (delayed, or an r = 1 estimate barely above its own
+        # variance): the law's terms are chosen by output error too, one more start beside
+        # d^'s law (the linear trace's rule, trace.channel_trace)
+        noisy = r > 1 or _excess(res, d) < _LOW_SNR
+        # where the channel's simulations start: for a noisy channel the state (the
+        # channel's filter's or the nominal UKF's) whose nominal simulation follows y best
+        # over the first samples (a delayed filter's x^ at SKIP can be far off)
+        x0c = _start_state(nominal_d, (res.x_filt[:, SKIP], kf.x_filt[:, SKIP]), y, u, C, D) \
+            if noisy else res.x_filt[:, SKIP]
+        x0_of[ch.name] = x0c
+        chosen = None
+        if noisy:
+            tick("output-error term selection", kc, len(chans))
+            try:
+                chosen = _select_law_oe(law, base, ch, disc, y, u, x0c, C, D,
+                                        noise_ch, d_fit, x, uw, al, bic_factor)
+            except (GreyboxError, np.linalg.LinAlgError, ValueError):
+                chosen = None
+            if chosen is not None:
+                chosen = _refine_pruned(chosen, base, ch, disc, y, u, x0c, C,
+                                        D, noise_ch)
+            if chosen is not None and chosen[0].npar > 1:
+                chosen = _held_out_terms(chosen, base, ch, disc, y, u, x0c, C,
+                                         D, noise_ch, notes)
+        if law.npar == 0 and chosen is None:
             cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "skipped",
-                                        "no law term explains d^"))
+                                        "no law term explains d^" + (
+                                            ", nor any by output error" if noisy else "")))
             continue
-        if ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1))):
+        if ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1))) and chosen is None:
             cands.append(CandidateScore(ch.name, "static", 0, np.inf, law.npar, "redundant",
                                         "a component of d has no term"))
             continue
-        upd = add_law(base, ch.G, law.evaluate, name=f"{base.name}_updated")
-        se = _se_from(disc(upd), u, res.x_filt[:, SKIP], y, C, D)
-        refined, evidence = False, None
-        if r > 1 and law.npar <= OE_MAX_TERMS:
-            # a delayed d^ is noisy (d shows in y only through C A G~): its law's
-            # coefficients are refined by output error before the channels are compared
-            ref_d = _refine_law_oe(law, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D,
-                                   _noise_of(res, Q, R, kf.P_filt))
-            if ref_d is not None:
-                se_d = _se_from(disc(ref_d[1]), u, res.x_filt[:, SKIP], y, C, D)
-                if se_d < se:
-                    law, upd, se, refined = ref_d[0], ref_d[1], se_d, True
-                    evidence = ref_d[2]
-                    tr = replace(tr, static=law)
-        cands.append(CandidateScore(ch.name, "static", 0, se, law.npar, "ok",
-                                    "delayed d^ law refined by output error" if refined
-                                    else ""))
-        scored.append((se, law.npar, tr, upd, refined, evidence))
+        entry = None
+        if law.npar and not (ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1)))):
+            upd = add_law(base, ch.G, _law_fn(law), name=f"{base.name}_updated")
+            se = _se_from(disc(upd), u, x0c, y, C, D)
+            refined, evidence = False, None
+            if r > 1 and law.npar <= OE_MAX_TERMS:
+                # a delayed d^ is noisy (d shows in y only through C A G~): its law's
+                # coefficients are refined by output error before the channels are compared
+                ref_d = _refine_law_oe(law, base, ch, disc, y, u, x0c, C, D,
+                                       noise_ch)
+                if ref_d is not None:
+                    se_d = _se_from(disc(ref_d[1]), u, x0c, y, C, D)
+                    if se_d < se:
+                        law, upd, se, refined = ref_d[0], ref_d[1], se_d, True
+                        evidence = ref_d[2]
+                        tr = replace(tr, static=law)
+            entry = (se, law.npar, tr, upd, refined, evidence, False)
+            why = "delayed d^ law refined by output error" if refined else ""
+        if chosen is not None:
+            law_o, upd_o, ev_o = chosen
+            se_o = _se_from(disc(upd_o), u, x0c, y, C, D)
+            oe = (se_o, law_o.npar, replace(tr, static=law_o), upd_o, True, ev_o, True)
+            # d^'s law against the one chosen by output error: the lower BIC of the output
+            # error (effective sample count Ny / c, c the chosen law's residual colour)
+            if entry is None or _oe_bic(oe, entry, y, u, disc, x0c, C, D):
+                if entry is not None:
+                    cands.append(CandidateScore(ch.name, "static", 0, entry[0], entry[1],
+                                                "replaced", "d^ law: higher output-error BIC "
+                                                "than the terms chosen by output error"))
+                entry, why = oe, "terms chosen by output error on y"
+            else:
+                cands.append(CandidateScore(ch.name, "static", 0, se_o, law_o.npar,
+                                            "replaced", "terms chosen by output error: higher "
+                                            "output-error BIC than d^'s law"))
+        se, npar_e, tr, upd = entry[:4]
+        law = tr.static
+        cands.append(CandidateScore(ch.name, "static", 0, se, npar_e, "ok", why))
+        scored.append(entry)
         # a law with a saturation hinge beside other terms: the hinges alone, their
         # coefficients and levels refined by output error, compete as a sparser candidate
         # (d^ of a delayed estimate is noisy and correlated with x^: its other terms are
@@ -812,15 +1329,16 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         except (GreyboxError, np.linalg.LinAlgError):
             hl = None
         if hl is not None and hl.npar and (ch.md == 1 or np.all(np.any(hl.coef, axis=1))):
-            ref_h = _refine_law_oe(hl, base, ch, disc, y, u, res.x_filt[:, SKIP], C, D,
-                                   _noise_of(res, Q, R, kf.P_filt))
+            ref_h = _refine_law_oe(hl, base, ch, disc, y, u, x0c, C, D,
+                                   noise_ch)
             if ref_h is not None:
                 hl, upd_h, ev_h = ref_h
-                se_h = _se_from(disc(upd_h), u, res.x_filt[:, SKIP], y, C, D)
+                se_h = _se_from(disc(upd_h), u, x0c, y, C, D)
                 cands.append(CandidateScore(ch.name, "static", 0, se_h, hl.npar, "ok",
                                             "saturation hinge(s) only, coefficient(s) and "
                                             "level(s) refined by output error"))
-                scored.append((se_h, hl.npar, replace(tr, static=hl), upd_h, True, ev_h))
+                scored.append((se_h, hl.npar, replace(tr, static=hl), upd_h, True, ev_h,
+                               entry[6]))
     tick("trace candidate channels", len(chans), len(chans))
     finite = [s for s in scored if np.isfinite(s[0])]
     if not finite:
@@ -829,28 +1347,33 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                        "(see candidates)", True, cands=cands)
     best = min(s[0] for s in finite)
     near = [s for s in finite if s[0] <= parsimony * best]
-    se_c, npar, tr, upd, refined, evidence = min(near,
-                                                 key=lambda s: (s[1], s[2].channel.md, s[0]))
+    se_c, npar, tr, upd, refined, evidence, oe_terms = min(
+        near, key=lambda s: (s[1], s[2].channel.md, s[0]))
     ch, law = tr.channel, tr.static
     # refine the law's coefficients by output error on y, in the nominal's time base with
     # the same RK4 (PAPER_NOTES §9.3, §9.5); kept only if the estimation SE drops
     tick("output-error refinement", 0, 1)
     ref = None
-    if refined and any(law.spec[j][1] in _HINGE_KINDS for j in np.flatnonzero(law.coef.any(0))):
+    if oe_terms:
+        notes.append(f"{ch.name}: d^ is mostly estimation noise: the law's terms were chosen by "
+                     f"output error on y (forward selection, BIC on the effective sample "
+                     f"count Ny / colour), its coefficients and levels refined by output error")
+    elif refined and any(law.spec[j][1] in _HINGE_KINDS
+                         for j in np.flatnonzero(law.coef.any(0))):
         notes.append(f"{ch.name}: the law's saturation hinges alone, refined by output error "
                      f"on y (coefficients and levels), were chosen over the full d^ law")
     elif refined:
         notes.append(f"{ch.name}: the delayed d^ law was refined by output error on y before "
                      f"the channels were compared")
     elif law.npar <= OE_MAX_TERMS:
-        ref = _refine_law_oe(law, base, ch, disc, y, u, tr.filter_result.x_filt[:, SKIP], C, D,
+        ref = _refine_law_oe(law, base, ch, disc, y, u, x0_of[ch.name], C, D,
                              _noise_of(tr.filter_result, Q, R, kf.P_filt))
     else:
         notes.append(f"{ch.name}: the law has {law.npar} terms (> {OE_MAX_TERMS}): not refined "
                      f"by output error (each term costs a simulation per iteration)")
     if ref is not None:
         law_r, upd_r, ev_r = ref
-        se_r = _se_from(disc(upd_r), u, tr.filter_result.x_filt[:, SKIP], y, C, D)
+        se_r = _se_from(disc(upd_r), u, x0_of[ch.name], y, C, D)
         if se_r < se_c:
             notes.append(f"{ch.name}: law refined by output error on y: estimation SE "
                          f"{se_c:.3g}% -> {se_r:.3g}%")
@@ -863,10 +1386,10 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     # quasi likelihood ratio on the output error: a delayed d^ is mostly estimation noise,
     # and the coefficients were estimated on y, where the evidence is (module stage 3)
     Nd = N - 1 - SKIP
-    if tr.relative_degree > 1 and evidence is not None:
+    if (tr.relative_degree > 1 or oe_terms) and evidence is not None:
         wald, nfree = evidence
         Ny = p * (N - SKIP)
-        gain, colour = _oe_likelihood_ratio(disc(upd), tr.filter_result.x_filt[:, SKIP], y, u,
+        gain, colour = _oe_likelihood_ratio(disc(upd), x0_of[ch.name], y, u,
                                             C, D, se_nom, se_c)
         # BIC's log n with n the independent samples, Ny / colour
         n_eff = Ny / colour if np.isfinite(colour) else Ny

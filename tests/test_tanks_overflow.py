@@ -82,12 +82,14 @@ def run(xmax, seed):
     return rep, (xv, yv, uv)
 
 
-# Seeds 0-9 (python bench/nonlinear_coverage.py overflow, and the issue-12 report): 9 of
-# 10 name eq(x1) with one hinge and reach the true model's validation SE within 2x; seed
-# 7's d^ law holds no hinge (x1, x2^3, x1*u): the output-error gate takes it (SE 27.6 %
-# -> 5.6 %, 9.7x the true model's) with a note that it is 2.5x what the noise allows.
-# Three of the nine are tested (cost: ~12 s each).
-SEEDS = (5, 2, 9)
+# Seeds 0-9 (python bench/nonlinear_coverage.py overflow --seeds 10): 10 of 10 name eq(x1)
+# with one hinge at 7.99-8.00 and reach the true model's validation SE within 1.1x. Seed 7
+# was the failure of the d^-chosen terms: its d^ law holds no hinge (x1, x2^3, x1*u) and the
+# output-error gate took it (SE 9.7x the true model's); the terms are now also chosen by
+# output error (workflow_nonlinear._select_law_oe) and the hinge wins. Three seeds are
+# tested (~30 s each): 5, 7 (the former failure) and 9; seed 2 was dropped for seed 7 to
+# keep the file's run time.
+SEEDS = (5, 7, 9)
 
 
 @pytest.fixture(scope="module", params=[SEEDS[0]] + [pytest.param(s, marks=pytest.mark.slow)

@@ -220,16 +220,21 @@ def run_theta_only(c3: float, seed: int = 1, alpha: float = 1e-3):
 
 
 @pytest.mark.slow
-def test_positions_only_drag_is_found_through_the_delayed_channel():
+@pytest.mark.parametrize("seed", [1, 2], ids=lambda s: f"seed{s}")
+def test_positions_only_drag_is_found_through_the_delayed_channel(seed):
     """theta alone: the omega equation reaches y through C G ~ dt^2/2 (relative degree 2).
 
-    The delayed unscented filter estimates d^ in eq(omega); the law, refined by output
-    error, is the true cubic drag. d^ is mostly estimation noise (its BIC gain on d^ is
-    ~10, below the 80 the gate asks), so for a delayed channel the gate weighs the law's
-    evidence on the output error, where its coefficient was estimated: the likelihood
-    ratio against the nominal, over the residual's colour.
+    The delayed unscented filter estimates d^ in eq(omega); d^ is mostly estimation
+    noise, so the law's terms are also chosen by output error (forward selection on the
+    simulation error, BIC on the effective sample count) and the gate weighs the law on
+    the output error, where its coefficient was estimated: the likelihood ratio against
+    the nominal, over the residual's colour. Seed 2 is where d^'s regression chose a
+    linear damping ``-1.65*omega`` (SE 18.9 % against the true model's 2.1 %) and the gate
+    took it before the terms were chosen by output error; over seeds 0-9 the law is now
+    ``omega^3`` alone with the truth inside its interval on all ten
+    (``python bench/nonlinear_coverage.py pendulum_pos --seeds 10``).
     """
-    rep = run_theta_only(0.0)
+    rep = run_theta_only(0.0, seed)
     notes = " ".join(rep.notes)
     assert "eq(omega): relative degree 2" in notes
     assert rep.updated and rep.effect.equations == ("omega",), rep.message
@@ -238,20 +243,19 @@ def test_positions_only_drag_is_found_through_the_delayed_channel():
     names = [law.spec[j][0] for j in np.flatnonzero(law.coef[0])]
     assert names == ["omega^3"], law.formula
     j = [s[0] for s in law.spec].index("omega^3")
-    # -C3 = -0.5; measured -0.4943: 3 % (the output-error fit's own 95 % half-width is
-    # 0.0048, 1 %: the 1.1 % error is 2.3 of its standard errors on this seed, see
-    # bench/nonlinear_coverage.py pendulum_pos for the coverage over seeds)
-    np.testing.assert_allclose(law.coef[0, j], -C3, rtol=0.03)
-    assert np.isfinite(law.ci[0, j]) and law.ci[0, j] < 0.05 * C3  # determined by the data
+    # the truth inside the law's own 95 % interval (seed 1: -0.494 +- 0.011, seed 2:
+    # -0.500 +- 0.0035), and determined by the data
+    assert abs(law.coef[0, j] + C3) <= law.ci[0, j], law.formula
+    assert law.ci[0, j] < 0.05 * C3
     g = rep.gate
     assert g["evidence"].startswith("output error"), g
     assert g["passed"] == {"whiteness": True, "bic": True, "se_drop": True}
-    # the quasi likelihood ratio (1143 measured, colour 35) far above 10x its penalty
-    # (1 x log(2980 / 35) = 4.4)
+    # the quasi likelihood ratio (seed 1: 1143 measured, colour 35; seed 2: 1.0e4, colour
+    # 5) far above 10x its penalty (1 x log(Ny / colour) = 4.4 and 6.4)
     assert g["bic_gain"] > 10 * g["bic_factor"] * g["bic_penalty"]
     # validation SE of the updated model against the true model's (simulated the same way,
-    # the true model as nominal): measured 2.05 % vs 2.03 %
-    true_se = run_theta_only(C3).table["nominal"].se.value
+    # the true model as nominal): measured 1.95 % vs 2.03 % (seed 1), 1.88 % vs ~2 % (2)
+    true_se = run_theta_only(C3, seed).table["nominal"].se.value
     se = rep.table["updated"].se.value
     assert se <= 1.5 * true_se, (se, true_se)
     assert rep.table["nominal"].se.value > 100 * se  # the drag-free model is far off

@@ -677,25 +677,105 @@ def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     if only is not None:  # a pre-ranked subset of the terms
         lin = [j for j in lin if j in set(only)]
     cands = [(c, j) for c in range(md) for j in lin]
-    Ny = prob.y[:, k0:].size
+    sel, theta, hw = forward_select_oe(
+        prob, cands, max_terms, prob.y[:, k0:].size,
+        rank=lambda sel, theta, cs: _by_score(prob, sel, theta, cs))
+    return prob.law_with(sel, theta, labels, units, ci=hw, nonlinear=False, npar=len(sel))
 
-    def bic(rss, k):
-        return Ny * np.log(max(rss / Ny, 1e-300)) + k * np.log(Ny)
+
+def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=None,
+                      max_nfev: int = 100, start=None, cost=None, factor: float = 1.0):
+    """Forward selection of a static law's terms by output error, BIC stop, then pruning.
+
+    Shared by the linear trace (:func:`_select_static_oe`) and the nonlinear
+    pipeline (:mod:`greybox.workflow_nonlinear`). Each step fits every
+    candidate term that ``rank`` keeps (all when None) beside the terms
+    already chosen, by ``prob.fit`` (Levenberg-Marquardt on the output
+    error), and adds the one with the lowest residual sum of squares while
+    the BIC of the output error drops, ``n log(RSS / nres) + k log(n)``;
+    then terms whose 95 % interval (``prob.halfwidths``) contains 0 are
+    dropped (:func:`_prune`).
+
+    n is the number of residuals ``nres``, or with ``colour`` (a function of
+    a residual returning its colour c >= 1, the long-run variance over the
+    variance) ``nres / c``, c the trial's colour for the first term (as a
+    gate weighs a law against none), then the larger of the two models'
+    compared (the trials of a step are ranked with the current model's): an
+    output-error
+    residual is coloured
+    (the simulation error integrates the process noise), so its ``nres``
+    samples carry about ``nres / c`` independent ones, and a BIC on nres
+    would accept terms that only fit the colour.
+
+    Parameters
+    ----------
+    prob : object
+        The output-error problem: ``resid(theta, sel)`` (flat residual),
+        ``fit(sel, start, max_nfev)`` (a result with ``x``, ``fun`` and
+        ``jac``) and ``halfwidths(sol, sel)``.
+    cands : list of tuple
+        Candidate terms (component of d, term index).
+    max_terms : int
+        At most this many terms.
+    nres : int
+        Residuals in the output error (outputs x samples).
+    rank : callable, optional
+        ``rank(sel, theta, cands)`` -> the candidates worth fitting this step.
+    colour : callable, optional
+        The residual's colour (see above); None: n = nres.
+    max_nfev : int
+        Evaluations per fit.
+    start : callable, optional
+        ``start(sel, theta, cand)`` -> the new term's starting coefficient
+        (default 0).
+    cost : callable, optional
+        ``cost(cand)`` -> the parameters a term counts in the BIC (default 1;
+        e.g. 2 for a saturation hinge whose level is searched too).
+    factor : float
+        A term is added only if the likelihood ratio exceeds ``factor`` times
+        its BIC penalty (1: the BIC itself).
+
+    Returns
+    -------
+    tuple
+        ``(sel, theta, halfwidths)``; halfwidths None when no term is chosen.
+    """
+    def bic(rss, k, n):
+        return n * np.log(max(rss / nres, 1e-300)) + k * np.log(n)
+
+    def npar(terms):
+        return sum(1 if cost is None else cost(t) for t in terms)
 
     sel, theta = [], np.zeros(0)
-    best_bic = bic(float(np.sum(prob.resid(theta, sel) ** 2)), 0)
+    fun = prob.resid(theta, sel)
+    rss_best = float(np.sum(fun ** 2))
     while len(sel) < max_terms:
         trial = None
-        for cj in _by_score(prob, sel, theta, [c for c in cands if c not in sel]):
-            sol = prob.fit(sel + [cj], np.r_[theta, 0.0], max_nfev=100)
-            b = bic(float(np.sum(sol.fun ** 2)), len(sel) + 1)
-            if trial is None or b < trial[0]:
-                trial = (b, cj, sol.x)
-        if trial is None or trial[0] >= best_bic:
+        left = [c for c in cands if c not in sel]
+        n0 = nres / colour(fun) if colour is not None else nres  # the trials ranked on it
+        for cj in (rank(sel, theta, left) if rank is not None else left):
+            t0 = 0.0 if start is None else start(sel, theta, cj)
+            sol = prob.fit(sel + [cj], np.r_[theta, t0], max_nfev=max_nfev)
+            rss = float(np.sum(sol.fun ** 2))
+            b = bic(rss, npar(sel + [cj]), n0)
+            if trial is None or b < trial[4]:
+                trial = (rss, cj, sol.x, sol.fun, b)
+        if trial is None:
             break
-        best_bic, sel, theta = trial[0], sel + [trial[1]], trial[2]
+        # the residual's colour: the trial's for the first term (against no law, as the
+        # gate weighs a law), then the larger of the two models' (a term can lower the
+        # colour estimate without a better law: the smaller n is the cautious one)
+        n = nres if colour is None else nres / (colour(trial[3]) if not sel else
+                                                 max(colour(fun), colour(trial[3])))
+        lr = n * np.log(max(rss_best / nres, 1e-300)) - n * np.log(max(trial[0] / nres, 1e-300))
+        if factor == 1.0:
+            if bic(trial[0], npar(sel + [trial[1]]), n) >= bic(rss_best, npar(sel), n):
+                break
+        elif not lr > factor * (npar(sel + [trial[1]]) - npar(sel)) * np.log(n):
+            break
+        rss_best, sel, theta, fun = trial[0], sel + [trial[1]], trial[2], trial[3]
     hw = None
     if sel:
-        sel, sol, hw = _prune(prob, sel, prob.fit(sel, theta, max_nfev=100))
+        sel, sol, hw = _prune(prob, sel, prob.fit(sel, theta, max_nfev=max_nfev))
         theta = sol.x if sol is not None else np.zeros(0)
-    return prob.law_with(sel, theta, labels, units, ci=hw, nonlinear=False, npar=len(sel))
+    return sel, theta, hw
