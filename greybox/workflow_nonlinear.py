@@ -88,6 +88,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from ._blas import one_blas_thread
 from ._validation import (
     check_covariance,
     check_positive,
@@ -1026,6 +1027,7 @@ def _weak_terms(law) -> list[str]:
     return out
 
 
+@one_blas_thread
 def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q, R,
                              dt: float | None = None, channels=None, nonlinear: bool = True,
                              alpha: float = 1e-3, lags: int = 20, parsimony: float = 1.1,
