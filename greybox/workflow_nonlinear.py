@@ -124,7 +124,7 @@ from .nonlinear import (
 from .progress import ProgressClock
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance
-from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line, aligned,
+from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
                          hinge_name, linear_part)
 from .trace.oe import _noise_floor, forward_select_oe
 from .update import UpdatedModel
@@ -296,18 +296,6 @@ def _delay_of(model_cd, labels, x_op, u_op, Q, R):
     return r, G, np.einsum("icc->ci", w)
 
 
-def _law_fn(law):
-    """``law.evaluate`` restricted to the law's selected terms (the others cost at every RK4
-    stage: 22 candidate terms evaluated for 3 took half of an overflow trace's time)."""
-    on = np.flatnonzero(np.any(law.coef != 0, axis=0))
-    spec, coef, eps = [law.spec[j] for j in on], law.coef[:, on], law.eps
-
-    def evaluate(x, u):
-        return coef @ _eval_terms(spec, eps, x, u)
-
-    return evaluate
-
-
 def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
     """The law's selected coefficients refitted by output error on y.
 
@@ -343,7 +331,7 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
         return replace(law, coef=coef, spec=tuple(spec))
 
     def resid(theta):
-        model = disc(add_law(base, ch.G, _law_fn(law_at(theta))))
+        model = disc(add_law(base, ch.G, law_at(theta).evaluate))
         try:
             sim = simulate_nonlinear(model, uu, x0=x_start)
         except GreyboxError:
@@ -362,7 +350,7 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
         return None
     cov = hac_covariance(sol.jac, sol.fun, yy.shape[0])
     if noise is not None:
-        model = disc(add_law(base, ch.G, _law_fn(law_at(sol.x))))
+        model = disc(add_law(base, ch.G, law_at(sol.x).evaluate))
         try:
             xs = simulate_nonlinear(model, uu, x0=x_start).x
         except GreyboxError:
@@ -385,7 +373,7 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
     new = replace(new, ci=half, formula="; ".join(lines), time_base="continuous"
                   if base.isctime(strict=True) else "discrete")
     evidence = (_wald_zero(sol.x[:nc], cov[:nc, :nc]), int(sol.x.size))
-    return new, add_law(base, ch.G, _law_fn(new), name=f"{base.name}_updated"), evidence
+    return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated"), evidence
 
 
 class _LawOutputError:
@@ -1286,7 +1274,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
             continue
         entry = None
         if law.npar and not (ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1)))):
-            upd = add_law(base, ch.G, _law_fn(law), name=f"{base.name}_updated")
+            upd = add_law(base, ch.G, law.evaluate, name=f"{base.name}_updated")
             se = _se_from(disc(upd), u, x0c, y, C, D)
             refined, evidence = False, None
             if r > 1 and law.npar <= OE_MAX_TERMS:

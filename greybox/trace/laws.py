@@ -284,19 +284,19 @@ class StaticLaw:
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
-        keep, spec = self._selected
-        return self.coef[:, keep] @ _eval_terms(spec, self.eps, x, u)
+        coef, spec = self._selected
+        return coef @ _eval_terms(spec, self.eps, x, u)
 
     @cached_property
     def _selected(self) -> tuple[NDArray, tuple]:
-        """(indices, spec) of the selected terms: only these are evaluated.
+        """(coefficients (md, nselected), spec) of the selected terms: only these are evaluated.
 
-        A simulation evaluates the law once per sample: over all ~30-100
-        candidate terms, 1.1 s per 2e4 samples; over the 1-3 selected ones, a
+        A simulation evaluates the law once per sample (or per RK4 stage): over all
+        ~30-100 candidate terms, 1.1 s per 2e4 samples; over the 1-3 selected ones, a
         few times less.
         """
         keep = np.flatnonzero(np.any(self.coef != 0, axis=0))
-        return keep, tuple(self.spec[j] for j in keep)
+        return self.coef[:, keep], tuple(self.spec[j] for j in keep)
 
     def term_scale(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """RMS of every candidate term on (x (nstates, K), u (ninputs, K)), shape (nterms,)."""
