@@ -100,6 +100,8 @@ SPARSE_IF = 0.8
 # first-order law led, 2.2 % vs 4.8 %; a lag beside a spring: > 100 % vs 21 %, and the
 # order-2 fit cost 11 s of 38 s)
 ORDER2_WITHIN = 2.0
+# Highest order of one subsystem shared by a group of equations (a chain of hidden parts).
+MAX_SHARED_ORDER = 3
 # The parallel delta baseline refines its N4SID model by output error on at most this
 # many residuals (outputs x samples, like the trace's oe_window); its N4SID candidates
 # and the held-out choice use the search window below.
@@ -348,7 +350,7 @@ def _se(y, ysim, skip):
 def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, skip, name):
     """ModelValidation of the nominal model plus a nonlinear static law (own simulation)."""
     res, law = tr.filter_result, tr.static
-    x0 = estimate_initial_state(upd.sys, y, u)
+    x0 = estimate_initial_state(upd.sys, y, u, slow_modes=False)  # a linearized model
     # the linearized StateSpace's eigenvalues say nothing about the nonlinear law's
     # simulation (a friction law's linear surrogate may be unstable): simulate it
     se_reason = ""
@@ -674,7 +676,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 sm = tr.static_model
                 if tr.static.nonlinear:
                     res = tr.filter_result
-                    x0 = estimate_initial_state(sm.sys, ys, us)
+                    x0 = estimate_initial_state(sm.sys, ys, us, slow_modes=False)
                     se = _fit_error(sm.sys, sm.Q, sm.R,
                                     ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us, x0),
                                     ypred=lambda: ekf_predict_with_law(
@@ -877,28 +879,42 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                         notes.append(f"{ch.name}: no second-order shared law tried: the "
                                      f"first-order one leaves white innovations")
                     else:
-                        _shared_order2(tr_, dl, res_, k0s)
+                        _shared_higher(tr_, dl, res_, k0s, se)
                 return True
 
-            def _shared_order2(tr_, dl, res_, k0s):
-                """A second-order subsystem beside the first-order shared law ``dl``, scored."""
+            def _shared_higher(tr_, dl, res_, k0s, se):
+                """A subsystem one order above the shared law ``dl`` (SE ``se``), scored; then
+                order 3 where order 2 fits better than order 1 and still leaves coloured
+                innovations (a chain of three hidden parts)."""
                 ch = tr_.channel
+                word = "third" if isinstance(dl, SharedLaw2) else "second"
                 try:
                     dl2 = fit_shared_order2(sys, ch, dl, y, u, Q=Q, R=R, dt=dt,
                                             x0=res_.x_filt[:, 0], k0=k0s)
                     se2 = np.inf if dl2 is None else _fit_error(dl2.model.sys, dl2.model.Q,
                                                                 dl2.model.R)
                 except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-                    notes.append(f"{ch.name}: second-order shared law failed: {e}")
+                    notes.append(f"{ch.name}: {word}-order shared law failed: {e}")
                     return
                 if dl2 is None:
-                    notes.append(f"{ch.name}: no second-order shared law (unstable, or a gain or "
+                    notes.append(f"{ch.name}: no {word}-order shared law (unstable, or a gain or "
                                  f"an interval the data do not determine)")
                     return
-                cands.append(CandidateScore(ch.name, "dynamic (sparse)", 2, se2, dl2.npar, "ok"))
-                tr2 = replace(tr_)  # its own key in ``sparse`` (the first-order law keeps tr_)
+                cands.append(CandidateScore(ch.name, "dynamic (sparse)", dl2.order, se2,
+                                            dl2.npar, "ok"))
+                tr2 = replace(tr_)  # its own key in ``sparse`` (the lower order keeps tr_)
                 sparse[id(tr2)] = dl2
                 scored.append((se2, dl2.npar, tr2, "sparse"))
+                if dl2.order >= MAX_SHARED_ORDER:
+                    return
+                if not se2 < se:
+                    notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
+                                 f"one ({se2:.3g} %) fits no better than the first ({se:.3g} %)")
+                elif _leaves_white(dl2.model, y, u, Q, R, k0, lags, alpha):
+                    notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
+                                 f"one leaves white innovations")
+                else:
+                    _shared_higher(tr2, dl2, res_, k0s, se2)
 
             def _force_along(dl, se, ch):
                 """The force traced again along a one-direction shared law's k, if that fits better.

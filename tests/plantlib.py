@@ -274,3 +274,29 @@ def thermal_chain_pair(seed, n_est=20000):
                     states=["T1", "T2", "Tm1", "Tm2"], inputs=["Q1", "Q2"],
                     outputs=["T1", "T2"], name="thermal_chain_pair_true")
     return nom, d, gb.discretize(true, 0.05)
+
+
+def thermal_chain3_pair(seed, n_est=20000):
+    """``thermal_chain_pair`` with a third hidden mass: Tm3 (8 J/K) behind Tm2, coupled to
+    it only (1.0 W/K; Tm2 then loses 2 W/K in all). One third-order hidden subsystem
+    (poles -1.525, -0.460 and -0.0401 1/s: time constants 0.656 s, 2.17 s and 24.9 s)
+    whose output Tm1 enters eq(T1) and eq(T2) along no fixed direction, as in
+    ``thermal_chain_pair``. Returns (nominal, case, true discrete model)."""
+    c1, c2, cm1, cm2, cm3 = 1.0, 2.0, 2.0, 4.0, 8.0
+    l1, l2, g1, g2, g3, g4 = 0.5, 0.4, 1.0, 0.8, 1.0, 1.0
+    A = np.array([[-l1 / c1, 0.0], [0.0, -l2 / c2]])
+    B = np.diag([1 / c1, 1 / c2])
+    nom = named_ss(A, B, np.eye(2), np.zeros((2, 2)), 0, states=["T1", "T2"],
+                   inputs=["Q1", "Q2"], outputs=["T1", "T2"], name="thermal_chain3_pair")
+    At = np.array([[-(l1 + g1) / c1, 0, g1 / c1, 0, 0], [0, -(l2 + g2) / c2, g2 / c2, 0, 0],
+                   [g1 / cm1, g2 / cm1, -(g1 + g2 + g3) / cm1, g3 / cm1, 0],
+                   [0, 0, g3 / cm2, -(g3 + g4) / cm2, g4 / cm2],
+                   [0, 0, 0, g4 / cm3, -g4 / cm3]])
+    Bt = np.vstack([B, np.zeros((3, 2))])
+    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=5, dt=0.05,
+             rng=np.random.default_rng(seed), q_std=np.array([1e-3, 1e-3]), r_std=1e-2,
+             n_est=n_est, n_val=4000, sub=2, bandwidth=0.2)
+    true = named_ss(At, Bt, np.eye(5)[:2], np.zeros((2, 2)), 0,
+                    states=["T1", "T2", "Tm1", "Tm2", "Tm3"], inputs=["Q1", "Q2"],
+                    outputs=["T1", "T2"], name="thermal_chain3_pair_true")
+    return nom, d, gb.discretize(true, 0.05)

@@ -15,8 +15,8 @@ covers every law kind. A shared-state law (:class:`~greybox.trace.dynamic.Shared
 is affine too once its scale is fixed (the reference component's gain is 1):
 its pole, the state's drivers' gains b, the other components' gains k and the
 feedthrough e each move one entry (or one outer product) of A and B. So does a
-second-order one (:class:`~greybox.trace.shared_order2.SharedLaw2`, observer
-canonical form): alpha_1, alpha_0, the numerators' beta, k and e.
+second- or third-order one (:class:`~greybox.trace.shared_order2.SharedLaw2`,
+observer canonical form): the denominator's alpha, the numerators' beta, k and e.
 """
 
 from __future__ import annotations
@@ -198,20 +198,19 @@ def _gain_params(i: int, ef: JointEffect, nf: int, m: int, state: str) -> list[_
 
 
 def _shared2_params(i: int, ef: JointEffect, nf: int, m: int) -> list[_Param]:
-    """A second-order shared law's coefficients (observer canonical form, see
-    :mod:`greybox.trace.shared_order2`): alpha_1, alpha_0, beta (one stays), k (not the
+    """An order-q shared law's coefficients (observer canonical form, see
+    :mod:`greybox.trace.shared_order2`): alpha (q), beta (one stays), k (not the
     reference's), e. Each moves one entry (or one outer product) of A and B."""
     law, base, nm = ef.law, ef.base, ef.channel.name
-    n = base.nstates
+    n, q = base.nstates, law.order
     rows = _rows_of(base)
     out = []
-    for key, (r, c), val in ((("a1",), (n, n), law.alpha[0]), (("a0",), (n + 1, n),
-                                                               law.alpha[1])):
+    for r in range(q):
         dA = np.zeros((nf, nf))
-        dA[r, c] = -1.0  # dz1/dt = -alpha_1 z1 + z2 + ..., dz2/dt = -alpha_0 z1 + ...
-        out.append(_Param(i, key, dA, np.zeros((nf, m)), float(val),
-                          f"{nm}: alpha_{key[0][1]}", False))
-    for r in (0, 1):
+        dA[n + r, n] = -1.0  # dz_1/dt = -alpha_1 z_1 + z_2 + ..., dz_q/dt = -alpha_0 z_1 + ...
+        out.append(_Param(i, ("al", r), dA, np.zeros((nf, m)), float(law.alpha[r]),
+                          f"{nm}: alpha_{q - 1 - r}", False))
+    for r in range(q):
         for q, dn in enumerate(law.drivers):
             if law.beta[r, q] == 0:
                 continue
@@ -461,7 +460,7 @@ def _kept(ef, mine, values, halves, keys):
     """A shared law's kept coefficients: ``(theta, half-widths, b drivers, e terms)``.
 
     theta and the half-widths are ordered by ``keys`` (the law problem's order); a b
-    term is ``(row, driver)`` for a second-order law (key ``("b", row, q)``), the driver
+    term is ``(row, driver)`` for an order-2 or 3 law (key ``("b", row, q)``), the driver
     for a first-order one; an e term is ``(component, driver)``.
     """
     law, base = ef.law, ef.base
@@ -499,15 +498,15 @@ def _rebuild_shared(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
 
 
 def _rebuild_shared2(ef, mine, values, halves, y, u, Q, R, dt, k0, prob):
-    """A second-order shared law's record at the jointly refitted values (dropped terms left
+    """An order-q shared law's record at the jointly refitted values (dropped terms left
     out). The coefficients' half-widths are the joint fit's; the poles' come from the law's
     own output-error Jacobian at those values (the other effects held), as
     :func:`greybox.trace.shared_order2.fit_shared_order2` gives them."""
     law, ch, base = ef.law, ef.channel, ef.base
     n = base.nstates
-    theta, half, bterms, eterms = _kept(ef, mine, values, halves, ("a1", "a0", "b", "k", "e"))
+    theta, half, bterms, eterms = _kept(ef, mine, values, halves, ("al", "b", "k", "e"))
     sprob = _Shared2Problem(base, ch, y, u, dt, _x0_of(prob, n), k0, bterms, eterms,
-                            law.reference)
+                            law.reference, order=law.order)
     r0 = sprob.resid(theta)
     jac = np.empty((r0.size, theta.size))
     for j in range(theta.size):  # forward differences, as least_squares' default

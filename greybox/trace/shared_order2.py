@@ -1,10 +1,10 @@
-"""One second-order hidden subsystem shared by several state equations.
+"""One hidden subsystem of order 2 or 3 shared by several state equations.
 
-A hidden chain of two lumped parts behind the bodies whose equations it
-enters (two thermal masses in series, a flexible part with its own mode) is
-one second-order subsystem whose output drives md >= 2 equations along no
-fixed direction. In the observer canonical form (unique for an observable
-law: the two poles and the zeros are read off it)
+A hidden chain of two or three lumped parts behind the bodies whose equations
+it enters (thermal masses in series, a flexible part with its own mode) is
+one subsystem of order q = 2 or 3 whose output drives md >= 2 equations along
+no fixed direction. In the observer canonical form (unique for an observable
+law: the poles and the zeros are read off it), for q = 2
 
 .. math::
 
@@ -14,7 +14,9 @@ law: the two poles and the zeros are read off it)
     d_c = k_c z_1 + \\sum_{i \\in S_c} e_{c,i} w_i, \\qquad k_r = 1,
     \\qquad w = [x; u],
 
-so ``z_1 = sum_i (beta_1i s + beta_0i) / (s^2 + alpha_1 s + alpha_0) w_i``.
+so ``z_1 = sum_i (beta_1i s + beta_0i) / (s^2 + alpha_1 s + alpha_0) w_i``; for
+q = 3 one more state, ``z_2' = -alpha_1 z_1 + z_3 + ...``, ``z_3' = -alpha_0 z_1 +
+...`` (denominator ``s^3 + alpha_2 s^2 + alpha_1 s + alpha_0``).
 :func:`fit_shared_order2` starts from a first-order shared law
 (:class:`~greybox.trace.dynamic.SharedLaw`) with its drivers, gains and
 feedthrough (and, from 0, the states of the channel's own equations as drivers
@@ -27,9 +29,14 @@ the bodies (driven by their states, each equation with its own state's
 feedthrough); of the fits within 1 % of the lowest output error the one with
 the fewest terms is kept (the hidden part is defined only up to
 ``z~ = z + c x_j``: two realizations of one law have different poles, and the
-sparser is the physical one). The workflow offers it beside the first-order law and
-chooses between them with the same rule as between all candidates (the fewest
-parameters within the parsimony margin of the lowest estimation SE).
+sparser is the physical one). Given a second-order law instead, it fits the
+third-order one the same way: the start multiplies the law's denominator and
+numerators by ``(s + p3)`` (an exact cancellation), a third pole five times
+slower than the slowest, between the two, or five times faster than the
+fastest. The workflow offers order 2 beside the first-order law, and order 3
+beside order 2 where order 2 still leaves coloured innovations, and chooses
+with the same rule as between all candidates (the fewest parameters within the
+parsimony margin of the lowest estimation SE).
 """
 
 from __future__ import annotations
@@ -54,47 +61,51 @@ __all__ = ["SharedLaw2", "fit_shared_order2"]
 
 @dataclass(frozen=True)
 class SharedLaw2:
-    """One second-order subsystem shared by the md components of a channel (module docstring).
+    """One subsystem of order 2 or 3 shared by the md components of a channel (module
+    docstring). The name says "more than one state"; ``order`` says how many.
 
     Attributes
     ----------
     order : int
-        2.
-    poles : ndarray, shape (2,)
-        Poles of the subsystem [1/s] (complex for an oscillating mode).
-    pole_ci : ndarray, shape (2,)
-        95 % half-widths of the two real poles, or of (real part, imaginary
-        part) of a complex pair [1/s].
-    taus : ndarray, shape (2,)
+        q, 2 or 3.
+    poles : ndarray, shape (q,)
+        Poles of the subsystem [1/s] (complex pairs for an oscillating mode),
+        real poles slowest first, then the complex pairs.
+    pole_ci : ndarray, shape (q,)
+        95 % half-widths of each real pole, and of (real part, imaginary
+        part) of each complex pair, in the order of ``poles`` [1/s].
+    taus : ndarray, shape (q,)
         Time constants -1/p [s] of real poles (NaN for a complex pair).
-    alpha : ndarray, shape (2,)
-        (alpha_1, alpha_0): the denominator ``s^2 + alpha_1 s + alpha_0``.
+    alpha : ndarray, shape (q,)
+        The denominator's coefficients, highest power first without the
+        leading 1: (alpha_1, alpha_0) for ``s^2 + alpha_1 s + alpha_0``.
     states : tuple of str
-        Names of the two law states (``z[0]``, ``z[1]``); ``z[0]`` has the
+        Names of the q law states (``z[0]``, ``z[1]``, ...); ``z[0]`` has the
         units of the reference component's d.
     drivers : tuple of str
         Names of the signals driving the subsystem.
-    beta : ndarray, shape (2, len(drivers))
-        Numerator gains (beta_1, beta_0) per driver (0 where dropped).
+    beta : ndarray, shape (q, len(drivers))
+        Numerator gains per driver, highest power of s first ((beta_1,
+        beta_0) for q = 2; 0 where dropped).
     k : ndarray, shape (md,)
         Gain of ``z[0]`` in each component (``k[reference] = 1``).
     reference : int
         The component whose gain is fixed to 1.
     feedthrough : tuple of (int, str, float)
         Feedthrough terms ``(component, driver name, e_{c,i})``.
-    Bz : ndarray, shape (2, nstates + ninputs)
+    Bz : ndarray, shape (q, nstates + ninputs)
         The subsystem's input rows over ``[x; u]``.
     E : ndarray, shape (md, nstates + ninputs)
         Feedthrough over ``[x; u]``: ``d = k z_1 + E @ w``.
     ci : ndarray, shape (npar,)
-        95 % half-widths of (alpha_1, alpha_0, beta terms, k without the
-        reference, e) in that order.
+        95 % half-widths of (alpha, beta terms, k without the reference, e)
+        in that order.
     npar : int
         Number of coefficients.
     formula : str
         Readable law with intervals, poles and time constants.
     model : UpdatedModel
-        The nominal model augmented with the two states, discretized exactly.
+        The nominal model augmented with the q states, discretized exactly.
     se_estimation : float
         SE [%] of the augmented model on the output-error window.
     continuous : control.StateSpace
@@ -108,7 +119,7 @@ class SharedLaw2:
     pole_ci: NDArray[np.float64]
     taus: NDArray[np.float64]
     alpha: NDArray[np.float64]
-    states: tuple[str, str]
+    states: tuple[str, ...]
     drivers: tuple[str, ...]
     beta: NDArray[np.float64]
     k: NDArray[np.float64]
@@ -130,21 +141,30 @@ class SharedLaw2:
         ``z`` starts at 0 and follows the ZOH-discretized subsystem.
         """
         w = np.vstack([x, u])
-        Az = np.array([[-self.alpha[0], 1.0], [-self.alpha[1], 0.0]])
-        Phi, Gam = zoh(Az, np.eye(2), self.dt)
-        z = lti_states(Phi, Gam @ (self.Bz @ w), np.zeros(2))
+        q = self.alpha.size
+        Phi, Gam = zoh(_companion(self.alpha), np.eye(q), self.dt)
+        z = lti_states(Phi, Gam @ (self.Bz @ w), np.zeros(q))
         return self.k[:, None] * z[0][None, :] + self.E @ w
 
 
-class _Problem:
-    """Output error on y of ``[x; z1; z2]`` with the law folded in continuous time.
+def _companion(alpha):
+    """The subsystem's A in observer canonical form: first column -alpha, ones above."""
+    q = alpha.size
+    Az = np.eye(q, k=1)
+    Az[:, 0] = -np.asarray(alpha, dtype=float)
+    return Az
 
-    ``theta = (alpha_1, alpha_0, beta over bterms, k without the reference, e over
-    eterms)``; ``bterms`` are pairs (row 0 for beta_1 or 1 for beta_0, driver),
-    ``eterms`` pairs (component, driver).
+
+class _Problem:
+    """Output error on y of ``[x; z_1 .. z_q]`` with the law folded in continuous time.
+
+    ``theta = (alpha (q), beta over bterms, k without the reference, e over
+    eterms)``; ``bterms`` are pairs (row r, driver), row r of ``Bz`` the
+    numerator coefficient of ``s^(q-1-r)``; ``eterms`` pairs (component, driver).
     """
 
-    def __init__(self, sys, channel, y, u, dt, x0, k0, bterms, eterms, ref):
+    def __init__(self, sys, channel, y, u, dt, x0, k0, bterms, eterms, ref, order=2):
+        self.q = int(order)
         self.Ac, self.Bc = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
         self.C, self.D = np.asarray(sys.C, dtype=float), np.asarray(sys.D, dtype=float)
         self.G = np.asarray(channel.G, dtype=float)
@@ -152,23 +172,23 @@ class _Problem:
             self.G.shape[1], dt, ref
         win = oe_window(y.shape[0])
         self.y, self.u, self.k0 = y[:, :k0 + win], u[:, :k0 + win], k0
-        self.x0 = np.r_[x0, 0.0, 0.0]
+        self.x0 = np.r_[x0, np.zeros(self.q)]
         self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
         self.bterms, self.eterms = list(bterms), list(eterms)
         self.Wb = driver_weights([dv for _, dv in self.bterms], self.n, self.m)
         self.We = driver_weights([dv for _, dv in self.eterms], self.n, self.m)
-        self.Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 2))])
+        self.Ca = np.hstack([self.C, np.zeros((self.C.shape[0], self.q))])
 
     def split(self, theta):
-        """(alpha (2,), beta values, k with the reference's 1, e values)."""
-        nb, md = len(self.bterms), self.md
-        k = np.insert(theta[2 + nb:1 + nb + md], self.ref, 1.0)
-        return theta[:2], theta[2:2 + nb], k, theta[1 + nb + md:]
+        """(alpha (q,), beta values, k with the reference's 1, e values)."""
+        nb, md, q = len(self.bterms), self.md, self.q
+        k = np.insert(theta[q + nb:q - 1 + nb + md], self.ref, 1.0)
+        return theta[:q], theta[q:q + nb], k, theta[q - 1 + nb + md:]
 
     def rows(self, theta):
-        """(Bz (2, n + m), E (md, n + m)) at ``theta``."""
+        """(Bz (q, n + m), E (md, n + m)) at ``theta``."""
         _, beta, _, e = self.split(theta)
-        Bz = np.zeros((2, self.n + self.m))
+        Bz = np.zeros((self.q, self.n + self.m))
         for (r, _), bv, wq in zip(self.bterms, beta, self.Wb):
             Bz[r] += bv * wq
         E = np.zeros((self.md, self.n + self.m))
@@ -177,14 +197,14 @@ class _Problem:
         return Bz, E
 
     def cont(self, theta):
-        n = self.n
+        n, q = self.n, self.q
         alpha, _, k, _ = self.split(theta)
         Bz, E = self.rows(theta)
-        A = np.zeros((n + 2, n + 2))
+        A = np.zeros((n + q, n + q))
         A[:n, :n] = self.Ac + self.G @ E[:, :n]
         A[:n, n] = self.G @ k
         A[n:, :n] = Bz[:, :n]
-        A[n, n], A[n, n + 1], A[n + 1, n] = -alpha[0], 1.0, -alpha[1]
+        A[n:, n:] = _companion(alpha)
         B = np.vstack([self.Bc + self.G @ E[:, n:], Bz[:, n:]])
         return A, B
 
@@ -200,17 +220,20 @@ class _Problem:
 
     def halfwidths(self, sol, Q, R, jac=None):
         n = self.n
-        Qa = np.zeros((n + 2, n + 2))
+        Qa = np.zeros((n + self.q, n + self.q))
         Qa[:n, :n] = Q
         s = sol if jac is None else SimpleNamespace(jac=jac, fun=sol.fun, x=sol.x)
         Ad = zoh(*self.cont(sol.x), self.dt)[0]
         return robust_halfwidths(s, self.y.shape[0], Ad, self.Ca, self.scale, self.k0, Qa, R)
 
 
-def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw, y: NDArray,
-                      u: NDArray, *, Q: NDArray, R: NDArray, dt: float, x0: NDArray,
-                      k0: int) -> SharedLaw2 | None:
-    """Fit one second-order subsystem shared by an md >= 2 channel, from its first-order law.
+def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw | SharedLaw2,
+                      y: NDArray, u: NDArray, *, Q: NDArray, R: NDArray, dt: float,
+                      x0: NDArray, k0: int) -> SharedLaw2 | None:
+    """Fit one subsystem one order above ``law`` shared by an md >= 2 channel.
+
+    Order 2 from a first-order shared law, order 3 from a second-order one
+    (module docstring).
 
     Parameters
     ----------
@@ -218,9 +241,9 @@ def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw, y: N
         Continuous nominal model.
     channel : Channel
         The channel of ``law`` (md >= 2).
-    law : SharedLaw
-        The first-order shared law of the channel (drivers, gains, feedthrough
-        and pole of the start).
+    law : SharedLaw or SharedLaw2
+        The channel's shared law one order below (drivers, gains, feedthrough
+        and poles of the start); a SharedLaw2 of order 3 gives None.
     y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
         The whole estimation record.
     Q, R : ndarray
@@ -235,10 +258,12 @@ def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw, y: N
     Returns
     -------
     SharedLaw2 or None
-        None when no stable second-order law with determined gains is found.
+        None when no stable law with determined gains is found.
     """
     if channel.md < 2 or law.k.size != channel.md:
         return None
+    if isinstance(law, SharedLaw2):
+        return _order3(sys, channel, law, y, u, Q, R, dt, x0, k0) if law.order == 2 else None
     states, inputs = list(sys.state_labels), list(sys.input_labels)
 
     def drv(name):
@@ -280,140 +305,217 @@ def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw, y: N
             step = _gauss_newton_step(prob, th, idx)
             if step is not None:
                 fits.append(_drop_weak(*args, ob, oe, law.reference, step[1]))
-        fits = [f for f in fits if f is not None]
-        if not fits:
-            return None
-        # the fewest terms among the fits within 1 % of the lowest output error: the
-        # hidden part is defined up to z~ = z + c x_j (x_j's equation is known), and two
-        # starts can end in two realizations of one law, with different poles; the
-        # sparser is the physical one (the rule of the first-order shared law)
-        rss = [float(np.sum(f[1].fun ** 2)) for f in fits]
-        lo = min(rss)
-        prob, sol, hw = min((f for f, r in zip(fits, rss) if r <= 1.01**2 * lo),
-                            key=lambda f: (f[1].x.size, float(np.sum(f[1].fun ** 2))))
-        return _law_from(sys, channel, prob, sol, hw, Q, R)
+    return _sparsest(sys, channel, fits, Q, R)
 
 
-def _drop_weak(sys, channel, y, u, Q, R, dt, x0, k0, bterms, eterms, ref, theta0):
+def _sparsest(sys, channel, fits, Q, R):
+    """The record of the fewest terms among the fits within 1 % of the lowest output error.
+
+    The hidden part is defined up to z~ = z + c x_j (x_j's equation is known), and
+    two starts can end in two realizations of one law, with different poles; the
+    sparser is the physical one (the rule of the first-order shared law).
+    """
+    fits = [f for f in fits if f is not None]
+    if not fits:
+        return None
+    rss = [float(np.sum(f[1].fun ** 2)) for f in fits]
+    lo = min(rss)
+    prob, sol, hw = min((f for f, r in zip(fits, rss) if r <= 1.01**2 * lo),
+                        key=lambda f: (f[1].x.size, float(np.sum(f[1].fun ** 2))))
+    return _law_from(sys, channel, prob, sol, hw, Q, R)
+
+
+def _order3(sys, channel, law, y, u, Q, R, dt, x0, k0):
+    """The third-order law from the second-order ``law``: its denominator and numerators
+    times ``(s + p3)`` (an exact cancellation: the start is ``law``), p3 five times slower
+    than the slowest pole, between the two (geometric mean) or five times faster than the
+    fastest; every numerator row of every driver free from the start, then pruned. At
+    each p3 also the template of a hidden chain touching the bodies (as for order 2):
+    driven by the channel's own states, each component with its own state's feedthrough,
+    numerators and feedthrough from one Gauss-Newton step at the start poles (the
+    second-order law may have taken a proxy driver, an input for a state)."""
+    states, inputs = list(sys.state_labels), list(sys.input_labels)
+
+    def drv(name):
+        return ("x", states.index(name)) if name in states else ("u", inputs.index(name))
+
+    dl = [drv(nm) for nm in law.drivers]
+    own = [drv(e) for e in channel.equations if e in states]
+    eterms = [(c, drv(nm)) for c, nm, _ in law.feedthrough]
+    ee = [v for _, _, v in law.feedthrough]
+    kk = np.delete(law.k, law.reference)
+    mag = np.abs(law.poles.real)
+    bterms = [(r, dv) for r in range(3) for dv in dl]
+    args = (sys, channel, y, u, Q, R, dt, x0, k0)
+    fits = []
+    with single_thread_blas():
+        for p3 in (0.2 * mag.min(), float(np.sqrt(mag.min() * mag.max())), 5.0 * mag.max()):
+            alpha = np.convolve(np.r_[1.0, law.alpha], [1.0, p3])[1:]
+            num = np.array([np.convolve(law.beta[:, j], [1.0, p3]) for j in range(len(dl))])
+            theta0 = np.r_[alpha, num.T.ravel(), kk, ee]
+            fits.append(_drop_weak(*args, bterms, eterms, law.reference, theta0, order=3))
+            if len(own) != channel.md or set(own) == set(dl):
+                continue
+            ob = [(r, dv) for r in range(3) for dv in own]
+            oe = list(enumerate(own))
+            th = np.r_[alpha, np.zeros(len(ob)), kk, np.zeros(len(oe))]
+            prob = _Problem(sys, channel, y, u, dt, x0, k0, ob, oe, law.reference, order=3)
+            idx = list(range(3, 3 + len(ob))) + list(range(th.size - len(oe), th.size))
+            step = _gauss_newton_step(prob, th, idx)
+            if step is not None:
+                fits.append(_drop_weak(*args, ob, oe, law.reference, step[1], order=3))
+    return _sparsest(sys, channel, fits, Q, R)
+
+
+def _drop_weak(sys, channel, y, u, Q, R, dt, x0, k0, bterms, eterms, ref, theta0, order=2):
     """Fit; drop the term whose interval contains 0 by the widest margin; repeat.
 
     ``(problem, solution, half-widths)``, or None when the law is unstable,
     its intervals undefined, or a component's gain k_c is not told from 0.
     """
-    md = channel.G.shape[1]
+    md, q = channel.G.shape[1], order
     while True:
-        prob = _Problem(sys, channel, y, u, dt, x0, k0, bterms, eterms, ref)
+        prob = _Problem(sys, channel, y, u, dt, x0, k0, bterms, eterms, ref, order=q)
         sol = prob.fit(theta0)
-        if not (sol.x[0] > 0 and sol.x[1] > 0):  # both poles in the left half-plane
+        if not np.max(np.roots(np.r_[1.0, sol.x[:q]]).real) < 0:  # every pole stable
             return None
         hw = prob.halfwidths(sol, Q, R)
         if not np.all(np.isfinite(hw)):
             return None
         nb = len(bterms)
         # beta terms (while the subsystem keeps one) and feedthrough terms; k stays
-        idx = ([2 + q for q in range(nb)] if nb > 1 else []) + \
-            list(range(1 + nb + md, sol.x.size))
+        idx = ([q + j for j in range(nb)] if nb > 1 else []) + \
+            list(range(q - 1 + nb + md, sol.x.size))
         weak = [i for i in idx if abs(sol.x[i]) < hw[i]]
         if not weak:
             break
         i = min(weak, key=lambda i: abs(sol.x[i]) / hw[i])
-        if i < 2 + nb:
-            bterms = bterms[:i - 2] + bterms[i - 1:]
+        if i < q + nb:
+            bterms = bterms[:i - q] + bterms[i - q + 1:]
         else:
-            q = i - (1 + nb + md)
-            eterms = eterms[:q] + eterms[q + 1:]
+            j = i - (q - 1 + nb + md)
+            eterms = eterms[:j] + eterms[j + 1:]
         theta0 = np.delete(sol.x, i)
     # unstable through the loop x -> z -> x: no law (as for the first-order shared law)
     lam0 = float(np.max(np.linalg.eigvals(prob.Ac).real, initial=0.0))
     if np.max(np.linalg.eigvals(prob.cont(sol.x)[0]).real) > lam0 + 1e-9 * (1 + abs(lam0)):
         return None
     nb = len(prob.bterms)
-    k, hk = prob.split(sol.x)[2], np.insert(hw[2 + nb:1 + nb + md], ref, 0.0)
+    k, hk = prob.split(sol.x)[2], np.insert(hw[q + nb:q - 1 + nb + md], ref, 0.0)
     if np.any(np.abs(k) < hk):
         return None
     return prob, sol, hw
 
 
+def _pole_coords(alpha):
+    """(poles, phi): real poles slowest first, then each complex pair (upper one first);
+    phi the real coordinates: each real pole, then (real part, imaginary part) per pair."""
+    p = np.roots(np.r_[1.0, np.asarray(alpha, dtype=float)])
+    tol = 1e-9 * (1.0 + np.abs(p))
+    real = np.sort(p[np.abs(p.imag) <= tol].real)[::-1]
+    upper = sorted(p[p.imag > tol], key=lambda z: -z.real)
+    poles = np.r_[real.astype(complex), [z for c in upper for z in (c, np.conj(c))]]
+    phi = np.r_[real, [v for c in upper for v in (c.real, c.imag)]]
+    return (poles.real if not upper else poles), phi, real.size
+
+
+def _alpha_of(phi, nreal):
+    """The denominator's coefficients (without the leading 1) of the pole coordinates."""
+    pairs = [complex(a, b) for a, b in zip(phi[nreal::2], phi[nreal + 1::2])]
+    roots = list(phi[:nreal]) + pairs + [np.conj(c) for c in pairs]
+    return np.real(np.poly(roots))[1:]
+
+
 def _pole_halfwidths(prob, sol, Q, R):
-    """(poles, 95 % half-widths of the real poles or of (re, im) of a complex pair).
+    """(poles, 95 % half-widths of each real pole and of (re, im) of each complex pair).
 
-    The Jacobian in (alpha_1, alpha_0) is carried to the poles by the chain
-    rule: ``alpha_1 = -(p1 + p2), alpha_0 = p1 p2`` (real) or ``alpha_1 = -2 s,
-    alpha_0 = s^2 + w^2`` for ``p = s +- j w``.
+    The Jacobian in alpha is carried to the pole coordinates by the chain rule,
+    d alpha / d phi by central differences of the polynomial's coefficients
+    (for two real poles ``[[-1, -1], [p2, p1]]``).
     """
-    a1, a0 = sol.x[:2]
-    disc = a1 * a1 - 4.0 * a0
-    if disc > 0:
-        r = np.sqrt(disc)
-        p = np.array([(-a1 + r) / 2, (-a1 - r) / 2])  # slow pole first
-        M = np.array([[-1.0, -1.0], [p[1], p[0]]])
-    else:
-        s, w = -a1 / 2, np.sqrt(max(-disc, 0.0)) / 2
-        p = np.array([s + 1j * w, s - 1j * w])
-        M = np.array([[-2.0, 0.0], [2 * s, 2 * w]])
+    q = prob.q
+    poles, phi, nreal = _pole_coords(sol.x[:q])
+    M = np.empty((q, q))
+    for j in range(q):
+        h = 1e-6 * max(1.0, abs(phi[j]))
+        e = np.zeros(q)
+        e[j] = h
+        M[:, j] = (_alpha_of(phi + e, nreal) - _alpha_of(phi - e, nreal)) / (2 * h)
     jac = np.array(sol.jac, dtype=float, copy=True)
-    jac[:, :2] = jac[:, :2] @ M
-    hp = prob.halfwidths(sol, Q, R, jac=jac)[:2]
-    return p, hp
+    jac[:, :q] = jac[:, :q] @ M
+    hp = prob.halfwidths(sol, Q, R, jac=jac)[:q]
+    return poles, hp
 
 
-def _z_names(sys) -> tuple[str, str]:
-    """Names of the two law states: the first two free ``z[k]``."""
-    return tuple(free_state_names(sys.state_labels, 2))
+def _z_names(sys, q=2) -> tuple[str, ...]:
+    """Names of the q law states: the first q free ``z[k]``."""
+    return tuple(free_state_names(sys.state_labels, q))
+
+
+def _and(items):
+    """``a``, ``a and b``, ``a, b and c``."""
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
 def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
     """The SharedLaw2 record at the solution ``sol`` with half-widths ``hw``."""
-    md, dt = prob.md, prob.dt
+    md, dt, q = prob.md, prob.dt, prob.q
     theta = sol.x
     alpha, beta, k, e = prob.split(theta)
     nb = len(prob.bterms)
-    hb = hw[2:2 + nb]
-    hk = np.insert(hw[2 + nb:1 + nb + md], prob.ref, np.nan)
-    he = hw[1 + nb + md:]
+    hb = hw[q:q + nb]
+    hk = np.insert(hw[q + nb:q - 1 + nb + md], prob.ref, np.nan)
+    he = hw[q - 1 + nb + md:]
     poles, hp = _pole_halfwidths(prob, sol, Q, R)
     r = prob.resid(theta).reshape(prob.y.shape[0], -1)
     se = float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
-    z0, z1 = _z_names(sys)
-    lines, unit = _component_lines(sys, channel, prob.ref, z0, k, hk, prob.eterms, e, he)
+    zn = _z_names(sys, q)
+    lines, unit = _component_lines(sys, channel, prob.ref, zn[0], k, hk, prob.eterms, e, he)
     dnames, dlist = [], []
     for _, dv in prob.bterms:
         if dv not in dlist:
             dlist.append(dv)
             dnames.append(_driver_name(sys, dv))
-    B2 = np.zeros((2, len(dlist)))
-    H2 = np.full((2, len(dlist)), np.nan)
+    Bq = np.zeros((q, len(dlist)))
+    Hq = np.full((q, len(dlist)), np.nan)
     for (row, dv), bv, hv in zip(prob.bterms, beta, hb):
-        B2[row, dlist.index(dv)], H2[row, dlist.index(dv)] = bv, hv
-    den = f"(s^2 + {alpha[0]:.3g} s + {alpha[1]:.3g})"
+        Bq[row, dlist.index(dv)], Hq[row, dlist.index(dv)] = bv, hv
+
+    def power(r):
+        return {0: "", 1: " s"}.get(r, f" s^{r}")
+
+    den = "(s^" + str(q) + "".join(f" + {alpha[r]:.3g}{power(q - 1 - r)}" for r in range(q)) + ")"
     zparts = []
-    for q, nm in enumerate(dnames):
-        num = [f"{_pm(B2[0, q], H2[0, q])} s" if B2[0, q] != 0 else "",
-               _pm(B2[1, q], H2[1, q]) if B2[1, q] != 0 else ""]
-        zparts.append(f"({' + '.join(s for s in num if s)})/{den}*{nm}")
-    formula = "; ".join(lines) + f"; {z0} = " + " + ".join(zparts) + unit(prob.ref)
-    taus = np.full(2, np.nan)
-    if np.all(np.isreal(poles)):
-        pr = poles.real
-        taus = -1.0 / pr
-        desc = []
-        for p, h in zip(pr, hp):
-            lo, hi = -p - h, -p + h
-            span = (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if np.isfinite(h) and lo > 0
-                    else " (not determined by the data)")
-            desc.append(f"{-1 / p:.3g} s{span}")
-        formula += (f", poles {_pm(pr[0], hp[0])} and {_pm(pr[1], hp[1])} 1/s, time constants "
-                    f"{desc[0]} and {desc[1]}")
-    else:
-        formula += (f", poles ({_pm(poles[0].real, hp[0])}) ± j({_pm(poles[0].imag, hp[1])}) "
-                    f"1/s (natural frequency {abs(poles[0]):.3g} rad/s, damping "
-                    f"{-poles[0].real / abs(poles[0]):.3g})")
-    formula += f" (one second-order subsystem shared by {', '.join(channel.labels)})"
-    model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, [z0, z1])
+    for j, nm in enumerate(dnames):
+        num = [f"{_pm(Bq[r, j], Hq[r, j])}{power(q - 1 - r)}" for r in range(q) if Bq[r, j] != 0]
+        zparts.append(f"({' + '.join(num)})/{den}*{nm}")
+    formula = "; ".join(lines) + f"; {zn[0]} = " + " + ".join(zparts) + unit(prob.ref)
+    taus = np.full(q, np.nan)
+    nreal = int(np.sum(np.isreal(poles)))
+    pr = poles[:nreal].real
+    taus[:nreal] = -1.0 / pr
+    desc = []
+    for p, h in zip(pr, hp[:nreal]):
+        lo, hi = -p - h, -p + h
+        span = (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if np.isfinite(h) and lo > 0
+                else " (not determined by the data)")
+        desc.append(f"{-1 / p:.3g} s{span}")
+    parts = []
+    if nreal:
+        parts.append(f"{_and([_pm(p, h) for p, h in zip(pr, hp[:nreal])])} 1/s, time "
+                     f"constant{'s' if nreal > 1 else ''} {_and(desc)}")
+    for c in range(nreal, q, 2):
+        pc = poles[c]
+        parts.append(f"({_pm(pc.real, hp[c])}) ± j({_pm(pc.imag, hp[c + 1])}) 1/s (natural "
+                     f"frequency {abs(pc):.3g} rad/s, damping {-pc.real / abs(pc):.3g})")
+    formula += ", poles " + " and ".join(parts)
+    formula += (f" (one {'second' if q == 2 else 'third'}-order subsystem shared by "
+                f"{', '.join(channel.labels)})")
+    model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, list(zn))
     Bz, E = prob.rows(theta)
     feed = tuple((int(c), _driver_name(sys, dv), float(ec)) for (c, dv), ec in zip(prob.eterms, e))
-    return SharedLaw2(order=2, poles=poles, pole_ci=np.asarray(hp), taus=taus,
-                      alpha=np.array(alpha), states=(z0, z1), drivers=tuple(dnames), beta=B2,
+    return SharedLaw2(order=q, poles=poles, pole_ci=np.asarray(hp), taus=taus,
+                      alpha=np.array(alpha), states=zn, drivers=tuple(dnames), beta=Bq,
                       k=np.array(k), reference=prob.ref, feedthrough=feed, Bz=Bz, E=E,
                       ci=np.asarray(hw), npar=int(theta.size), formula=formula, model=model,
                       se_estimation=se, continuous=cont, dt=dt)
