@@ -1,7 +1,7 @@
 """What the trace names over seeds on the issue-8 plants whose tests run one or two seeds.
 
 ``python bench/trace_seeds.py [lag_spring|maxwell|thermal|thermal_three|thermal_row|
-thermal_row_ok|thermal_chain|
+thermal_row_ok|thermal_chain|thermal_chain3|
 thermal_three_half] [seed ...]`` (default: all, seeds 0-4). Prints, per seed, the effects
 found with their laws, the validation SE after and the true model's SE. The plants are
 the tests' own (``tests/test_trace_scale.py::_lag_and_spring``,
@@ -17,6 +17,8 @@ SCREEN_ABOVE; ``tests/test_trace_shared_group.py``) and ``thermal_row_ok`` (the 
 without the hidden mass: the model is right and must stay unchanged); ``thermal_chain``
 (``plantlib.thermal_chain_pair``: a hidden chain of two masses behind the pair, one
 second-order subsystem shared by eq(T1) and eq(T2); ``tests/test_trace_shared_order2.py``);
+``thermal_chain3`` (``plantlib.thermal_chain3_pair``: a chain of three, one third-order
+subsystem; ``tests/test_trace_shared_order3.py``);
 ``thermal_three_half`` (``thermal_three`` at N = 1e4).
 Each row also
 prints the time and the load average.
@@ -36,7 +38,8 @@ import numpy as np  # noqa: E402
 import greybox as gb  # noqa: E402
 from test_trace_scale import _lag_and_spring  # noqa: E402
 from test_trace_shared import _maxwell  # noqa: E402
-from plantlib import thermal_chain_pair, thermal_pair, thermal_row, thermal_three  # noqa: E402
+from plantlib import thermal_chain3_pair, thermal_chain_pair, thermal_pair, thermal_row, \
+    thermal_three  # noqa: E402
 
 
 def _with_floor(plant, **kw):
@@ -55,6 +58,7 @@ CASES = {"lag_spring": _lag_and_spring, "maxwell": _maxwell, "thermal": _with_fl
          "thermal_three": _with_floor(thermal_three), "thermal_row": _with_floor(thermal_row),
          "thermal_row_ok": _with_floor(thermal_row, hidden=()),
          "thermal_chain": _with_floor(thermal_chain_pair),
+         "thermal_chain3": _with_floor(thermal_chain3_pair),
          "thermal_three_half": _with_floor(thermal_three, n_est=10000)}
 
 

@@ -282,7 +282,9 @@ class LoopReport:
     nonlinear : greybox.NonlinearUpdate or None
         Set when the updated model is nonlinear (a nonlinear nominal model,
         or a nonlinear law): the ``NonlinearIOSystem`` that the "updated"
-        row simulates and its linearization at a stated operating point.
+        row simulates and its linearization at a stated operating point. The
+        row of a nonlinear law starts from
+        ``estimate_initial_state(model.sys, y_val, u_val, slow_modes=False)``.
     """
 
     model_error_detected: bool
