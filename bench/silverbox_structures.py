@@ -173,22 +173,33 @@ def simulate(name, p, src, y, k0, k1):
 
 
 def _mode(p, uq, y, k0, k1):
+    """RK4 of the Duffing ODE with one more real mode: z' = -a z + y, v' += h z."""
     h = DT / 2
-    x = np.array([y[k0], (y[k0 + 1] - y[k0 - 1]) / (2 * DT), 0.0])
-
-    def f(x, u):
-        return np.array([x[1], _duffing(x[0], x[1], u, p) + p[6] * x[2], -p[5] * x[2] + x[0]])
+    a, g = float(p[5]), float(p[6])
+    held = getattr(uq, "held", False)
+    yy, vv, zz = float(y[k0]), float((y[k0 + 1] - y[k0 - 1]) / (2 * DT)), 0.0
     out = np.empty(k1 - k0)
     for j in range(k0, k1):
-        out[j - k0] = x[0]
+        out[j - k0] = yy
         for s in range(2):
             q = 4 * j + 2 * s
-            a1 = f(x, uq[q])
-            a2 = f(x + h / 2 * a1, uq[q + 1])
-            a3 = f(x + h / 2 * a2, uq[q + 1])
-            a4 = f(x + h * a3, uq[q + 2])
-            x = x + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
-        if not abs(x[0]) < 1e3:
+            us = (float(uq[4 * j]),) * 3 if held else (float(uq[q]), float(uq[q + 1]),
+                                                       float(uq[q + 2]))
+            a1 = _duffing(yy, vv, us[0], p) + g * zz
+            b1 = -a * zz + yy
+            y2, v2, z2 = yy + h / 2 * vv, vv + h / 2 * a1, zz + h / 2 * b1
+            a2 = _duffing(y2, v2, us[1], p) + g * z2
+            b2 = -a * z2 + y2
+            y3, v3, z3 = yy + h / 2 * v2, vv + h / 2 * a2, zz + h / 2 * b2
+            a3 = _duffing(y3, v3, us[1], p) + g * z3
+            b3 = -a * z3 + y3
+            y4, v4, z4 = yy + h * v3, vv + h * a3, zz + h * b3
+            a4 = _duffing(y4, v4, us[2], p) + g * z4
+            b4 = -a * z4 + y4
+            yy += h / 6 * (vv + 2 * v2 + 2 * v3 + v4)
+            vv += h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
+            zz += h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
+        if not abs(yy) < 1e3:
             out[j - k0 + 1:] = 1e3
             break
     return out
