@@ -159,7 +159,9 @@ def zoh_equivalent_input(sys: ct.StateSpace, u, dt: float) -> NDArray[np.float64
     sum_i |Hd_ij|^2`` (``Hc`` the continuous, ``Hd`` the ZOH frequency
     response on the DFT grid; exact when ``sys`` has one output, a least
     squares match over the outputs otherwise). The DC gain is 1 (a constant
-    input is held exactly), so offsets pass through unchanged.
+    input is held exactly), so offsets pass through unchanged. An input that
+    IS held between samples (a digital controller's DAC output) needs nothing:
+    the ZOH model is exact for it.
 
     The record is treated as one period (DFT): the first and last samples of
     a non-periodic record carry a short wrap-around transient, to be
