@@ -176,11 +176,12 @@ def silverbox():
                                        x_scale="jac").x
     f, Py = welch(y[40650:127400], 1 / dt, nperseg=4096)
     R = np.array([[Py[(f > 210) & (f < 260)].mean() * f[-1]]])
-    return nominal((w2, c_d, b_in)), y, u_eq - off, np.diag([0.0, 1e-3]), R, dt
+    return (nominal((w2, c_d, b_in)), y, u_eq - off, np.diag([0.0, 1e-3]), R, dt,
+            u_mid - off)
 
 
 def test_silverbox_cubic_stiffness_is_in_the_velocity_equation(silverbox):
-    sys, y, u, Q, R, dt = silverbox
+    sys, y, u, Q, R, dt, _ = silverbox
     est, val = slice(40650, 48650), slice(49050, 57050)
     rep = gb.close_the_loop(sys, y[None, est], u[None, est], y[None, val], u[None, val],
                             Q=Q, R=R, dt=dt, max_order=1, delta=False)
@@ -217,6 +218,21 @@ def test_silverbox_cubic_stiffness_is_in_the_velocity_equation(silverbox):
     y_arrow = simulate_with_law(res.sys, res.G, law, u[None, k:32100], x0)[0, 100 - k:]
     rms = float(np.sqrt(np.mean((y[100:32100] - y_arrow) ** 2)))
     assert rms < 0.5e-3, rms
+    # the final model's residuals no longer correlate with the input (0.75x the 99 % band)
+    assert not any("correlate with input" in n for n in rep.notes), rep.notes
+
+
+def test_silverbox_midpoint_held_input_is_flagged(silverbox):
+    """The same nominal fed the midpoint held instead of the ZOH equivalent: the law still
+    takes y^3, but the updated model's residuals correlate with u (16x the band, measured)
+    and the report says how the input may be fed."""
+    sys, y, _, Q, R, dt, u_mid = silverbox
+    est, val = slice(40650, 48650), slice(49050, 57050)
+    rep = gb.close_the_loop(sys, y[None, est], u_mid[None, est], y[None, val],
+                            u_mid[None, val], Q=Q, R=R, dt=dt, max_order=1, delta=False)
+    assert rep.updated and rep.effect.equations == ("v",), rep.message
+    note = [n for n in rep.notes if "correlate with input u" in n]
+    assert len(note) == 1 and "zoh_equivalent_input" in note[0], rep.notes
 
 
 def test_close_the_loop_parallel_row_is_no_worse_than_the_nominal(emps):

@@ -108,3 +108,24 @@ def test_bad_inputs_are_refused():
         gb.zoh_equivalent_input(sys, np.zeros((2, 100)), DT)
     with pytest.raises(gb.GreyboxError, match="dt"):
         gb.zoh_equivalent_input(sys, np.zeros((1, 100)), -1.0)
+
+
+def test_input_correlation_note_threshold():
+    """close_the_loop's note on residuals that correlate with an input (workflow._loop)."""
+    from types import SimpleNamespace
+
+    from greybox.workflow import INPUT_CORR_NOTE, _input_correlation_note
+    band = 0.02
+    assert INPUT_CORR_NOTE < 7
+    xc = np.zeros((2, 1, 41))
+    xc[1, 0, 7] = -0.14                                  # input u2, output y: 7x the band
+    note = _input_correlation_note(SimpleNamespace(crosscorr=xc, band=band), ("u1", "u2"), ("y",))
+    assert note is not None and "input u2 (output y: max |r| 0.14, 7x" in note
+    assert "zoh_equivalent_input" in note and "closed-loop" in note
+    xc[1, 0, 7] = -(INPUT_CORR_NOTE - 0.5) * band      # below the threshold
+    assert _input_correlation_note(SimpleNamespace(crosscorr=xc, band=band), ("u1", "u2"),
+                                   ("y",)) is None
+    xc[0, 0, 0] = np.nan                                 # an undefined correlation: no note
+    xc[1, 0, 7] = 10 * band
+    assert _input_correlation_note(SimpleNamespace(crosscorr=xc, band=band), ("u1", "u2"),
+                                   ("y",)) is None
