@@ -1342,7 +1342,7 @@ def _channels_for(sys: ct.StateSpace, spec, physical, n0: int):
 
 
 #: The final model's one-step residuals correlating with an input beyond this many times
-#: the 99 % band get a note (Silverbox, validation record: 16x with the input midpoint
+#: the 99 % band get a note (Silverbox, validation record: 16.5x with the input midpoint
 #: held, 0.75x with its ZOH equivalent; issue 12).
 INPUT_CORR_NOTE = 5.0
 

@@ -224,7 +224,7 @@ def test_silverbox_cubic_stiffness_is_in_the_velocity_equation(silverbox):
 
 def test_silverbox_midpoint_held_input_is_flagged(silverbox):
     """The same nominal fed the midpoint held instead of the ZOH equivalent: the law still
-    takes y^3, but the updated model's residuals correlate with u (16x the band, measured)
+    takes y^3, but the updated model's residuals correlate with u (16.5x the band, measured)
     and the report says how the input may be fed."""
     sys, y, _, Q, R, dt, u_mid = silverbox
     est, val = slice(40650, 48650), slice(49050, 57050)
