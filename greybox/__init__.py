@@ -52,7 +52,13 @@ from .plants import (  # noqa: E402
     tape_drive_true,
 )
 from .signals import SimulationResult, lowpass_noise, multisine, random_binary, simulate  # noqa: E402
-from .system import SplitModel, discretize, named_ss, split_inputs  # noqa: E402
+from .system import (  # noqa: E402
+    SplitModel,
+    discretize,
+    named_ss,
+    split_inputs,
+    zoh_equivalent_input,
+)
 from .metrics import (  # noqa: E402
     RelativeError,
     WhitenessTest,
@@ -96,6 +102,7 @@ __all__ += [
     "simulate",
     "SplitModel",
     "discretize",
+    "zoh_equivalent_input",
     "named_ss",
     "split_inputs",
     "RelativeError",
