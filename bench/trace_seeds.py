@@ -33,24 +33,19 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "tests"))
 
-import numpy as np  # noqa: E402
 
 import greybox as gb  # noqa: E402
 from test_trace_scale import _lag_and_spring  # noqa: E402
 from test_trace_shared import _maxwell  # noqa: E402
 from plantlib import thermal_chain3_pair, thermal_chain_pair, thermal_pair, thermal_row, \
-    thermal_three  # noqa: E402
+    thermal_three, true_floor  # noqa: E402
 
 
 def _with_floor(plant, **kw):
     """The case with the true model's validation SE (its hidden states noise-free)."""
     def case(seed):
         nom, d, true = plant(seed, **kw)
-        n, nt = nom.nstates, true.nstates
-        Qt = np.zeros((nt, nt))
-        Qt[:n, :n] = d.Q
-        return nom, d, gb.validate_model(true, d.y_val, d.u_val, Q=Qt + 1e-12 * np.eye(nt),
-                                         R=d.R).se.value
+        return nom, d, true_floor(true, d)
     return case
 
 

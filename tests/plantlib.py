@@ -252,6 +252,18 @@ def thermal_row(seed, n_bodies=6, hidden=(1, 2, 3), n_est=20000):
     return nom, d, gb.discretize(true, 0.05)
 
 
+def true_floor(true, d) -> float:
+    """Validation SE [%] of the true discrete model ``true`` on the case ``d``: the floor.
+
+    The true model's extra (hidden) states get no process noise (1e-12 jitter); its
+    first states take the case's Q.
+    """
+    n, nt = d.Q.shape[0], true.nstates
+    Qt = np.zeros((nt, nt))
+    Qt[:n, :n] = d.Q
+    return gb.validate_model(true, d.y_val, d.u_val, Q=Qt + 1e-12 * np.eye(nt), R=d.R).se.value
+
+
 def thermal_chain_pair(seed, n_est=20000):
     """``thermal_pair`` with a hidden chain of two masses: Tm1 (2 J/K), coupled to T1 and T2
     (1.0, 0.8 W/K) as in ``thermal_pair``, and behind it Tm2 (4 J/K), coupled to Tm1 only

@@ -20,17 +20,10 @@ from scipy.linalg import logm
 
 import greybox as gb
 from greybox.trace.dynamic import SharedLaw
-from plantlib import thermal_row
+from plantlib import thermal_row, true_floor
 
 SEEDS = (1, 2, 3)
 GROUP = ("T2", "T3", "T4")
-
-
-def _floor(d, true, n):
-    nt = true.nstates
-    Qt = np.zeros((nt, nt))
-    Qt[:n, :n] = d.Q
-    return gb.validate_model(true, d.y_val, d.u_val, Q=Qt + 1e-12 * np.eye(nt), R=d.R).se.value
 
 
 def _true_law(nominal, true_d):
@@ -50,7 +43,7 @@ def runs():
         nom, d, true = thermal_row(seed, n_est=10000)
         rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
                                 delta=False)
-        out[seed] = (nom, true, rep, _floor(d, true, nom.nstates))
+        out[seed] = (nom, true, rep, true_floor(true, d))
     return out
 
 
