@@ -1504,7 +1504,7 @@ def _refitted_steps(steps, passes, jr, row):
     new = []
     for st, (base, ch, _), law in zip(steps, passes, jr.laws):
         eff = st.effect
-        if isinstance(law, (DynamicLaw, SharedLaw)):
+        if isinstance(law, (DynamicLaw, SharedLaw, SharedLaw2)):
             eff = replace(eff, formula=law.formula, dynamic_law=law)
         else:
             eff = replace(eff, formula=law.formula, law=law,

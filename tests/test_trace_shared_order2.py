@@ -22,7 +22,7 @@ from scipy.linalg import logm
 
 import greybox as gb
 from greybox.trace.shared_order2 import SharedLaw2
-from plantlib import thermal_chain_pair, true_floor
+from plantlib import thermal_chain_pair, thermal_chain_three, true_floor
 
 SEEDS = (1, 2, 3)
 
@@ -179,3 +179,30 @@ def test_the_second_order_law_takes_part_in_the_joint_refit():
     # and the truth: poles within 3 of their 95 % half-widths (~6 sigma: a gross error)
     assert np.all(np.abs(back.poles.real - tl["poles"]) <= 3 * back.pole_ci), back.formula
     assert jr.model.sys.nstates == 4 and "poles" in back.formula
+
+
+def test_second_order_law_beside_a_static_effect_end_to_end():
+    """``plantlib.thermal_chain_three``: the hidden chain behind T1, T2 and T3's missing
+    loss. Two passes, refitted jointly: the several-effects loop rebuilt the steps with
+    ``parameter_notes`` for every non-dynamic law and crashed on a SharedLaw2 (only the
+    refit itself was tested before). Seed 1 (~17 s)."""
+    nom, d, true = thermal_chain_three(1)
+    rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    assert rep.updated and len(rep.steps) == 2, rep.message
+    first, second = rep.steps
+    assert first.channel == "eq(T1)+eq(T2)" and first.effect.order == 2, rep.message
+    dl = first.effect.dynamic_law
+    assert isinstance(dl, SharedLaw2) and set(dl.drivers) == {"T1", "T2"}, first.effect.formula
+    assert first.effect.formula == dl.formula  # the step shows the jointly refitted law
+    # the chain's poles (those of thermal_chain_pair), within 3 half-widths
+    assert np.all(np.abs(dl.poles.real - [-0.15, -1.5]) <= 3 * dl.pole_ci), dl.formula
+    law = second.effect.law
+    assert second.channel == "eq(T3)" and second.effect.kind == "static", rep.message
+    j = [sp[0] for sp in law.spec].index("T3")
+    assert [law.spec[i][0] for i in np.flatnonzero(law.coef[0])] == ["T3"], law.formula
+    # the missing loss -g3/c3 = -0.1 per second, within 3 half-widths (measured +- 0.00018)
+    assert abs(law.coef[0, j] + 0.1) <= 3 * law.ci[0, j], law.formula
+    assert rep.model.sys.nstates == nom.nstates + 2
+    # the true model's validation SE is the floor (measured 0.998x)
+    assert rep.table["updated"].se.value <= 1.5 * true_floor(true, d), rep.message
