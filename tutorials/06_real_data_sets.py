@@ -49,11 +49,14 @@ Set-by-set choices (the README of each data folder is the source):
   R = one sensor quantization step squared (0.0049^2). Omitted effect: the rectifying |.| speed sensor (output side).
 * **Cascaded tanks** (Ts = 4 s, estimation uEst/yEst, test uVal/yVal,
   1024 samples each). Nominal: Torricelli, ``dx1/dt = -k1 sqrt(x1) + k4 u``,
-  ``dx2/dt = k2 sqrt(x1) - k3 sqrt(x2)``, ``y = x2`` as a ``control.nlsys``,
+  ``dx2/dt = k2 sqrt(x1) - k3 sqrt(x2 - off)``, ``y = x2`` as a ``control.nlsys``,
   discrete with dt = Ts (RK4, 4 sub-steps of 1 s inside the update: the
   continuous form would get 260 sub-steps per sample from the library's
   operating point, which puts the unmeasured x1 at 0 where sqrt is stiff).
-  k1..k4 and the initial state by output error on the estimation samples
+  k1..k4, the level sensor's offset (``y = x2``, the sensor's reading, the
+  level ``x2 - off``: the README calls the reading raw and uncalibrated; a
+  gain is absorbed by k1..k4, an offset is not, through the square roots)
+  and the initial state by output error on the estimation samples
   with y < 9.9 V (the lower tank's sensor clips at 10 V: there the model
   does not hold). R = (1 % of std(yEst))^2 (SNR 40 dB, README). Omitted effect: overflow of
   the upper tank and the clip at 10 V. Only the lower tank is measured, so the
@@ -61,7 +64,9 @@ Set-by-set choices (the README of each data folder is the source):
   2): the trace estimates it with the delayed unscented filter
   (``greybox.delayed_ui_ukf``) and offers saturation hinges ``max(x1 - c, 0)``
   to its law; what it finds and why the gate still refuses it is printed
-  below and in the README ("Real data").
+  below and in the README ("Real data"); where the test error goes (not the
+  initial state: the README's same state for both records is checked) is
+  measured by ``bench/tanks_floors.py``.
 """
 
 from __future__ import annotations
