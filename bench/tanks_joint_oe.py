@@ -40,8 +40,13 @@ DT, NSUB = 4.0, 4
 
 
 def simulate(p, u, clip):
-    """Lower-tank output of the tanks model with parameters p (see NAMES)."""
-    k1, k2, k3, k4, x1, x2, kap, c, g = p
+    """Lower-tank output of the tanks model with parameters p (see NAMES).
+
+    An optional 10th parameter is the level sensor's offset [V]: y = x2 + off
+    (the data README: a raw, uncalibrated sensor reading), 0 when absent.
+    """
+    k1, k2, k3, k4, x1, x2, kap, c, g = p[:9]
+    off = p[9] if len(p) > 9 else 0.0
     h = DT / NSUB
     out = np.empty(len(u))
 
@@ -51,7 +56,7 @@ def simulate(p, u, clip):
         return -k1 * s1 + k4 * uk - of, k2 * s1 - k3 * math.sqrt(max(b, 0.0)) + g * of
 
     for k, uk in enumerate(u):
-        out[k] = min(x2, 10.0) if clip else x2
+        out[k] = min(x2 + off, 10.0) if clip else x2 + off
         for _ in range(NSUB):
             a1, b1 = f(x1, x2, uk)
             a2, b2 = f(x1 + h / 2 * a1, x2 + h / 2 * b1, uk)

@@ -90,6 +90,7 @@ from scipy.optimize import least_squares
 
 from ._blas import one_blas_thread
 from ._validation import (
+    MAX_MAGNITUDE,
     check_covariance,
     check_positive,
     check_same_length,
@@ -235,7 +236,7 @@ def _validation_row(model_d, y, u, *, Q, R, x0, P0, name, lags, alpha, order,
         y_sim[:, SKIP:] = C @ sim.x + D @ u[:, SKIP:]
     except (GreyboxError, FloatingPointError) as ex:
         se_reason = f"the simulation diverged ({ex}): its simulation error is undefined"
-    if not se_reason and not np.all(np.isfinite(y_sim)):
+    if not se_reason and not _bounded(y_sim):
         se_reason = "the simulation diverged: its simulation error is undefined"
     if se_reason:
         y_sim = np.full(y.shape, np.nan)
@@ -260,9 +261,19 @@ def _se_from(model_d, u, x_start, y, C, D) -> float:
     except GreyboxError:
         return np.inf
     ys = C @ sim.x + D @ u[:, SKIP:]
-    if not np.all(np.isfinite(ys)):
+    if not _bounded(ys):
         return np.inf
     return float(relative_error(y[:, SKIP:], ys).value)
+
+
+def _bounded(y_sim: NDArray) -> bool:
+    """Finite and below the magnitude the metrics accept (else: a diverged simulation).
+
+    A simulation that diverges slowly can stay finite (e.g. 4e215 on the cascaded
+    tanks with a candidate law) and would make the metrics refuse it as bad data.
+    """
+    return bool(np.all(np.isfinite(y_sim)) and np.max(np.abs(y_sim), initial=0.0)
+                <= MAX_MAGNITUDE)
 
 
 def _prior(C: NDArray, D: NDArray, y: NDArray, u: NDArray) -> tuple[NDArray, NDArray]:

@@ -161,10 +161,19 @@ def test_tanks_the_trace_names_the_upper_tank_saturation_but_the_gate_refuses_it
     tk = summary["tanks"]
     assert tk["detected"] and not tk["updated"]
     t = tk["table"]
-    # Torricelli nominal on the test split: RMS 0.70 V from sample 20 (0.694 V over all
-    # 1024 samples from the fitted initial state); 3 %: the UKF's initial state, rounding
-    np.testing.assert_allclose(t["nominal"]["rms"], 0.70, rtol=0.03)
-    np.testing.assert_allclose(tk["rms_nominal_all_samples"], 0.694, rtol=0.03)
+    # Torricelli nominal with the sensor's offset on the test split: RMS 0.667 V from sample
+    # 20 (0.661 V over all 1024 samples from the fitted initial state; without the offset
+    # 0.700 and 0.694 V); 3 %: the UKF's initial state, rounding
+    np.testing.assert_allclose(t["nominal"]["rms"], 0.667, rtol=0.03)
+    np.testing.assert_allclose(tk["rms_nominal_all_samples"], 0.661, rtol=0.03)
+    assert -1.0 < tk["k"][6] < -0.75  # the sensor's offset [V], measured -0.874
+    # the initial state is not where the 0.17 V to the goal goes: the README's "same initial
+    # state for both records" (the estimation fit's x(0) reused) is as good as x(0) fitted
+    # on the whole test output (a floor; measured 0.661 vs 0.660 V, bench/tanks_floors.py),
+    # and greybox's UKF start at sample 20 from the test record alone is within 0.01 V
+    assert tk["rms_nominal_x0_floor"] <= tk["rms_nominal_all_samples"] + 1e-9
+    assert tk["rms_nominal_all_samples"] - tk["rms_nominal_x0_floor"] < 0.005
+    assert abs(t["nominal"]["rms"] - tk["rms_nominal_x0_floor"]) < 0.01
     # only the lower tank is measured: eq(x1) has relative degree 2 and is traced by the
     # delayed unscented filter; the best candidate is the upper tank's level saturating
     up = [c for c in tk["candidates"] if c["channel"] == "eq(x1)"]
@@ -174,25 +183,30 @@ def test_tanks_the_trace_names_the_upper_tank_saturation_but_the_gate_refuses_it
     assert len(best["terms"]) == 1 and best["terms"][0][1] == "x_hi", best["formula"]
     assert best["terms"][0][2] < 0  # a loss of inflow above the level
     # ... but added to the Torricelli model (whose k1..k4 were fitted with the overflow
-    # periods in) it lowers the estimation SE only 10.4 % -> 9.8 % (measured): the gate
+    # periods in) it lowers the estimation SE only 9.8 % -> 8.8 % (measured): the gate
     # (SE below 0.8x; for this delayed channel the law's likelihood ratio on the output
     # error, corrected for the residual's colour, above 10x its penalty) refuses it
     assert tk["passed"] == {"whiteness": True, "bic": False, "se_drop": False}
     g = tk["gate"]
     assert tk["evidence"].startswith("output error"), tk["evidence"]
-    assert g["bic_gain"] < g["bic_factor"] * g["bic_penalty"]  # measured 2.4 vs 138
+    assert g["bic_gain"] < g["bic_factor"] * g["bic_penalty"]  # measured 6.0 vs 66
     assert 0.8 < g["se_estimation_updated"] / g["se_estimation_nominal"] < 1.0
-    # forced in anyway, the law leaves the test RMS at 0.699 V (measured; nominal 0.700 V)
+    # forced in anyway, the law leaves the test RMS at 0.654 V (measured; nominal 0.667 V)
     np.testing.assert_allclose(best["rms_forced"], t["nominal"]["rms"], rtol=0.03)
+    # ... and from the estimation record's initial state (all samples; measured 0.649 V)
+    np.testing.assert_allclose(best["rms_forced_x0_est"], tk["rms_nominal_all_samples"],
+                               rtol=0.03)
 
 
 @needs_data
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="the trace names the upper tank's saturation (eq(x1), "
-                   "delayed unscented estimate, a max(x1 - c, 0) hinge) but added to the "
-                   "Torricelli model fitted with the overflow periods in it lowers the "
-                   "estimation SE only 10.4 -> 9.8 %: the gate refuses it and the test RMS "
-                   "stays 0.70 V (goal <= 0.5 V)")
+                   "delayed unscented estimate, a max(x1 - c, 0) hinge) but added to the fixed "
+                   "Torricelli model (k1..k4 fitted with the overflow periods in) it lowers the "
+                   "estimation SE only 9.8 -> 8.8 %: the gate refuses it and the test RMS "
+                   "stays 0.667 V (goal <= 0.5 V). bench/tanks_floors.py: not the initial "
+                   "state (< 0.01 V); 0.369 V needs k1..k4 and the sensor offset refitted "
+                   "jointly with the overflow into the lower tank and the 10 V clip")
 def test_tanks_goal_test_rms(summary):
     tk = summary["tanks"]
     assert tk["updated"] and tk["table"]["updated"]["rms"] <= 0.5

@@ -471,3 +471,25 @@ def test_model_py_that_is_not_python_is_one_clear_line(tmp_path):
     path.write_text("import numpy as np\nmodel = (\n")
     with pytest.raises(ModelError, match=r"MODEL.py: Python syntax error at line [23]"):
         read_model(path)
+
+
+def test_a_candidate_simulation_diverging_to_finite_huge_values_scores_as_diverged():
+    """SE inf (and an SE reason on validation), not a DataError from the metrics.
+
+    Found on the cascaded tanks (tutorial 06, nominal with the sensor offset): a
+    candidate law's simulation reached 4e215, finite, and the metrics refused it
+    as data "above 1e150" instead of the candidate being scored as diverged.
+    """
+    from greybox.workflow_nonlinear import _se_from, _validation_row
+
+    huge = ct.nlsys(lambda t, x, u, p: np.minimum(10.0 * x + u, 1e200),
+                    lambda t, x, u, p: x, dt=1.0, states=["x"], inputs=["u"],
+                    outputs=["y"], name="huge")
+    N = 300
+    u = np.ones((1, N))
+    y = np.ones((1, N))
+    C, D = np.eye(1), np.zeros((1, 1))
+    assert _se_from(huge, u, np.ones(1), y, C, D) == np.inf
+    row, _ = _validation_row(huge, y, u, Q=np.eye(1), R=np.eye(1), x0=np.ones(1),
+                             P0=np.eye(1), name="updated", lags=5, alpha=1e-3, order=1)
+    assert not row.se_defined and "diverged" in row.se_reason
