@@ -52,7 +52,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from tanks_joint_oe import DATA, simulate  # noqa: E402
+from tanks_joint_oe import load, simulate  # noqa: E402
 
 SKIP, W = 20, 20
 
@@ -81,11 +81,10 @@ K, X0, HINGE, GAMMA, OFF = [0, 1, 2, 3], [4, 5], [6, 7], [8], [9]
 
 
 def main():
-    if not DATA.is_dir():
-        print(f"no data at {DATA}")
+    data = load()
+    if data is None:
         return
-    d = np.genfromtxt(DATA / "dataBenchmark.csv", delimiter=",", skip_header=1)[:, :4]
-    uE, uV, yE, yV = d.T
+    uE, uV, yE, yV = data
     holds = yE < 9.9
     every = np.ones_like(holds)
     # kappa up to 50 (bench/tanks_joint_oe.py's bound 1 was reached by its last row); gamma is

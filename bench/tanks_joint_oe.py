@@ -70,12 +70,20 @@ def simulate(p, u, clip):
 NAMES = ("k1", "k2", "k3", "k4", "x1(0)", "x2(0)", "kappa", "c", "gamma")
 
 
-def main():
+def load():
+    """(uEst, uVal, yEst, yVal) of the benchmark CSV, or None (printed) without the data."""
     if not DATA.is_dir():
         print(f"no data at {DATA}")
-        return
+        return None
     d = np.genfromtxt(DATA / "dataBenchmark.csv", delimiter=",", skip_header=1)[:, :4]
-    uE, uV, yE, yV = d.T
+    return d.T
+
+
+def main():
+    data = load()
+    if data is None:
+        return
+    uE, uV, yE, yV = data
     holds = yE < 9.9
     lo = np.array([1e-4] * 4 + [0, 0, 0, 0, 0])
     hi = np.array([1] * 4 + [20, 20, 1.0, 40, 1.0])

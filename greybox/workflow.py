@@ -783,9 +783,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         # the best static law leaves coloured innovations, and a force along its first,
         # noisy direction leaves them coloured where the refitted one leaves them white (the
         # 32-state chain, positions measured: a 30 s sparse dynamic fit for nothing)
-        forces = [t for t in scored if t[3] == "static" and t[2].channel.kind == "force" and
-                  np.isfinite(t[0])]
-        if big and forces:
+        forces = [t for t in scored if big and t[3] == "static" and
+                  t[2].channel.kind == "force" and np.isfinite(t[0])]
+        if forces:
             _retraced(min(forces, key=lambda t: t[0]))
         if max_order >= 2 and scored and not big:
             ranked = []

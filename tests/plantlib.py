@@ -184,25 +184,44 @@ def thermal_three(seed, n_est=20000):
     model has as 0.3 W/K while the truth has 0.3 + 0.15 W/K: two independent effects, the
     hidden mass shared by eq(T1) and eq(T2) (as in ``thermal_pair``) and a missing
     conductance in eq(T3) (d3 = -0.1 T3). Returns (nominal, case, true discrete model)."""
-    c1, c2, c3, cm, l1, l2, l3, g1, g2, g3 = 1.0, 2.0, 1.5, 4.0, 0.5, 0.4, 0.3, 1.0, 0.8, 0.15
+    return _three_bodies(seed, n_est, (4.0,), "thermal_three")
+
+
+def _three_bodies(seed, n_est, hidden, name):
+    """Bodies T1, T2, T3 (1, 2, 1.5 J/K; losses 0.5, 0.4, 0.3 W/K in the model, T3's 0.15
+    W/K more in the truth) and a hidden chain of masses of capacities ``hidden`` [J/K]: the
+    first coupled to T1, T2 (1.0, 0.8 W/K), each next one to the one before (1.0 W/K)."""
+    c1, c2, c3, l1, l2, l3, g1, g2, g3, gm = 1.0, 2.0, 1.5, 0.5, 0.4, 0.3, 1.0, 0.8, 0.15, 1.0
     A = np.diag([-l1 / c1, -l2 / c2, -l3 / c3])
     B = np.diag([1 / c1, 1 / c2, 1 / c3])
     st = ["T1", "T2", "T3"]
     nom = named_ss(A, B, np.eye(3), np.zeros((3, 3)), 0, states=st, inputs=["Q1", "Q2", "Q3"],
-                   outputs=st, name="thermal_three")
-    At = np.zeros((4, 4))
+                   outputs=st, name=name)
+    nh = len(hidden)
+    nt = 3 + nh
+    At = np.zeros((nt, nt))
     At[:3, :3] = A
     At[0, 0] -= g1 / c1
     At[1, 1] -= g2 / c2
     At[2, 2] -= g3 / c3
     At[0, 3], At[1, 3] = g1 / c1, g2 / c2
-    At[3] = [g1 / cm, g2 / cm, 0.0, -(g1 + g2) / cm]
-    Bt = np.vstack([B, np.zeros((1, 3))])
-    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=4, dt=0.05,
+    for h, cm in enumerate(hidden):
+        r = 3 + h
+        into = (g1 + g2 if h == 0 else gm) + (gm if h + 1 < nh else 0.0)
+        if h == 0:
+            At[r, :2] = g1 / cm, g2 / cm
+        else:
+            At[r, r - 1] = gm / cm
+        At[r, r] = -into / cm
+        if h + 1 < nh:
+            At[r, r + 1] = gm / cm
+    Bt = np.vstack([B, np.zeros((nh, 3))])
+    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=nt, dt=0.05,
              rng=np.random.default_rng(seed), q_std=np.full(3, 1e-3), r_std=1e-2,
              n_est=n_est, n_val=4000, sub=2, bandwidth=0.2)
-    true = named_ss(At, Bt, np.eye(4)[:3], np.zeros((3, 3)), 0, states=st + ["Tm"],
-                    inputs=["Q1", "Q2", "Q3"], outputs=st, name="thermal_three_true")
+    names = st + (["Tm"] if nh == 1 else [f"Tm{h + 1}" for h in range(nh)])
+    true = named_ss(At, Bt, np.eye(nt)[:3], np.zeros((3, 3)), 0, states=names,
+                    inputs=["Q1", "Q2", "Q3"], outputs=st, name=f"{name}_true")
     return nom, d, gb.discretize(true, 0.05)
 
 
@@ -293,28 +312,7 @@ def thermal_chain_three(seed, n_est=20000):
     and T2 (Tm1 2 J/K on T1, T2 by 1.0, 0.8 W/K; Tm2 4 J/K behind it by 1.0 W/K; poles -0.15
     and -1.5 1/s) and T3's missing 0.15 W/K loss (d3 = -0.1 T3): a second-order shared
     subsystem beside a static effect. Returns (nominal, case, true discrete model)."""
-    c1, c2, c3, cm1, cm2 = 1.0, 2.0, 1.5, 2.0, 4.0
-    l1, l2, l3, g1, g2, g3, gm = 0.5, 0.4, 0.3, 1.0, 0.8, 0.15, 1.0
-    A = np.diag([-l1 / c1, -l2 / c2, -l3 / c3])
-    B = np.diag([1 / c1, 1 / c2, 1 / c3])
-    st = ["T1", "T2", "T3"]
-    nom = named_ss(A, B, np.eye(3), np.zeros((3, 3)), 0, states=st, inputs=["Q1", "Q2", "Q3"],
-                   outputs=st, name="thermal_chain_three")
-    At = np.zeros((5, 5))
-    At[:3, :3] = A
-    At[0, 0] -= g1 / c1
-    At[1, 1] -= g2 / c2
-    At[2, 2] -= g3 / c3
-    At[0, 3], At[1, 3] = g1 / c1, g2 / c2
-    At[3] = [g1 / cm1, g2 / cm1, 0.0, -(g1 + g2 + gm) / cm1, gm / cm1]
-    At[4] = [0.0, 0.0, 0.0, gm / cm2, -gm / cm2]
-    Bt = np.vstack([B, np.zeros((2, 3))])
-    d = draw(nom, lambda x, u: At @ x + Bt @ u, n_true=5, dt=0.05,
-             rng=np.random.default_rng(seed), q_std=np.full(3, 1e-3), r_std=1e-2,
-             n_est=n_est, n_val=4000, sub=2, bandwidth=0.2)
-    true = named_ss(At, Bt, np.eye(5)[:3], np.zeros((3, 3)), 0, states=st + ["Tm1", "Tm2"],
-                    inputs=["Q1", "Q2", "Q3"], outputs=st, name="thermal_chain_three_true")
-    return nom, d, gb.discretize(true, 0.05)
+    return _three_bodies(seed, n_est, (2.0, 4.0), "thermal_chain_three")
 
 
 def thermal_chain3_pair(seed, n_est=20000):

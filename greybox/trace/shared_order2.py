@@ -264,15 +264,11 @@ def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw | Sha
         return None
     if isinstance(law, SharedLaw2):
         return _order3(sys, channel, law, y, u, Q, R, dt, x0, k0) if law.order == 2 else None
-    states, inputs = list(sys.state_labels), list(sys.input_labels)
-
-    def drv(name):
-        return ("x", states.index(name)) if name in states else ("u", inputs.index(name))
-
+    drv = _driver_ref(sys)
     # the first-order law's drivers and feedthrough, and the states of the channel's own
     # equations (a hidden part exchanging with the bodies it touches: the first-order law
     # can have kept a proxy, e.g. an input's lag for a state's), the latter from 0
-    own = [drv(e) for e in channel.equations if e in states]
+    own = [drv(e) for e in channel.equations if e in sys.state_labels]
     bdrv = [drv(nm) for nm in law.drivers]
     b1 = list(law.b) + [0.0] * sum(dv not in bdrv for dv in own)
     bdrv += [dv for dv in own if dv not in bdrv]
@@ -292,20 +288,34 @@ def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw | Sha
         for p2 in (0.2 * a, 5.0 * a):  # the second pole slower or faster than the first
             theta0 = np.r_[-(a + p2), a * p2, b1, -p2 * b1, kk, ee]
             fits.append(_drop_weak(*args, bterms, eterms, law.reference, theta0))
-            if len(own) != channel.md:
-                continue
-            # the template of a hidden part touching the bodies: driven by their states,
-            # each component with its own state's feedthrough; numerators and feedthrough
-            # from one Gauss-Newton step at the start poles
-            ob = [(0, dv) for dv in own] + [(1, dv) for dv in own]
-            oe = list(enumerate(own))
-            th = np.r_[-(a + p2), a * p2, np.zeros(len(ob)), kk, np.zeros(len(oe))]
-            prob = _Problem(sys, channel, y, u, dt, x0, k0, ob, oe, law.reference)
-            idx = list(range(2, 2 + len(ob))) + list(range(th.size - len(oe), th.size))
-            step = _gauss_newton_step(prob, th, idx)
-            if step is not None:
-                fits.append(_drop_weak(*args, ob, oe, law.reference, step[1]))
+            if len(own) == channel.md:
+                fits.append(_template(args, own, np.r_[-(a + p2), a * p2], kk, law.reference))
     return _sparsest(sys, channel, fits, Q, R)
+
+
+def _driver_ref(sys):
+    """name -> ("x", state index) or ("u", input index) of ``sys``."""
+    states, inputs = list(sys.state_labels), list(sys.input_labels)
+    return lambda name: (("x", states.index(name)) if name in states else
+                         ("u", inputs.index(name)))
+
+
+def _template(args, own, alpha, kk, ref):
+    """The template of a hidden part touching the bodies, fitted and pruned (or None).
+
+    Driven by the bodies' states ``own`` in every numerator row, each component with
+    its own state's feedthrough; numerators and feedthrough from one Gauss-Newton step
+    at the start poles (the denominator ``alpha``), gains ``kk`` from the lower order.
+    """
+    sys, channel, y, u, _, _, dt, x0, k0 = args
+    q = alpha.size
+    ob = [(r, dv) for r in range(q) for dv in own]
+    oe = list(enumerate(own))
+    th = np.r_[alpha, np.zeros(len(ob)), kk, np.zeros(len(oe))]
+    prob = _Problem(sys, channel, y, u, dt, x0, k0, ob, oe, ref, order=q)
+    idx = list(range(q, q + len(ob))) + list(range(th.size - len(oe), th.size))
+    step = _gauss_newton_step(prob, th, idx)
+    return None if step is None else _drop_weak(*args, ob, oe, ref, step[1], order=q)
 
 
 def _sparsest(sys, channel, fits, Q, R):
@@ -334,13 +344,9 @@ def _order3(sys, channel, law, y, u, Q, R, dt, x0, k0):
     driven by the channel's own states, each component with its own state's feedthrough,
     numerators and feedthrough from one Gauss-Newton step at the start poles (the
     second-order law may have taken a proxy driver, an input for a state)."""
-    states, inputs = list(sys.state_labels), list(sys.input_labels)
-
-    def drv(name):
-        return ("x", states.index(name)) if name in states else ("u", inputs.index(name))
-
+    drv = _driver_ref(sys)
     dl = [drv(nm) for nm in law.drivers]
-    own = [drv(e) for e in channel.equations if e in states]
+    own = [drv(e) for e in channel.equations if e in sys.state_labels]
     eterms = [(c, drv(nm)) for c, nm, _ in law.feedthrough]
     ee = [v for _, _, v in law.feedthrough]
     kk = np.delete(law.k, law.reference)
@@ -354,16 +360,8 @@ def _order3(sys, channel, law, y, u, Q, R, dt, x0, k0):
             num = np.array([np.convolve(law.beta[:, j], [1.0, p3]) for j in range(len(dl))])
             theta0 = np.r_[alpha, num.T.ravel(), kk, ee]
             fits.append(_drop_weak(*args, bterms, eterms, law.reference, theta0, order=3))
-            if len(own) != channel.md or set(own) == set(dl):
-                continue
-            ob = [(r, dv) for r in range(3) for dv in own]
-            oe = list(enumerate(own))
-            th = np.r_[alpha, np.zeros(len(ob)), kk, np.zeros(len(oe))]
-            prob = _Problem(sys, channel, y, u, dt, x0, k0, ob, oe, law.reference, order=3)
-            idx = list(range(3, 3 + len(ob))) + list(range(th.size - len(oe), th.size))
-            step = _gauss_newton_step(prob, th, idx)
-            if step is not None:
-                fits.append(_drop_weak(*args, ob, oe, law.reference, step[1], order=3))
+            if len(own) == channel.md and set(own) != set(dl):
+                fits.append(_template(args, own, alpha, kk, law.reference))
     return _sparsest(sys, channel, fits, Q, R)
 
 
