@@ -319,7 +319,8 @@ class UpdatedModel:
     order : int
         n + n_d.
     kind : str
-        "dynamic", "static" or "delta".
+        "dynamic", "static", "delta" (or "parameters": a nonlinear nominal
+        with its declared parameters refitted, no law).
     """
 
     sys: ct.StateSpace

@@ -132,7 +132,10 @@ class Effect:
     Attributes
     ----------
     kind : str
-        "static", "dynamic", "sensor" or "none". "sensor": a sensor-error law
+        "static", "dynamic", "sensor", "parameters" or "none". "parameters":
+        a nonlinear nominal's declared parameters were wrong and refitting
+        them alone left white innovations (no law; ``formula`` lists the
+        changes, ``report.nonlinear.parameters`` holds them). "sensor": a sensor-error law
         the updated model carries as sensor states (a first-order lag: the
         reading; a drift: offset and drift rate); a static sensor law (gain,
         offset, |.|, saturation) is "static".

@@ -105,6 +105,7 @@ from .filters import (
     ui_ukf,
     ukf,
 )
+from .nominal_refit import free_parameters, law_coordinates, refit_jointly
 from .metrics import (
     autocorrelation,
     correlation_band,
@@ -192,6 +193,14 @@ class NonlinearUpdate:
         How (x_op, u_op) was chosen, in words.
     substeps : int
         RK4 sub-steps per sample of ``discrete`` (0 when no RK4 is involved).
+    parameters : tuple of ParameterChange
+        The nominal model's declared ``params`` refitted jointly with the law
+        (stage 2c: nominal value, refitted value, 95 % half-width); empty when
+        they were kept (none declared, ``refit_parameters=False``, or the
+        joint refit lost to the law on the fixed nominal).
+    spill : tuple of (state, ratio, 95 % half-width)
+        The law's entries in other state equations found by the joint refit,
+        relative to its channel's entry (empty: none).
     """
 
     model: ct.NonlinearIOSystem = field(repr=False)
@@ -201,6 +210,8 @@ class NonlinearUpdate:
     u_op: NDArray[np.float64]
     operating_point: str
     substeps: int = 0
+    parameters: tuple = ()
+    spill: tuple = ()
 
     def as_dict(self) -> dict:
         """JSON-ready summary (the linearization's matrices, the operating point)."""
@@ -208,6 +219,8 @@ class NonlinearUpdate:
         return {"model": self.model.name, "x_op": self.x_op.tolist(),
                 "u_op": self.u_op.tolist(), "operating_point": self.operating_point,
                 "substeps": self.substeps, "dt": float(lin.dt),
+                "parameters": [p.as_dict() for p in self.parameters],
+                "spill": [{"state": s, "ratio": g, "halfwidth": h} for s, g, h in self.spill],
                 "linearization": {k: np.asarray(getattr(lin, k), float).tolist()
                                   for k in ("A", "B", "C", "D")}}
 
@@ -321,25 +334,13 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
     coefficients zero" and ``nfree`` the parameters fitted (coefficients and
     hinge levels); None when the fit fails.
     """
-    sel = [(c, j) for c in range(law.coef.shape[0]) for j in np.flatnonzero(law.coef[c])]
+    theta0, law_at, sel, hinges = law_coordinates(law)
     if not sel:
         return None
-    rows, cols = (np.array(v) for v in zip(*sel))
-    # the levels of the selected saturation hinges are refined with the coefficients
-    hinges = sorted({int(j) for j in cols if law.spec[j][1] in _HINGE_KINDS})
     nc = len(sel)
     yy, uu = y[:, SKIP:], u[:, SKIP:]
     scale = np.maximum(np.std(yy, axis=1), 1e-300)[:, None]
     big = np.full(yy.size, 1e3)
-
-    def law_at(theta):
-        coef = law.coef.copy()
-        coef[rows, cols] = theta[:nc]
-        spec = list(law.spec)
-        for j, level in zip(hinges, theta[nc:]):
-            nm, kind, (i, _) = spec[j]
-            spec[j] = (_hinge_name(nm, kind, float(level)), kind, (i, float(level)))
-        return replace(law, coef=coef, spec=tuple(spec))
 
     def resid(theta):
         model = disc(add_law(base, ch.G, law_at(theta).evaluate))
@@ -350,7 +351,6 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
         r = ((yy - C @ sim.x - D @ uu) / scale).ravel()
         return r if np.all(np.isfinite(r)) else big
 
-    theta0 = np.concatenate([law.coef[rows, cols], [law.spec[j][2][1] for j in hinges]])
     try:  # a term that vanishes on the record (a hinge above every x) has a zero Jacobian
         with np.errstate(all="ignore"):  # column: x_scale="jac" then divides by zero
             sol = least_squares(resid, theta0, x_scale="jac", max_nfev=20, ftol=1e-4,
@@ -369,22 +369,31 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
         if xs is not None:
             cov = _oe_covariance(cov, sol.jac, sol.fun, model, xs, uu, C, scale[:, 0],
                                  *noise)
-    half = np.full_like(law.coef, np.nan)
-    hw_all = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
-    half[rows, cols] = hw_all[:nc]
-    new = law_at(sol.x)
-    # the hinge levels' 95 % half-widths (same covariance) shown in the formula's terms
-    shown = {j: _level_text(new.spec[j], h) for j, h in zip(hinges, hw_all[nc:])}
-    lines = []
-    for c in range(new.coef.shape[0]):
-        idx = np.flatnonzero(new.coef[c])
-        lines.append(_law_line(ch.labels[c], new.coef[c, idx],
-                               [shown.get(j, new.spec[j][0]) for j in idx],
-                               ch.units[c] if c < len(ch.units) else "", half[c, idx]))
-    new = replace(new, ci=half, formula="; ".join(lines), time_base="continuous"
-                  if base.isctime(strict=True) else "discrete")
+    new = _with_intervals(law_at(sol.x), sel, hinges,
+                          1.96 * np.sqrt(np.clip(np.diag(cov), 0, None)), ch, base)
     evidence = (_wald_zero(sol.x[:nc], cov[:nc, :nc]), int(sol.x.size))
     return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated"), evidence
+
+
+def _with_intervals(law, sel, hinges, hw, ch, base):
+    """``law`` with its 95 % half-widths ``hw`` (coefficients of ``sel``, then hinge levels).
+
+    The half-widths go into ``ci``; the formula is rewritten with them (the
+    hinge levels' intervals shown in their terms, :func:`_level_text`).
+    """
+    nc = len(sel)
+    half = np.full_like(law.coef, np.nan)
+    for q, (c, j) in enumerate(sel):
+        half[c, j] = hw[q]
+    shown = {j: _level_text(law.spec[j], h) for j, h in zip(hinges, hw[nc:])}
+    lines = []
+    for c in range(law.coef.shape[0]):
+        idx = np.flatnonzero(law.coef[c])
+        lines.append(_law_line(ch.labels[c], law.coef[c, idx],
+                               [shown.get(j, law.spec[j][0]) for j in idx],
+                               ch.units[c] if c < len(ch.units) else "", half[c, idx]))
+    return replace(law, ci=half, formula="; ".join(lines), time_base="continuous"
+                   if base.isctime(strict=True) else "discrete")
 
 
 class _LawOutputError:
@@ -419,6 +428,7 @@ class _LawOutputError:
             return self._mask @ (th * terms)
 
         self.model = disc(add_law(base, G, lawfun))
+        self._par = dict(self.model.params or {})  # the model's declared parameters
         self._batched = None
         self._cache = (None, None, None)
 
@@ -441,11 +451,11 @@ class _LawOutputError:
                 xs[k] = X
                 self._th = TH
                 if K == 1:  # one state vector, as any model (a user's MODEL.py) takes it
-                    X = np.asarray(upd(0.0, X[:, 0], self.uu[:, k], {}),
+                    X = np.asarray(upd(0.0, X[:, 0], self.uu[:, k], self._par),
                                    dtype=float).reshape(n, 1)
                 else:
                     X = np.asarray(upd(0.0, X, np.repeat(self.uu[:, k:k + 1], K, axis=1),
-                                       {}), dtype=float).reshape(n, K)
+                                       self._par), dtype=float).reshape(n, K)
                 bad = ~np.all(np.isfinite(X) & (np.abs(X) < 1e100), axis=0)
                 if bad.any():  # a diverged column stays NaN (1e3 per residual)
                     if bad.all():
@@ -470,11 +480,11 @@ class _LawOutputError:
         u2 = np.repeat(self.uu[:, :1], 2, axis=1)
         try:
             self._th = TH
-            two = np.asarray(self.model.updfcn(0.0, X, u2, {}), dtype=float)
+            two = np.asarray(self.model.updfcn(0.0, X, u2, self._par), dtype=float)
             one = []
             for i in range(2):
                 self._th = TH[:, i:i + 1]
-                one.append(np.asarray(self.model.updfcn(0.0, X[:, i:i + 1], u2[:, :1], {}),
+                one.append(np.asarray(self.model.updfcn(0.0, X[:, i:i + 1], u2[:, :1], self._par),
                                       dtype=float).reshape(-1))
         except (TypeError, ValueError, IndexError):
             return False
@@ -556,16 +566,17 @@ def _state_jacobians(model, x: NDArray, u: NDArray) -> NDArray[np.float64]:
     (a user's MODEL.py written for one state).
     """
     n, T = x.shape
+    par = dict(model.params or {})  # the model's declared parameters
 
     def F(X):
         with np.errstate(all="ignore"):
             try:
-                out = np.asarray(model.updfcn(0.0, X, u, {}), dtype=float)
+                out = np.asarray(model.updfcn(0.0, X, u, par), dtype=float)
                 if out.shape in ((n, T), (n * T,)) and T > 1:
                     return out.reshape(n, T)
             except (TypeError, ValueError, IndexError):
                 pass
-            return np.stack([np.asarray(model.updfcn(0.0, X[:, t], u[:, t], {}),
+            return np.stack([np.asarray(model.updfcn(0.0, X[:, t], u[:, t], par),
                                         dtype=float).reshape(n) for t in range(T)], axis=1)
 
     out = np.empty((T, n, n))
@@ -962,6 +973,105 @@ def _oe_bic(oe, entry, y, u, disc, x0, C, D) -> bool:
                 < n * np.log(se_e**2) + nfree(entry) * np.log(n))
 
 
+def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfree_fixed: int,
+                 notes: list, declared: dict, alone=None):
+    """Stage 2c: ``(alone, joint)`` refits of the nominal's declared parameters, or None.
+
+    ``alone``: the parameters (and the initial state) refitted by output error
+    without a law; ``joint``: with the law's coefficients, hinge levels and
+    spill ratios (:func:`greybox.nominal_refit.refit_jointly`). The joint
+    refit replaces the law on the fixed nominal when its output-error BIC
+    (``n log SE^2 + k log n``, n = Ny / colour of its residual, k its free
+    parameters) is lower; the gate then weighs the law against ``alone``. ``base``
+    may already hold ``alone``'s parameters (stage 1b); the changes are reported
+    against the values the model ``declared``.
+    """
+    yy, uu = y[:, SKIP:], u[:, SKIP:]
+    if alone is None:
+        alone = refit_jointly(base, disc, yy, uu, x_start, C, D)
+    jr = refit_jointly(base, disc, yy, uu, x_start, C, D, law=law, G=ch.G)
+    if jr is not None:
+        jr = replace(jr, parameters=tuple(replace(pc, nominal=declared.get(pc.name, pc.nominal))
+                                          for pc in jr.parameters))
+    if alone is None or jr is None or jr.law is None:
+        notes.append(f"{ch.name}: the nominal's declared parameters could not be refitted "
+                     f"with the law (the output-error fit failed); kept")
+        return None
+    n = yy.size / _residual_colour(jr.residual)
+    bic_j = n * np.log(jr.se**2) + jr.nfree * np.log(n)
+    bic_f = n * np.log(se_fixed**2) + nfree_fixed * np.log(n) if np.isfinite(se_fixed) \
+        else np.inf
+    text = (f"{ch.name}: nominal parameters refitted with the law by output error "
+            f"(estimation SE {jr.se:.3g} %, the law on the fixed nominal {se_fixed:.3g} %, "
+            f"the parameters alone {alone.se:.3g} %): {jr.parameter_text()}")
+    if jr.spill:
+        text += f"; the law also enters {jr.spill_text()}"
+    if not bic_j < bic_f:
+        notes.append(text + " -- not kept: higher output-error BIC than the law on the fixed "
+                     "nominal")
+        return None
+    notes.append(text)
+    return alone, jr
+
+
+def _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc, y, u, y_val, u_val,
+                     Q, R, P0, lags, alpha, n, nsub, val_nom, u_mean, C, D, report, notes,
+                     why="the refitted model's UKF innovations are white", law_gate=None,
+                     cands=(), tr=None):
+    """The report when the declared parameters refitted alone leave white innovations.
+
+    Gate: the likelihood ratio of the refitted parameters against the declared
+    ones on the estimation outputs' simulation, divided by the residual's
+    colour, above ``bic_factor`` times ``k log(Ny / c)`` (k the parameters),
+    and the estimation SE below ``min_se_drop`` times the nominal's. Reached
+    also when the best law failed its gate against the refitted parameters
+    (``law_gate``: then None when this gate fails too, and the law's evidence
+    is kept as ``gate["law_bic_gain"]``, ``gate["law_bic_penalty"]``).
+    """
+    if law_gate is not None:
+        gate["law_bic_gain"] = float(law_gate["bic_gain"])
+        gate["law_bic_penalty"] = float(law_gate["bic_penalty"])
+    Ny = y[:, SKIP:].size
+    colour = _residual_colour(alone.residual)
+    gain = float(Ny * 2 * np.log(se_nom / alone.se) / colour)
+    k = len(alone.parameters)
+    penalty = float(k * np.log(max(Ny / colour, 2.0)))
+    passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
+              "se_drop": alone.se < min_se_drop * se_nom}
+    gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
+                 "oe_colour": colour, "se_estimation_updated": alone.se,
+                 "se_estimation_parameters_only": alone.se, "min_se_drop": min_se_drop,
+                 "passed": passed,
+                 "evidence": "output error: likelihood ratio of the refitted parameters against "
+                             "the declared ones, divided by the residual's colour"})
+    changed = [pc.text() for pc in alone.parameters
+               if np.isfinite(pc.halfwidth) and abs(pc.refitted - pc.nominal) > pc.halfwidth]
+    if not (passed["bic"] and passed["se_drop"]):
+        if law_gate is not None:
+            return None
+        failed = [k for k, v in passed.items() if not v]
+        return report("model error detected (UKF innovations not white); the declared "
+                      f"parameters refitted alone failed the gate: {', '.join(failed)} ({why}); "
+                      "model unchanged", True, cands=cands, tr=tr, gate_used=gate)
+    upd_d = disc(alone.model)
+    row, _ = _validation_row(upd_d, y_val, u_val, Q=Q, R=R, x0=_prior(C, D, y_val, u_val)[0],
+                             P0=P0, name="updated", lags=lags, alpha=alpha, order=n)
+    table = {"nominal": val_nom, "updated": row}
+    kf_u = ukf(upd_d, y, u, Q=Q, R=R, x0=_prior(C, D, y, u)[0], P0=P0)
+    x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
+    lin_u = linearize_at(upd_d, x_op_u, u_mean)
+    nl = NonlinearUpdate(model=alone.model, discrete=upd_d, linearization=lin_u, x_op=x_op_u,
+                         u_op=u_mean, operating_point=_OP_TEXT.format(what="updated UKF's"),
+                         substeps=nsub, parameters=alone.parameters)
+    what = ", ".join(changed) if changed else "none beyond its 95 % interval"
+    return report(f"model error found in the nominal's parameters (no law needed: {why}): "
+                  f"{what}; {describe_before_after(table)}", True, updated=True, cands=cands,
+                  tr=tr, gate_used=gate,
+                  effect=Effect(kind="parameters", formula=alone.parameter_text()),
+                  table=table, model=UpdatedModel(sys=lin_u, Q=Q, R=R, order=n,
+                                                  kind="parameters"), nl=nl)
+
+
 def _wald_zero(theta: NDArray, cov: NDArray) -> float:
     """``theta^T cov^-1 theta``: the Wald statistic of "no law" (0 when cov is unusable)."""
     if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(theta))):
@@ -1031,7 +1141,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                              dt: float | None = None, channels=None, nonlinear: bool = True,
                              alpha: float = 1e-3, lags: int = 20, parsimony: float = 1.1,
                              min_se_drop: float = 0.8, bic_factor: float = 10.0,
-                             substeps: int | None = None, progress=None) -> LoopReport:
+                             substeps: int | None = None, refit_parameters: bool = True,
+                             progress=None) -> LoopReport:
     """Residual, trace, law and before/after for a nonlinear nominal model.
 
     Called by :func:`greybox.close_the_loop` for a ``NonlinearIOSystem``;
@@ -1073,6 +1184,16 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     substeps : int, optional
         RK4 sub-steps per sample for a continuous model (default from
         :func:`greybox.rk4_substeps` at the operating point).
+    refit_parameters : bool
+        Refit the parameters the model declares (``control.nlsys(...,
+        params={...})``, finite real scalars read by its update function)
+        jointly with the law by output error (stage 2c,
+        :mod:`greybox.nominal_refit`): declare the nominal parameters that were
+        themselves fitted on data, so that the law is not judged against
+        parameters that absorbed part of the missing effect. The law's
+        evidence is then weighed against the parameters refitted alone, and
+        the report lists each parameter's change with its 95 % interval
+        (``report.nonlinear.parameters``). No effect without declared params.
     progress : callable, optional
         Progress callback (see :func:`greybox.close_the_loop`).
 
@@ -1123,6 +1244,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
     nonlinear = _flag(nonlinear, "nonlinear")
+    refit_parameters = _flag(refit_parameters, "refit_parameters")
     parsimony = check_positive(parsimony, "parsimony")
     alpha = check_positive(alpha, "alpha")
     min_se_drop = check_positive(min_se_drop, "min_se_drop")
@@ -1171,14 +1293,15 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     tick("residual of the nominal model", 1, 1)
 
     def _report(msg, detected, updated=False, effect=None, ch=None, cands=(), tr=None,
-                table=None, model=None, nl=None):
+                table=None, model=None, nl=None, gate_used=None):
         nl = nl or NonlinearUpdate(model=sys, discrete=nominal_d, linearization=lin_nom,
                                    x_op=x_op, u_op=u_mean, operating_point=op_text,
                                    substeps=nsub)
         model = model or UpdatedModel(sys=lin_nom, Q=Q, R=R, order=n, kind="nominal")
         return LoopReport(model_error_detected=detected, updated=updated, message=msg,
                           residual=white, effect=effect or Effect(kind="none"), channel=ch,
-                          candidates=tuple(cands), gate=gate, criterion=crit, nominal=lin_nom,
+                          candidates=tuple(cands), gate=gate if gate_used is None else
+                          gate_used, criterion=crit, nominal=lin_nom,
                           model=model, table=table or {"nominal": val_nom, "updated": val_nom},
                           trace=tr, notes=tuple(notes), nonlinear=nl)
 
@@ -1187,6 +1310,27 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         return _report("no significant model error: the nominal UKF's one-step innovations "
                        f"are white on every output (Ljung-Box, {lags} lags, all p >= "
                        f"{alpha:g}); model unchanged", False)
+
+    # 1b. the parameters the model declares, refitted alone by output error: a nominal that
+    # is only mis-calibrated is said so (and the trace then runs on the refitted nominal)
+    declared, alone = free_parameters(base), None
+    if refit_parameters and declared:
+        tick("nominal parameters refitted alone", 0, 1)
+        alone = refit_jointly(base, disc, y[:, SKIP:], u[:, SKIP:], kf.x_filt[:, SKIP], C, D)
+        if alone is not None and alone.se < se_nom:
+            notes.append(f"the nominal's declared parameters refitted alone by output error: "
+                         f"estimation SE {se_nom:.3g} % -> {alone.se:.3g} % "
+                         f"({alone.parameter_text()}); the trace runs on this refitted nominal")
+            base = alone.model
+            kf = ukf(disc(base), y, u, Q=Q, R=R, x0=x_guess, P0=P0)
+            white_p = whiteness_test(kf.innovations[:, SKIP:], lags, alpha=alpha)
+            if white_p.all_white:
+                return _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc,
+                                        y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub,
+                                        val_nom, u_mean, C, D, _report, notes)
+        else:
+            alone = None
+        tick("nominal parameters refitted alone", 1, 1)
 
     # 2. trace every channel with the unknown-input UKF; static laws on d^
     chans = resolve_channel_spec(lin_cont, channels)
@@ -1382,12 +1526,41 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
             tr = replace(tr, static=law)
     tick("output-error refinement", 1, 1)
 
+    # 2c. the nominal's declared parameters refitted jointly with the law (and its spill
+    # into the other state equations), against the parameters refitted alone
+    joint = None
+    if refit_parameters and free_parameters(base):
+        tick("joint refit of the nominal's parameters", 0, 1)
+        joint = _joint_refit(base, disc, law, ch, y, u, x0_of[ch.name], C, D, se_c,
+                             int(evidence[1]) if evidence is not None else law.npar, notes,
+                             declared, alone)
+        if joint is not None:
+            alone, jr = joint
+            hinges = law_coordinates(jr.law)[3]
+            law = _with_intervals(jr.law, law_coordinates(jr.law)[2], hinges,
+                                  jr.law_halfwidths, ch, base)
+            upd, se_c = jr.model, jr.se
+            tr = replace(tr, static=law)
+            x0_of[ch.name] = jr.x_start
+        tick("joint refit of the nominal's parameters", 1, 1)
+
     # 3. gate. The evidence for the law: its likelihood-ratio statistic on d^ (the BIC gain
     # plus its penalty), or for a delayed channel whose law was refined by output error, its
     # quasi likelihood ratio on the output error: a delayed d^ is mostly estimation noise,
     # and the coefficients were estimated on y, where the evidence is (module stage 3)
     Nd = N - 1 - SKIP
-    if (tr.relative_degree > 1 or oe_terms) and evidence is not None:
+    if joint is not None:
+        Ny = p * (N - SKIP)
+        colour = _residual_colour(jr.residual)
+        gain = float(Ny * 2 * np.log(alone.se / jr.se) / colour)
+        n_eff = Ny / colour
+        penalty = float(jr.nlaw * np.log(max(n_eff, 2.0)))
+        gate.update({"oe_colour": colour, "se_estimation_parameters_only": alone.se})
+        gate["evidence"] = ("output error: likelihood ratio of the law (nominal parameters "
+                            "refitted with it) against the nominal parameters refitted alone, "
+                            f"divided by the residual's colour ({colour:.3g}); {jr.nlaw} free "
+                            f"law parameter(s), {Ny} residuals ({n_eff:.0f} independent)")
+    elif (tr.relative_degree > 1 or oe_terms) and evidence is not None:
         wald, nfree = evidence
         Ny = p * (N - SKIP)
         gain, colour = _oe_likelihood_ratio(disc(upd), x0_of[ch.name], y, u,
@@ -1413,10 +1586,23 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
               "se_drop": se_c < min_se_drop * se_nom}
     gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
                  "se_estimation_updated": se_c, "min_se_drop": min_se_drop, "passed": passed})
+    spill = joint[1].spill if joint is not None else ()
     effect = Effect(kind="static", order=0, formula=law.formula, channel=ch.name,
-                    equations=ch.equations, nonlinear=law.nonlinear, linearized=False, law=law)
+                    equations=tuple(ch.equations) + tuple(s for s, _, _ in spill),
+                    nonlinear=law.nonlinear, linearized=False, law=law)
     if not (passed["bic"] and passed["se_drop"]):
         failed = [k for k, v in passed.items() if not v]
+        if alone is not None:  # the declared parameters refitted alone, under their own gate
+            rep_p = _parameters_only(alone, se_nom, dict(gate), bic_factor, min_se_drop, disc,
+                                     y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub,
+                                     val_nom, u_mean, C, D, _report, notes,
+                                     why=f"the best law ({ch.name}, static) failed the gate "
+                                         f"against them: {', '.join(failed)}",
+                                     law_gate=gate, cands=cands, tr=tr)
+            if rep_p is not None:
+                return rep_p
+            notes.append("the declared parameters refitted alone failed their gate too "
+                         f"(estimation SE {se_nom:.3g} % -> {alone.se:.3g} %)")
         return _report(f"model error detected (UKF innovations not white), but the best "
                        f"candidate ({ch.name}, static) failed the gate: {', '.join(failed)}; "
                        f"model unchanged", True, cands=cands, tr=tr)
@@ -1445,7 +1631,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     lin_u = linearize_at(upd_d, x_op_u, u_mean)
     nl = NonlinearUpdate(model=upd, discrete=upd_d, linearization=lin_u, x_op=x_op_u,
                          u_op=u_mean, operating_point=_OP_TEXT.format(what="updated UKF's"),
-                         substeps=nsub)
+                         substeps=nsub, parameters=joint[1].parameters if joint else (),
+                         spill=spill)
     tick("validation", 1, 1)
     notes.append(f"the 'nominal' and 'updated' rows simulate the nonlinear models"
                  f"{' (RK4)' if cont else ''}; report.model.sys (updated_model.json) is the "
@@ -1461,7 +1648,16 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
     if ch.kind == "input":
         where = f"input {ch.input} (it enters {where})"
-    msg = f"model error found in {where}: static effect; {describe_before_after(table)}"
+    if spill:
+        where += " (and " + ", ".join(f"eq({s}) at {g:.2g}x" for s, g, _ in spill) + ")"
+    changed = [pc.text() for pc in (joint[1].parameters if joint else ())
+               if np.isfinite(pc.halfwidth) and abs(pc.refitted - pc.nominal) > pc.halfwidth]
+    refit = ""
+    if joint:
+        refit = ("; nominal parameters refitted with it: " + (", ".join(changed) if changed
+                                                              else "none changed beyond its "
+                                                              "95 % interval"))
+    msg = f"model error found in {where}: static effect{refit}; {describe_before_after(table)}"
     return _report(msg, True, updated=True, effect=effect, ch=ch, cands=cands, tr=tr,
                    table=table, model=UpdatedModel(sys=lin_u, Q=Q, R=R, order=n, kind="static"),
                    nl=nl)

@@ -9,6 +9,7 @@ noise only (PAPER_NOTES §8.6).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -339,3 +340,77 @@ def thermal_chain3_pair(seed, n_est=20000):
                     states=["T1", "T2", "Tm1", "Tm2", "Tm3"], inputs=["Q1", "Q2"],
                     outputs=["T1", "T2"], name="thermal_chain3_pair_true")
     return nom, d, gb.discretize(true, 0.05)
+
+
+# --------------------------------------------------------------------- tanks with a spill
+TANKS_K = {"k1": 0.045, "k2": 0.058, "k3": 0.082, "k4": 0.053}  # the benchmark's magnitudes
+
+
+def tanks_declared(params: dict, ts: float = 4.0, nsub: int = 4) -> ct.NonlinearIOSystem:
+    """Torricelli tanks (Ts, RK4 with nsub sub-steps), y = x2, with ``params`` declared.
+
+    ``params`` holds any of k1..k4 (the others from TANKS_K); the update reads them
+    from its ``params`` argument so that greybox can refit them. Scalar math (as a
+    user's MODEL.py): one state vector per call.
+    """
+    h = ts / nsub
+
+    def upd(t, x, u, p):
+        k1, k2, k3, k4 = (p.get(k, TANKS_K[k]) for k in ("k1", "k2", "k3", "k4"))
+        x1, x2, uk = float(x[0]), float(x[1]), float(u[0])
+
+        def f(a, b):
+            s1 = math.sqrt(max(a, 0.0))
+            return -k1 * s1 + k4 * uk, k2 * s1 - k3 * math.sqrt(max(b, 0.0))
+        for _ in range(nsub):
+            a1, b1 = f(x1, x2)
+            a2, b2 = f(x1 + h / 2 * a1, x2 + h / 2 * b1)
+            a3, b3 = f(x1 + h / 2 * a2, x2 + h / 2 * b2)
+            a4, b4 = f(x1 + h * a3, x2 + h * b3)
+            x1 += h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
+            x2 += h / 6 * (b1 + 2 * b2 + 2 * b3 + b4)
+        return np.array([x1, x2])
+
+    return ct.nlsys(upd, lambda t, x, u, p: np.array([x[1]]), states=["x1", "x2"],
+                    inputs=["u"], outputs=["y"], dt=ts, params=dict(params), name="tanks")
+
+
+def tanks_spill(seed: int, *, xmax: float = 8.0, gamma: float = 0.6, r_std: float = 0.01,
+                n: int = 1024, ts: float = 4.0):
+    """A two-tank plant whose upper tank overflows at xmax, a fraction gamma into the lower one.
+
+    Truth: Torricelli with TANKS_K, RK4 with 20 sub-steps per sample, x1 clipped at
+    xmax after every sub-step and gamma of the clipped volume added to x2 (same tank
+    areas); pump voltage: 12 sines over 0-0.0144 Hz around 2.5 V (the benchmark's
+    band); y = x2 + white noise r_std. Returns (u, y, u_val, y_val), shapes (1, n).
+    """
+    rng = np.random.default_rng(seed)
+    k1, k2, k3, k4 = (TANKS_K[k] for k in ("k1", "k2", "k3", "k4"))
+    h = ts / 20
+
+    def f(x, uk):
+        s1 = np.sqrt(max(x[0], 0.0))
+        return np.array([-k1 * s1 + k4 * uk, k2 * s1 - k3 * np.sqrt(max(x[1], 0.0))])
+
+    def record():
+        t = np.arange(n) * ts
+        u = 2.5 + sum(rng.uniform(0.2, 0.6) * np.sin(2 * np.pi * fq * t + rng.uniform(0, 6.3))
+                      for fq in np.linspace(0.0005, 0.0144, 12))
+        u = np.clip(u, 0, None)
+        x, xs = np.array([5.0, 5.0]), np.empty((2, n))
+        for k in range(n):
+            xs[:, k] = x
+            for _ in range(20):
+                a = f(x, u[k])
+                b = f(x + h / 2 * a, u[k])
+                c = f(x + h / 2 * b, u[k])
+                d = f(x + h * c, u[k])
+                x = x + h / 6 * (a + 2 * b + 2 * c + d)
+                over = max(x[0] - xmax, 0.0)
+                x[0] -= over
+                x[1] += gamma * over
+        return u[None], xs[1:] + r_std * rng.standard_normal((1, n))
+
+    u, y = record()
+    uv, yv = record()
+    return u, y, uv, yv
