@@ -159,6 +159,7 @@ from .nonlinear import (  # noqa: E402
     with_unknown_inputs,
 )
 from .workflow_nonlinear import NonlinearUpdate  # noqa: E402
+from .nominal_refit import JointRefit, ParameterChange, refit_jointly  # noqa: E402
 from .plants import (  # noqa: E402
     MOTOR_PUMP_DT,
     MOTOR_PUMP_Q,
@@ -183,6 +184,9 @@ __all__ += [
     "linearize_at",
     "with_unknown_inputs",
     "NonlinearUpdate",
+    "JointRefit",
+    "ParameterChange",
+    "refit_jointly",
     "MOTOR_PUMP_DT",
     "MOTOR_PUMP_Q",
     "MOTOR_PUMP_R",

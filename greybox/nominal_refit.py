@@ -241,10 +241,11 @@ def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDA
     law : StaticLaw, optional
         The law to refit with the parameters (coefficients and hinge levels).
     G : ndarray, shape (nstates,) or (nstates, 1)
-        The law's channel; with ``spill`` and a one-equation channel (a unit
-        column) the law also enters every other state equation at a fitted
-        ratio, and ratios within their own 95 % interval of zero are dropped
-        (one refit without them).
+        The law's channel.
+    spill : bool
+        For a one-equation channel (a unit column G), let the law also enter
+        every other state equation at a fitted ratio; ratios within their own
+        95 % interval of zero are dropped (one refit without them).
     max_nfev : int
         Function evaluations of each least-squares fit (each costs
         1 + nfree simulations for the Jacobian).

@@ -201,6 +201,10 @@ class NonlinearUpdate:
     spill : tuple of (state, ratio, 95 % half-width)
         The law's entries in other state equations found by the joint refit,
         relative to its channel's entry (empty: none).
+    refused : JointRefit or None
+        When the gate refused the best law refitted jointly with the nominal's
+        parameters: that refit (its model, parameters, spill, estimation SE),
+        for inspection; None otherwise.
     """
 
     model: ct.NonlinearIOSystem = field(repr=False)
@@ -212,6 +216,7 @@ class NonlinearUpdate:
     substeps: int = 0
     parameters: tuple = ()
     spill: tuple = ()
+    refused: object = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         """JSON-ready summary (the linearization's matrices, the operating point)."""
@@ -1603,9 +1608,14 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                 return rep_p
             notes.append("the declared parameters refitted alone failed their gate too "
                          f"(estimation SE {se_nom:.3g} % -> {alone.se:.3g} %)")
+        nl = None
+        if joint is not None:  # the refused joint refit, for inspection
+            nl = NonlinearUpdate(model=sys, discrete=nominal_d, linearization=lin_nom,
+                                 x_op=x_op, u_op=u_mean, operating_point=op_text,
+                                 substeps=nsub, refused=joint[1])
         return _report(f"model error detected (UKF innovations not white), but the best "
                        f"candidate ({ch.name}, static) failed the gate: {', '.join(failed)}; "
-                       f"model unchanged", True, cands=cands, tr=tr)
+                       f"model unchanged", True, cands=cands, tr=tr, nl=nl)
 
     if floor_ratio > FLOOR_NOTE ** 2:
         notes.append(f"{ch.name}: the updated model's simulation error on the estimation data "

@@ -182,31 +182,42 @@ def test_tanks_the_trace_names_the_upper_tank_saturation_but_the_gate_refuses_it
     assert best["channel"] == "eq(x1)" and best["relative_degree"] == 2, best
     assert len(best["terms"]) == 1 and best["terms"][0][1] == "x_hi", best["formula"]
     assert best["terms"][0][2] < 0  # a loss of inflow above the level
-    # ... but added to the Torricelli model (whose k1..k4 were fitted with the overflow
-    # periods in) it lowers the estimation SE only 9.8 % -> 8.8 % (measured): the gate
-    # (SE below 0.8x; for this delayed channel the law's likelihood ratio on the output
-    # error, corrected for the residual's colour, above 10x its penalty) refuses it
-    assert tk["passed"] == {"whiteness": True, "bic": False, "se_drop": False}
+    # MODEL.py declares k1, k2, k3 and the sensor offset as params (k4 pins the scale of the
+    # unmeasured upper level): greybox refits them with the law by output error (stage 2c).
+    # The joint refit (hinge, its level, its spill into eq(x2), the parameters) lowers the
+    # estimation SE 9.8 % -> 6.5 % (measured; the parameters refitted alone: 9.5 %) ...
+    assert tk["passed"] == {"whiteness": True, "bic": False, "se_drop": True}
     g = tk["gate"]
-    assert tk["evidence"].startswith("output error"), tk["evidence"]
-    assert g["bic_gain"] < g["bic_factor"] * g["bic_penalty"]  # measured 6.0 vs 66
-    assert 0.8 < g["se_estimation_updated"] / g["se_estimation_nominal"] < 1.0
-    # forced in anyway, the law leaves the test RMS at 0.654 V (measured; nominal 0.667 V)
-    np.testing.assert_allclose(best["rms_forced"], t["nominal"]["rms"], rtol=0.03)
-    # ... and from the estimation record's initial state (all samples; measured 0.649 V)
-    np.testing.assert_allclose(best["rms_forced_x0_est"], tk["rms_nominal_all_samples"],
-                               rtol=0.03)
+    assert tk["evidence"].startswith("output error: likelihood ratio of the law (nominal "
+                                     "parameters refitted with it)"), tk["evidence"]
+    assert g["se_estimation_updated"] / g["se_estimation_nominal"] < 0.8
+    assert g["se_estimation_parameters_only"] > 0.9 * g["se_estimation_nominal"]
+    # ... but its likelihood ratio against the parameters refitted alone, over the residual's
+    # colour (11), is 69.6 against the 10 x 13.5 the gate needs (measured): refused
+    assert g["bic_gain"] < g["bic_factor"] * g["bic_penalty"]
+    assert g["bic_gain"] > g["bic_penalty"]  # plain BIC would take it: the factor 10 refuses
+    # what the joint refit says, refused or not: the overflow spills into the lower tank
+    # (ratio -0.37 +- 0.11 of the law: the data README's "partly into the lower tank") ...
+    (state, ratio, hw), = best["spill"]
+    assert state == "x2" and -1.0 < ratio < 0 and abs(ratio) > hw, best["spill"]
+    # ... and the parameter that moves most is the level sensor's offset, -0.87 -> -1.87 V
+    # (+- 0.26): its interval excludes the nominal fit's value (fitted where y < 9.9 V)
+    off = next(p for p in best["parameters"] if p["name"] == "off")
+    assert abs(off["refitted"] - off["nominal"]) > off["halfwidth"], off
+    assert -2.5 < off["refitted"] < -1.3, off
+    # made anyway, the joint update's test RMS is 0.486 V (measured; nominal 0.667 V): inside
+    # the published 0.3-0.5 V, where the gate does not let greybox go by default
+    assert best["rms_forced"] < 0.52 < 0.6 < t["nominal"]["rms"], best["rms_forced"]
 
 
 @needs_data
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="the trace names the upper tank's saturation (eq(x1), "
-                   "delayed unscented estimate, a max(x1 - c, 0) hinge) but added to the fixed "
-                   "Torricelli model (k1..k4 fitted with the overflow periods in) it lowers the "
-                   "estimation SE only 9.8 -> 8.8 %: the gate refuses it and the test RMS "
-                   "stays 0.667 V (goal <= 0.5 V). bench/tanks_floors.py: not the initial "
-                   "state (< 0.01 V); 0.369 V needs k1..k4 and the sensor offset refitted "
-                   "jointly with the overflow into the lower tank and the 10 V clip")
+                   "a max(x1 - c, 0) hinge) and, with the nominal's k1..k3 and sensor offset "
+                   "refitted jointly, its spill into the lower tank: estimation SE 9.8 -> "
+                   "6.5 % and a test RMS of 0.486 V if made, but its evidence against the "
+                   "parameters refitted alone (69.6) is below the gate's 10 x 13.5: the model "
+                   "stays unchanged at 0.667 V (goal <= 0.5 V)")
 def test_tanks_goal_test_rms(summary):
     tk = summary["tanks"]
     assert tk["updated"] and tk["table"]["updated"]["rms"] <= 0.5
