@@ -28,10 +28,10 @@ K3_DECLARED = 1.15 * TANKS_K["k3"]
 Q, R = 1e-4 * np.eye(2), np.array([[1e-4]])
 
 
-def run(xmax, seed=1):
+def run(xmax, seed=1, q=Q):
     u, y, uv, yv = tanks_spill(seed, xmax=xmax, gamma=0.6, r_std=0.01)
     nom = tanks_declared({"k2": TANKS_K["k2"], "k3": K3_DECLARED})
-    return close_the_loop_nonlinear(nom, y, u, yv, uv, Q=Q, R=R)
+    return close_the_loop_nonlinear(nom, y, u, yv, uv, Q=q, R=R)
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,11 @@ def spill():
 
 @pytest.fixture(scope="module")
 def right_structure():
-    return run(100.0)  # never overflows: Torricelli is the right structure
+    # never overflows: Torricelli is the right structure. The truth has no process noise:
+    # Q = 1 % of R (with Q = R the UKF follows the noise and its innovations stay coloured
+    # even for the right model, so the trace runs, finds a law and the gate refuses it
+    # against the refitted parameters: the same verdict, measured, in 60 s instead of 2 s)
+    return run(100.0, q=1e-6 * np.eye(2))
 
 
 def _param(rep, name):
@@ -86,7 +90,9 @@ def test_overflow_law_spill_and_the_wrong_parameter_are_named(spill):
 def test_a_right_structure_with_a_wrong_parameter_gets_no_law(right_structure):
     rep = right_structure
     assert rep.updated and rep.effect.kind == "parameters", rep.message
-    assert rep.message.startswith("model error found in the nominal's parameters"), rep.message
+    assert rep.message.startswith("model error found in the nominal's parameters (no law "
+                                  "needed: the refitted model's UKF innovations are white)"), \
+        rep.message
     assert rep.effect.law is None and not rep.nonlinear.spill
     k3, k2 = _param(rep, "k3"), _param(rep, "k2")
     # no overflow: the refit is the output-error estimate of a right model (measured
@@ -94,7 +100,7 @@ def test_a_right_structure_with_a_wrong_parameter_gets_no_law(right_structure):
     assert abs(k3.refitted - TANKS_K["k3"]) <= 3 * k3.halfwidth, k3
     assert abs(k2.refitted - TANKS_K["k2"]) <= 3 * k2.halfwidth, k2
     assert "k3 0.0943 -> 0.082" in rep.message and "k2 0.058" not in rep.message
-    # validation SE: the nominal 23.8 %, the refitted model at the noise (measured 0.234 %)
+    # validation SE: the nominal 23.8 %, the refitted model at the noise (measured 0.232 %)
     assert rep.table["updated"].se.value < 0.5 < 10 < rep.table["nominal"].se.value
 
 

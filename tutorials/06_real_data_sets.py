@@ -377,9 +377,9 @@ import numpy as np
 # fitted on the estimation record (tutorial 06); declared as params so that greybox refits
 # them with a law it adds. K4 is not declared: the upper level x1 is not measured, so its
 # scale is free (k1, k2, k4 would only be determined as a combination); K4 pins it.
-PARAMS = {{"k1": {kk[0]!r}, "k2": {kk[1]!r}, "k3": {kk[2]!r},
-          "off": {kk[6]!r}}}  # off: the level sensor's offset [V]: the level is x2 - off
-K4 = {kk[3]!r}
+PARAMS = {{"k1": {float(kk[0])!r}, "k2": {float(kk[1])!r}, "k3": {float(kk[2])!r},
+          "off": {float(kk[6])!r}}}  # off: the level sensor's offset [V]: the level is x2 - off
+K4 = {float(kk[3])!r}
 Ts, NSUB = {dt!r}, {NSUB}
 
 
@@ -404,7 +404,7 @@ def _update(t, x, u, params):
 model = control.nlsys(_update, lambda t, x, u, params: np.array([x[1]]), dt=Ts,
                       states=["x1", "x2"], inputs=["u"], outputs=["y"], name="tanks",
                       params=PARAMS)
-R = np.array([[{(0.01 * yE.std()) ** 2!r}]])
+R = np.array([[{float(0.01 * yE.std()) ** 2!r}]])
 Q = R[0, 0] * np.eye(2)
 '''
 paths = [OUT / s for s in ("tanks_MODEL.py", "tanks_estimation.csv", "tanks_test.csv")]
