@@ -119,6 +119,10 @@ class JointRefit:
         determined (e.g. k1, k2, k4 of tanks whose upper level is not
         measured: the level's scale is free). Their half-widths are NaN; fix
         one of them (do not declare it) to pin the scale.
+    dropped : tuple of str
+        The law's terms dropped because they moved with a declared parameter
+        (the same blind direction: e.g. a linear term ``x`` beside a declared
+        linear coefficient): the parameter carries them, the law keeps the rest.
     """
 
     model: ct.NonlinearIOSystem
@@ -133,10 +137,14 @@ class JointRefit:
     nlaw: int
     law_halfwidths: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     unidentifiable: tuple[str, ...] = ()
+    dropped: tuple[str, ...] = ()
 
     def parameter_text(self) -> str:
         """``k1 0.0437 -> 0.0362 ± 0.002 (-17 %), ...`` (and the unidentifiable ones)."""
         out = ", ".join(p.text() for p in self.parameters)
+        if self.dropped:
+            out += (f"; law term(s) {', '.join(self.dropped)} dropped: they duplicate a "
+                    f"declared parameter")
         if self.unidentifiable:
             out += (f"; not separately identifiable from the outputs: "
                     f"{', '.join(self.unidentifiable)} (only a combination is determined: "
@@ -323,10 +331,24 @@ def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDA
             if sol2 is None or not np.all(np.isfinite(sol2.x)):
                 return None
             sol, half = sol2, _halfwidths(sol2, y.shape[0])
+    flat = _flat_direction(sol)
+    nc = len(sel)
+    twins = [sel[i - kp] for i in flat if kp <= i < kp + nc]
+    if law is not None and twins and any(i < kp for i in flat):
+        # law terms that move with a declared parameter (e.g. a linear term beside the
+        # parameter of the same linear term): the parameter carries them; drop and refit
+        coef = law.coef.copy()
+        for c, j in twins:
+            coef[c, j] = 0.0
+        if not np.any(coef):
+            return None
+        out = refit_jointly(base, disc, y, u, x_start, C, D, law=replace(law, coef=coef),
+                            G=G, spill=spill, max_nfev=max_nfev, names=tuple(keys))
+        return None if out is None else replace(
+            out, dropped=out.dropped + tuple(law.spec[j][0] for _, j in twins))
     r, sim = resid_of(sol.x, others)
     if sim is None:
         return None
-    flat = _flat_direction(sol)
     lost = tuple(keys[i] for i in flat if i < kp)
     if lost:  # only a combination of them is determined: no interval for each
         half[list(flat)] = np.nan
