@@ -1019,6 +1019,18 @@ def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfre
     return alone, jr
 
 
+def _refit_notes(jr) -> tuple[str, ...]:
+    """``Effect.parameter_notes`` of a refit: each declared parameter's change, the spill."""
+    out = [f"nominal parameter refitted: {p.text()}" for p in jr.parameters]
+    out += [f"the law also enters eq({s}) at {g:.3g}" + (f" ± {h:.2g}" if np.isfinite(h) else "")
+            + " times its value" for s, g, h in jr.spill]
+    if jr.unidentifiable:
+        out.append(f"not separately identifiable: {', '.join(jr.unidentifiable)}")
+    if jr.dropped:
+        out.append(f"law term(s) left to a declared parameter: {', '.join(jr.dropped)}")
+    return tuple(out)
+
+
 def _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc, y, u, y_val, u_val,
                      Q, R, P0, lags, alpha, n, nsub, val_nom, u_mean, C, D, report, notes,
                      why="the refitted model's UKF innovations are white", law_gate=None,
@@ -1072,7 +1084,8 @@ def _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc, y, u, y
     return report(f"model error found in the nominal's parameters (no law needed: {why}): "
                   f"{what}; {describe_before_after(table)}", True, updated=True, cands=cands,
                   tr=tr, gate_used=gate,
-                  effect=Effect(kind="parameters", formula=alone.parameter_text()),
+                  effect=Effect(kind="parameters", formula=alone.parameter_text(),
+                                parameter_notes=_refit_notes(alone)),
                   table=table, model=UpdatedModel(sys=lin_u, Q=Q, R=R, order=n,
                                                   kind="parameters"), nl=nl)
 
@@ -1594,7 +1607,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     spill = joint[1].spill if joint is not None else ()
     effect = Effect(kind="static", order=0, formula=law.formula, channel=ch.name,
                     equations=tuple(ch.equations) + tuple(s for s, _, _ in spill),
-                    nonlinear=law.nonlinear, linearized=False, law=law)
+                    nonlinear=law.nonlinear, linearized=False, law=law,
+                    parameter_notes=_refit_notes(joint[1]) if joint is not None else ())
     if not (passed["bic"] and passed["se_drop"]):
         failed = [k for k, v in passed.items() if not v]
         if alone is not None:  # the declared parameters refitted alone, under their own gate

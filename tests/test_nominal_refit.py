@@ -78,6 +78,8 @@ def test_overflow_law_spill_and_the_wrong_parameter_are_named(spill):
     assert abs(k2.refitted - TANKS_K["k2"]) <= k2.halfwidth + 0.01 * TANKS_K["k2"], k2
     assert "k3 0.0943 -> 0.08" in rep.message and "k2" not in rep.message.split(";")[1], \
         rep.message  # only the changed parameter is named in the verdict
+    assert any(n.startswith("the law also enters eq(x2) at -0.5")
+               for n in rep.effect.parameter_notes), rep.effect.parameter_notes
     # the law is weighed against the parameters refitted alone (output-error evidence)
     g = rep.gate
     assert g["se_estimation_parameters_only"] > 3 * g["se_estimation_updated"], g
@@ -100,6 +102,8 @@ def test_a_right_structure_with_a_wrong_parameter_gets_no_law(right_structure):
     assert abs(k3.refitted - TANKS_K["k3"]) <= 3 * k3.halfwidth, k3
     assert abs(k2.refitted - TANKS_K["k2"]) <= 3 * k2.halfwidth, k2
     assert "k3 0.0943 -> 0.082" in rep.message and "k2 0.058" not in rep.message
+    # every declared parameter is listed in the effect's notes (the CLI prints them)
+    assert [n.split(":")[1].split()[0] for n in rep.effect.parameter_notes] == ["k2", "k3"]
     # validation SE: the nominal 23.8 %, the refitted model at the noise (measured 0.232 %)
     assert rep.table["updated"].se.value < 0.5 < 10 < rep.table["nominal"].se.value
 
