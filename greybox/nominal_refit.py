@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from .exceptions import GreyboxError, ModelError
+from .metrics import relative_error
 from .nonlinear import add_law, simulate_nonlinear
 from .trace.intervals import hac_covariance
 from .trace.laws import hinge_name
@@ -221,13 +222,6 @@ def law_coordinates(law) -> tuple[NDArray, Callable, list, list]:
     return theta0.astype(float), law_at, sel, hinges
 
 
-def _se(y: NDArray, r: NDArray) -> float:
-    """Eq. 42's relative RMS [%] of residual r against y (mean over the outputs)."""
-    num = np.sqrt(np.mean(r**2, axis=1))
-    den = np.sqrt(np.mean(y**2, axis=1))
-    return float(100 * np.mean(num / np.maximum(den, 1e-300)))
-
-
 def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDArray,
                   x_start: NDArray, C: NDArray, D: NDArray, *, law=None,
                   G: NDArray | None = None, spill: bool = True, max_nfev: int = 60,
@@ -365,7 +359,8 @@ def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDA
                for q, j in enumerate(others))
     res = y - C @ sim.x - D @ u
     return JointRefit(model=model, law=lw, G=Gt, parameters=changes, spill=sp,
-                      x_start=np.asarray(sol.x[-n:], dtype=float), se=_se(y, res),
+                      x_start=np.asarray(sol.x[-n:], dtype=float),
+                      se=float(relative_error(y, y - res).value),
                       residual=res, nfree=len(sol.x) - n, nlaw=nl + len(others),
                       law_halfwidths=np.asarray(half[kp:kp + nl], dtype=float),
                       unidentifiable=lost)

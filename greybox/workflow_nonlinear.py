@@ -1019,6 +1019,45 @@ def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfre
     return alone, jr
 
 
+def _updated(upd, disc, y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub, val_nom, u_mean,
+             C, D, **changes) -> tuple[dict, NonlinearUpdate]:
+    """(table, NonlinearUpdate) of an updated nonlinear model: its validation row beside the
+    nominal's, and its linearization at the mean of its UKF's states on the estimation record.
+
+    ``changes``: the NonlinearUpdate's ``parameters`` and ``spill``.
+    """
+    upd_d = disc(upd)
+    row, _ = _validation_row(upd_d, y_val, u_val, Q=Q, R=R, x0=_prior(C, D, y_val, u_val)[0],
+                             P0=P0, name="updated", lags=lags, alpha=alpha, order=n)
+    kf_u = ukf(upd_d, y, u, Q=Q, R=R, x0=_prior(C, D, y, u)[0], P0=P0)
+    x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
+    nl = NonlinearUpdate(model=upd, discrete=upd_d, linearization=linearize_at(upd_d, x_op_u,
+                                                                               u_mean),
+                         x_op=x_op_u, u_op=u_mean,
+                         operating_point=_OP_TEXT.format(what="updated UKF's"), substeps=nsub,
+                         **changes)
+    return {"nominal": val_nom, "updated": row}, nl
+
+
+def _refit_evidence(residual, se_null: float, se_alt: float, k: int
+                    ) -> tuple[float, float, float]:
+    """(likelihood ratio, BIC penalty, colour) of an output-error refit against its null.
+
+    ``Ny log(se_null^2 / se_alt^2) / c`` against ``k log(Ny / c)``, c the colour
+    of the refit's ``residual`` (noutputs, nsteps) (:func:`_residual_colour`).
+    """
+    Ny = residual.size
+    colour = _residual_colour(residual)
+    gain = float(Ny * 2 * np.log(se_null / se_alt) / colour)
+    return gain, float(k * np.log(max(Ny / colour, 2.0))), colour
+
+
+def _changed(parameters) -> list[str]:
+    """Texts of the refitted parameters whose change exceeds their 95 % interval."""
+    return [pc.text() for pc in parameters
+            if np.isfinite(pc.halfwidth) and abs(pc.refitted - pc.nominal) > pc.halfwidth]
+
+
 def _refit_notes(jr) -> tuple[str, ...]:
     """``Effect.parameter_notes`` of a refit: each declared parameter's change, the spill."""
     out = [f"nominal parameter refitted: {p.text()}" for p in jr.parameters]
@@ -1048,11 +1087,8 @@ def _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc, y, u, y
     if law_gate is not None:
         gate["law_bic_gain"] = float(law_gate["bic_gain"])
         gate["law_bic_penalty"] = float(law_gate["bic_penalty"])
-    Ny = y[:, SKIP:].size
-    colour = _residual_colour(alone.residual)
-    gain = float(Ny * 2 * np.log(se_nom / alone.se) / colour)
-    k = len(alone.parameters)
-    penalty = float(k * np.log(max(Ny / colour, 2.0)))
+    gain, penalty, colour = _refit_evidence(alone.residual, se_nom, alone.se,
+                                            len(alone.parameters))
     passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
               "se_drop": alone.se < min_se_drop * se_nom}
     gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
@@ -1061,8 +1097,7 @@ def _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc, y, u, y
                  "passed": passed,
                  "evidence": "output error: likelihood ratio of the refitted parameters against "
                              "the declared ones, divided by the residual's colour"})
-    changed = [pc.text() for pc in alone.parameters
-               if np.isfinite(pc.halfwidth) and abs(pc.refitted - pc.nominal) > pc.halfwidth]
+    changed = _changed(alone.parameters)
     if not (passed["bic"] and passed["se_drop"]):
         if law_gate is not None:
             return None
@@ -1070,16 +1105,9 @@ def _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc, y, u, y
         return report("model error detected (UKF innovations not white); the declared "
                       f"parameters refitted alone failed the gate: {', '.join(failed)} ({why}); "
                       "model unchanged", True, cands=cands, tr=tr, gate_used=gate)
-    upd_d = disc(alone.model)
-    row, _ = _validation_row(upd_d, y_val, u_val, Q=Q, R=R, x0=_prior(C, D, y_val, u_val)[0],
-                             P0=P0, name="updated", lags=lags, alpha=alpha, order=n)
-    table = {"nominal": val_nom, "updated": row}
-    kf_u = ukf(upd_d, y, u, Q=Q, R=R, x0=_prior(C, D, y, u)[0], P0=P0)
-    x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
-    lin_u = linearize_at(upd_d, x_op_u, u_mean)
-    nl = NonlinearUpdate(model=alone.model, discrete=upd_d, linearization=lin_u, x_op=x_op_u,
-                         u_op=u_mean, operating_point=_OP_TEXT.format(what="updated UKF's"),
-                         substeps=nsub, parameters=alone.parameters)
+    table, nl = _updated(alone.model, disc, y, u, y_val, u_val, Q, R, P0, lags, alpha, n,
+                         nsub, val_nom, u_mean, C, D, parameters=alone.parameters)
+    lin_u = nl.linearization
     what = ", ".join(changed) if changed else "none beyond its 95 % interval"
     return report(f"model error found in the nominal's parameters (no law needed: {why}): "
                   f"{what}; {describe_before_after(table)}", True, updated=True, cands=cands,
@@ -1554,9 +1582,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                              declared, alone)
         if joint is not None:
             alone, jr = joint
-            hinges = law_coordinates(jr.law)[3]
-            law = _with_intervals(jr.law, law_coordinates(jr.law)[2], hinges,
-                                  jr.law_halfwidths, ch, base)
+            _, _, sel_j, hinges_j = law_coordinates(jr.law)
+            law = _with_intervals(jr.law, sel_j, hinges_j, jr.law_halfwidths, ch, base)
             upd, se_c = jr.model, jr.se
             tr = replace(tr, static=law)
             x0_of[ch.name] = jr.x_start
@@ -1569,10 +1596,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     Nd = N - 1 - SKIP
     if joint is not None:
         Ny = p * (N - SKIP)
-        colour = _residual_colour(jr.residual)
-        gain = float(Ny * 2 * np.log(alone.se / jr.se) / colour)
+        gain, penalty, colour = _refit_evidence(jr.residual, alone.se, jr.se, jr.nlaw)
         n_eff = Ny / colour
-        penalty = float(jr.nlaw * np.log(max(n_eff, 2.0)))
         gate.update({"oe_colour": colour, "se_estimation_parameters_only": alone.se})
         gate["evidence"] = ("output error: likelihood ratio of the law (nominal parameters "
                             "refitted with it) against the nominal parameters refitted alone, "
@@ -1646,17 +1671,10 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
 
     # 4. before/after on validation data, both simulated with the same RK4
     tick("validation", 0, 1)
-    upd_d = disc(upd)
-    row, _ = _validation_row(upd_d, y_val, u_val, Q=Q, R=R, x0=_prior(C, D, y_val, u_val)[0],
-                             P0=P0, name="updated", lags=lags, alpha=alpha, order=n)
-    table = {"nominal": val_nom, "updated": row}
-    kf_u = ukf(upd_d, y, u, Q=Q, R=R, x0=x_guess, P0=P0)
-    x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
-    lin_u = linearize_at(upd_d, x_op_u, u_mean)
-    nl = NonlinearUpdate(model=upd, discrete=upd_d, linearization=lin_u, x_op=x_op_u,
-                         u_op=u_mean, operating_point=_OP_TEXT.format(what="updated UKF's"),
-                         substeps=nsub, parameters=joint[1].parameters if joint else (),
-                         spill=spill)
+    table, nl = _updated(upd, disc, y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub,
+                         val_nom, u_mean, C, D,
+                         parameters=joint[1].parameters if joint else (), spill=spill)
+    x_op_u, lin_u = nl.x_op, nl.linearization
     tick("validation", 1, 1)
     notes.append(f"the 'nominal' and 'updated' rows simulate the nonlinear models"
                  f"{' (RK4)' if cont else ''}; report.model.sys (updated_model.json) is the "
@@ -1674,8 +1692,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         where = f"input {ch.input} (it enters {where})"
     if spill:
         where += " (and " + ", ".join(f"eq({s}) at {g:.2g}x" for s, g, _ in spill) + ")"
-    changed = [pc.text() for pc in (joint[1].parameters if joint else ())
-               if np.isfinite(pc.halfwidth) and abs(pc.refitted - pc.nominal) > pc.halfwidth]
+    changed = _changed(joint[1].parameters if joint else ())
     refit = ""
     if joint:
         refit = ("; nominal parameters refitted with it: " + (", ".join(changed) if changed
