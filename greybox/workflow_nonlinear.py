@@ -81,6 +81,7 @@ stage (exactly, not held).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import control as ct
@@ -347,19 +348,47 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
     scale = np.maximum(np.std(yy, axis=1), 1e-300)[:, None]
     big = np.full(yy.size, 1e3)
 
+    last = {}
+
     def resid(theta):
+        key = np.asarray(theta, dtype=float).tobytes()
+        if key in last:
+            return last[key]
         model = disc(add_law(base, ch.G, law_at(theta).evaluate))
         try:
             sim = simulate_nonlinear(model, uu, x0=x_start)
         except GreyboxError:
             return big
         r = ((yy - C @ sim.x - D @ uu) / scale).ravel()
-        return r if np.all(np.isfinite(r)) else big
+        last.clear()
+        last[key] = r if np.all(np.isfinite(r)) else big
+        return last[key]
 
+    cols = _LawColumns([law_at(theta0)])
+    model_k = disc(add_law(base, ch.G, cols))
+
+    def jac(theta):
+        """Forward differences, every column in one simulation of a batch of laws."""
+        theta = np.asarray(theta, dtype=float)
+        r0 = resid(theta)
+        h = _FD_STEP * np.maximum(1.0, np.abs(theta))
+        cols.laws = [law_at(theta + h[i] * np.eye(theta.size)[i]) for i in range(theta.size)]
+        xs = _run_columns(model_k, np.repeat(np.asarray(x_start, float)[:, None], theta.size,
+                                             axis=1), uu)
+        cols.laws = two[:1]
+        R = np.einsum("pn,tnk->kpt", C, xs) + (D @ uu)[None]
+        R = ((yy[None] - R) / scale[None]).reshape(theta.size, -1)
+        R[~np.all(np.isfinite(R), axis=1)] = big  # a diverged column, as resid counts it
+        return ((R - r0) / h[:, None]).T
+
+    two = [law_at(theta0), law_at(theta0 + _FD_STEP * 1e4 * np.maximum(1.0, np.abs(theta0)))]
+    batched = _takes_batch(model_k, np.repeat(np.asarray(x_start, float)[:, None], 2, axis=1),
+                           uu, lambda c: setattr(cols, "laws", [two[i] for i in c]))
+    cols.laws = two[:1]
     try:  # a term that vanishes on the record (a hinge above every x) has a zero Jacobian
         with np.errstate(all="ignore"):  # column: x_scale="jac" then divides by zero
-            sol = least_squares(resid, theta0, x_scale="jac", max_nfev=20, ftol=1e-4,
-                                xtol=1e-4)
+            sol = least_squares(resid, theta0, jac=jac if batched else "2-point",
+                                x_scale="jac", max_nfev=20, ftol=1e-4, xtol=1e-4)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(sol.x)) or sol.fun is big:
@@ -399,6 +428,106 @@ def _with_intervals(law, sel, hinges, hw, ch, base):
                                ch.units[c] if c < len(ch.units) else "", half[c, idx]))
     return replace(law, ci=half, formula="; ".join(lines), time_base="continuous"
                    if base.isctime(strict=True) else "discrete")
+
+
+_FD_STEP = 1.49e-8  # forward-difference step relative to max(1, |coordinate|) (sqrt(eps))
+
+
+class _LawColumns:
+    """``law(x, u)`` of several static laws at once: state column k under ``laws[k]``.
+
+    With one law (or a single state vector) every column takes ``laws[0]``.
+    Columns whose laws select the same terms (the same hinge levels) share one
+    evaluation of those terms; their coefficients differ per column. Lets a
+    forward-difference Jacobian of an output-error fit cost one simulation of
+    a batch of states instead of one simulation per coordinate.
+    """
+
+    def __init__(self, laws):
+        self.laws = laws
+
+    @property
+    def laws(self):
+        return self._laws
+
+    @laws.setter
+    def laws(self, laws):
+        self._laws = list(laws)
+        self._eps = self._laws[0].eps
+        groups: dict = {}
+        for k, lw in enumerate(self._laws):
+            groups.setdefault(lw._selected[1], []).append(k)
+        K = len(self._laws)
+        # per group: (spec, columns (None: all), coefficients (md, nsel, ncolumns))
+        self._groups = [(spec, None if len(ks) == K else np.asarray(ks),
+                         np.stack([self._laws[k]._selected[0] for k in ks], axis=2))
+                        for spec, ks in groups.items()]
+
+    def __call__(self, x, u):
+        if x.ndim == 1 or len(self._laws) == 1:
+            return self._laws[0].evaluate(x, u)
+        if len(self._groups) == 1:
+            spec, _, coef = self._groups[0]
+            return np.einsum("cjk,jk->ck", coef, _eval_terms(spec, self._eps, x, u))
+        out = np.empty((self._groups[0][2].shape[0], x.shape[1]))
+        for spec, ks, coef in self._groups:
+            out[:, ks] = np.einsum("cjk,jk->ck", coef,
+                                   _eval_terms(spec, self._eps, x[:, ks], u[:, ks]))
+        return out
+
+
+def _run_columns(model, X0: NDArray, uu: NDArray, T: int | None = None) -> NDArray:
+    """States (T, n, K) of the discrete ``model`` run from the K columns of X0 (n, K) on uu.
+
+    One call of the update per sample for all columns (the caller has checked
+    that the model takes a batch, :func:`_takes_batch`); K = 1 passes one state
+    vector, as any model (a user's MODEL.py) takes it. A column that diverges
+    (non-finite or above 1e100) stays NaN from there on.
+    """
+    upd, par = model.updfcn, dict(model.params or {})
+    n, K = X0.shape
+    T = uu.shape[1] if T is None else T
+    xs = np.full((T, n, K), np.nan)
+    X = X0
+    with np.errstate(all="ignore"):
+        for k in range(T):
+            xs[k] = X
+            if K == 1:
+                X = np.asarray(upd(0.0, X[:, 0], uu[:, k], par), dtype=float).reshape(n, 1)
+            else:
+                X = np.asarray(upd(0.0, X, np.repeat(uu[:, k:k + 1], K, axis=1), par),
+                               dtype=float).reshape(n, K)
+            bad = ~np.all(np.isfinite(X) & (np.abs(X) < 1e100), axis=0)
+            if bad.any():
+                if bad.all():
+                    break
+                X[:, bad] = np.nan
+    return xs
+
+
+def _takes_batch(model, X: NDArray, uu: NDArray, select: Callable) -> bool:
+    """Whether ``model``'s update of two state columns X (n, 2) equals its update of each.
+
+    ``select(cols)`` points the model's law at the coefficients of those columns
+    (both, then each); it is left pointing at both.
+    """
+    upd, par = model.updfcn, dict(model.params or {})
+    u2 = np.repeat(uu[:, :1], 2, axis=1)
+    try:
+        one = []
+        for i in range(2):
+            select([i])
+            one.append(np.asarray(upd(0.0, X[:, i:i + 1], u2[:, :1], par),
+                                  dtype=float).reshape(-1))
+        select([0, 1])
+        two = np.asarray(upd(0.0, X, u2, par), dtype=float)
+    except (TypeError, ValueError, IndexError):
+        select([0, 1])
+        return False
+    one = np.stack(one, axis=1)
+    return two.shape == X.shape and bool(np.allclose(
+        two, one, rtol=1e-12, atol=1e-12 * (float(np.max(np.abs(one))) + 1e-300)))
+
 
 
 class _LawOutputError:
@@ -446,27 +575,8 @@ class _LawOutputError:
 
     def _run(self, X0, TH, T=None):
         """States (T, n, K) from X0 (n, K), the coefficient columns TH (nsel, K)."""
-        upd = self.model.updfcn
-        n, K = X0.shape
-        T = self.uu.shape[1] if T is None else T
-        xs = np.full((T, n, K), np.nan)
-        X = X0
-        with np.errstate(all="ignore"):
-            for k in range(T):
-                xs[k] = X
-                self._th = TH
-                if K == 1:  # one state vector, as any model (a user's MODEL.py) takes it
-                    X = np.asarray(upd(0.0, X[:, 0], self.uu[:, k], self._par),
-                                   dtype=float).reshape(n, 1)
-                else:
-                    X = np.asarray(upd(0.0, X, np.repeat(self.uu[:, k:k + 1], K, axis=1),
-                                       self._par), dtype=float).reshape(n, K)
-                bad = ~np.all(np.isfinite(X) & (np.abs(X) < 1e100), axis=0)
-                if bad.any():  # a diverged column stays NaN (1e3 per residual)
-                    if bad.all():
-                        break
-                    X[:, bad] = np.nan
-        return xs
+        self._th = TH
+        return _run_columns(self.model, X0, self.uu, T)
 
     def simulate(self, sel, TH, T=None):
         """States (T, nstates, K) for the coefficient columns TH (nsel, K): T samples (all)."""
@@ -474,28 +584,12 @@ class _LawOutputError:
         K = TH.shape[1]
         X0 = np.repeat(self.x_start[:, None], K, axis=1)
         if self._batched is None and K > 1:  # does the model take a batch of states?
-            self._batched = self._takes_batch(X0[:, :2], TH[:, :2])
+            self._batched = _takes_batch(self.model, X0[:, :2], self.uu,
+                                         lambda c: setattr(self, "_th", TH[:, c]))
         if K == 1 or self._batched:
             return self._run(X0, TH, T)
         return np.concatenate([self._run(X0[:, i:i + 1], TH[:, i:i + 1], T)
                                for i in range(K)], axis=2)
-
-    def _takes_batch(self, X, TH) -> bool:
-        """Whether the model's update of two state columns equals its update of each."""
-        u2 = np.repeat(self.uu[:, :1], 2, axis=1)
-        try:
-            self._th = TH
-            two = np.asarray(self.model.updfcn(0.0, X, u2, self._par), dtype=float)
-            one = []
-            for i in range(2):
-                self._th = TH[:, i:i + 1]
-                one.append(np.asarray(self.model.updfcn(0.0, X[:, i:i + 1], u2[:, :1], self._par),
-                                      dtype=float).reshape(-1))
-        except (TypeError, ValueError, IndexError):
-            return False
-        one = np.stack(one, axis=1)
-        return two.shape == X.shape and bool(np.allclose(
-            two, one, rtol=1e-12, atol=1e-12 * (float(np.max(np.abs(one))) + 1e-300)))
 
     def _resids(self, xs):
         """Scaled flat residuals (K, noutputs * T) of the simulated states (first T samples)."""
@@ -510,7 +604,7 @@ class _LawOutputError:
         key = (tuple(sel), theta.tobytes())
         if self._cache[0] == key:
             return self._cache[1], self._cache[2]
-        h = 1.49e-8 * np.maximum(1.0, np.abs(theta))
+        h = _FD_STEP * np.maximum(1.0, np.abs(theta))
         TH = np.c_[theta, theta[:, None] + np.diag(h)] if sel else np.zeros((0, 1))
         R = self._resids(self.simulate(sel, TH))
         J = ((R[1:] - R[0]) / h[:, None]).T
@@ -787,8 +881,9 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
     # point apart: then the law's own hinge levels, every other grid point, a shorter fine
     # grid (the real tanks: 100 s -> see README)
     probe = _LawOutputError(law, base, ch.G, disc, y, u, x_start, C, D)
-    batched = probe._takes_batch(np.repeat(np.asarray(x_start, float)[:, None], 2, axis=1),
-                                 np.zeros((0, 2)))
+    th0 = np.zeros((0, 2))
+    batched = _takes_batch(probe.model, np.repeat(np.asarray(x_start, float)[:, None], 2, axis=1),
+                           probe.uu, lambda c: setattr(probe, "_th", th0[:, c]))
     base_spec = [sp for sp in law.spec if sp[1] not in _HINGE_KINDS] if batched else \
         list(law.spec)
     states = sorted({sp[2][0] for sp in law.spec if sp[1] in _HINGE_KINDS}) if batched else []

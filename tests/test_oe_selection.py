@@ -16,7 +16,9 @@ import greybox as gb
 from greybox.nonlinear import add_law
 from greybox.trace.laws import StaticLaw, law_terms
 from greybox.trace.oe import forward_select_oe
-from greybox.workflow_nonlinear import SKIP, _LawOutputError, _residual_colour
+from greybox.nominal_refit import law_coordinates
+from greybox.workflow_nonlinear import (SKIP, _LawColumns, _LawOutputError, _residual_colour,
+                                       _run_columns, _takes_batch)
 from test_workflow_nonlinear import DT, pendulum
 
 
@@ -131,6 +133,54 @@ def test_batched_simulation_equals_column_by_column_and_the_plain_simulation():
     ref = gb.simulate_nonlinear(disc(add_law(pendulum(), G, replace_coef(law, coef).evaluate)),
                                 u[:, SKIP:], x0=x0)
     np.testing.assert_allclose(xs[:, :, 0].T, ref.x, rtol=1e-10, atol=1e-12)
+
+
+def test_laws_per_column_equal_each_law_alone_hinge_levels_included():
+    """The batched forward-difference Jacobian of the law's output-error refinement runs one
+    law per state column (its coefficients and hinge levels perturbed): the simulation of
+    the batch equals each law's own simulation (greybox.simulate_nonlinear), columns with
+    another hinge level included, and a model taking one state at a time is detected."""
+    from greybox.trace.laws import hinge_name
+
+    rng = np.random.default_rng(5)
+    N = 200
+    u = gb.multisine(N, dt=DT, amplitude=4.0, fmin=0.05, fmax=1.5, rng=rng)
+    spec = (("omega^3", "x^3", 1), ("theta", "x", 0),
+            (hinge_name("theta", "x_hi", 0.4), "x_hi", (0, 0.4)))
+    coef = np.array([[-0.5, 0.3, -2.0]])
+    law = StaticLaw(spec=spec, eps=np.array([0.1]), coef=coef, Ddx=np.zeros((1, 2)),
+                    Ddu=np.zeros((1, 1)), nonlinear=True, residual_var=np.ones(1),
+                    bic_gain=0.0, npar=3, formula="")
+    theta0, law_at, sel, hinges = law_coordinates(law)
+    assert hinges == [2] and theta0.size == 4  # three coefficients, one hinge level
+    TH = theta0[:, None] + np.diag([0.1, -0.2, 0.5, 0.15])  # the last column moves the level
+    laws = [law_at(TH[:, k]) for k in range(4)]
+    G = np.array([[0.0], [1.0]])
+
+    def disc(s):
+        return gb.discretize_nonlinear(s, DT, substeps=2)
+
+    cols = _LawColumns(laws[:1])
+    model = disc(add_law(pendulum(), G, cols))
+    x0 = np.array([0.3, -0.2])
+    X0 = np.repeat(x0[:, None], 2, axis=1)
+    assert _takes_batch(model, X0, u, lambda c: setattr(cols, "laws", [laws[i] for i in c]))
+    cols.laws = laws
+    xs = _run_columns(model, np.repeat(x0[:, None], 4, axis=1), u)
+    for k in range(4):
+        ref = gb.simulate_nonlinear(disc(add_law(pendulum(), G, laws[k].evaluate)), u, x0=x0)
+        np.testing.assert_allclose(xs[:, :, k].T, ref.x, rtol=1e-12, atol=1e-12)
+    assert len(cols._groups) == 2  # the moved level is its own group of terms
+    f = pendulum().updfcn
+
+    def scalar_only(t, xk, uk, p):
+        return f(t, np.array([float(xk[0]), float(xk[1])]), np.array([float(uk[0])]), p)
+
+    import control as ct
+    one = ct.nlsys(scalar_only, lambda t, xk, uk, p: xk, states=2, inputs=1, outputs=2)
+    model1 = disc(add_law(one, G, cols))
+    assert not _takes_batch(model1, X0, u, lambda c: setattr(cols, "laws",
+                                                            [laws[i] for i in c]))
 
 
 def replace_coef(law, coef):

@@ -216,7 +216,7 @@ class _Problem:
     def fit(self, theta0):
         from scipy.optimize import least_squares
 
-        return least_squares(self.resid, theta0, method="lm", x_scale="jac", max_nfev=150)
+        return least_squares(self.resid, theta0, method="lm", x_scale="jac", max_nfev=60)
 
     def halfwidths(self, sol, Q, R, jac=None):
         n = self.n
