@@ -376,7 +376,7 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
         theta = np.asarray(theta, dtype=float)
         r0 = resid(theta)
         h = _FD_STEP * np.maximum(1.0, np.abs(theta))
-        cols.laws = [law_at(theta + h[i] * np.eye(theta.size)[i]) for i in range(theta.size)]
+        cols.laws = [law_at(t) for t in theta + np.diag(h)]
         xs = _run_columns(model_k, np.repeat(np.asarray(x_start, float)[:, None], theta.size,
                                              axis=1), uu)
         cols.laws = two[:1]
@@ -1078,7 +1078,7 @@ def _oe_bic(oe, entry, y, u, disc, x0, C, D) -> bool:
 
 
 def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfree_fixed: int,
-                 notes: list, declared: dict, alone=None):
+                 notes: list, declared: dict, alone=None, jr=None):
     """Stage 2c: ``(alone, joint)`` refits of the nominal's declared parameters, or None.
 
     ``alone``: the parameters (and the initial state) refitted by output error
@@ -1088,12 +1088,14 @@ def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfre
     (``n log SE^2 + k log n``, n = Ny / colour of its residual, k its free
     parameters) is lower; the gate then weighs the law against ``alone``. ``base``
     may already hold ``alone``'s parameters (stage 1b); the changes are reported
-    against the values the model ``declared``.
+    against the values the model ``declared``. ``jr``: this joint refit when it was
+    already made (:func:`_pick_after_refit`, same law, start and nominal).
     """
     yy, uu = y[:, SKIP:], u[:, SKIP:]
     if alone is None:
         alone = refit_jointly(base, disc, yy, uu, x_start, C, D)
-    jr = refit_jointly(base, disc, yy, uu, x_start, C, D, law=law, G=ch.G)
+    if jr is None:
+        jr = refit_jointly(base, disc, yy, uu, x_start, C, D, law=law, G=ch.G)
     if jr is not None:
         jr = replace(jr, parameters=tuple(replace(pc, nominal=declared.get(pc.name, pc.nominal))
                                           for pc in jr.parameters))
@@ -1122,7 +1124,7 @@ _REFIT_NEAR = 3  # candidates within the parsimony margin refitted with the para
 
 
 def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
-    """``(candidate, start)``: of the candidates within the parsimony margin (sparsest
+    """``(candidate, start, joint refit or None)``: of the candidates within the parsimony margin (sparsest
     first), the one whose law, refitted jointly with the nominal's declared parameters,
     has the lowest output-error BIC, and the nominal its refit started from.
 
@@ -1156,7 +1158,7 @@ def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
         fits.append(best)
     done = [jr for jr, _ in fits if jr is not None]
     if not done:
-        return near[0], starts[0]
+        return near[0], starts[0], None
     n = yy.size / max(_residual_colour(jr.residual) for jr in done)
     bic = [n * np.log(jr.se ** 2) + jr.nfree * np.log(n) if jr is not None else np.inf
            for jr, _ in fits]
@@ -1167,7 +1169,7 @@ def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
                              if f[0] is not None else f"{s[2].channel.name} failed"
                              for s, b, f in zip(near, bic, fits))
                  + f"; chosen {near[i][2].channel.name}")
-    return near[i], fits[i][1]
+    return near[i], fits[i][1], fits[i][0]
 
 
 def _updated(upd, disc, y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub, val_nom, u_mean,
@@ -1698,11 +1700,11 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     best = min(s[0] for s in finite)
     near = sorted((s for s in finite if s[0] <= parsimony * best),
                   key=lambda s: (s[1], s[2].channel.md, s[0]))
-    pick, start = near[0], base
+    pick, start, jr_pick = near[0], base, None
     if refit_parameters and declared and len(near) > 1:
         tick("candidates refitted with the nominal's parameters", 0, 1)
-        pick, start = _pick_after_refit(near, (base, base_declared), disc, y, u, x0_of, C, D,
-                                        notes)
+        pick, start, jr_pick = _pick_after_refit(near, (base, base_declared), disc, y, u,
+                                                 x0_of, C, D, notes)
         tick("candidates refitted with the nominal's parameters", 1, 1)
     se_c, npar, tr, upd, refined, evidence, oe_terms = pick
     ch, law = tr.channel, tr.static
@@ -1744,7 +1746,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         tick("joint refit of the nominal's parameters", 0, 1)
         joint = _joint_refit(start, disc, law, ch, y, u, x0_of[ch.name], C, D, se_c,
                              int(evidence[1]) if evidence is not None else law.npar, notes,
-                             declared, alone)
+                             declared, alone,
+                             jr=jr_pick if law is pick[2].static else None)
         if joint is not None:
             alone, jr = joint
             _, _, sel_j, hinges_j = law_coordinates(jr.law)
