@@ -232,7 +232,7 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
     N = result.d_est.shape[1] - 1
     if skip is not None:
         skip = check_positive(skip, "skip", integer=True, allow_zero=True)
-    k0 = skip if skip is not None else max(10, result.period_converged or 10)
+    k0 = skip if skip is not None else result.settled(10)
     if N - k0 < 50:
         raise DataError(f"only {N - k0} usable samples after the filter transient; "
                         f"at least 50 are needed")

@@ -634,7 +634,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         # 1. residual of the nominal model
         tick("residual of the nominal model", 0, 1)
         kf = kalman_filter(nominal, y, u, Q=Q, R=R)
-        k0 = max(skip, kf.period_converged or skip)
+        k0 = kf.settled(skip)
         white = whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha)
         x0n = estimate_initial_state(nominal, y, u)
         se_nom = _se(ys, kf.y_pred[:, :ys.shape[1]], skip) if unstable else \
@@ -766,7 +766,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             if kind_ != "static" or tr_.channel.md != 2 or tr_.channel.kind != "equation":
                 continue
             res_ = tr_.filter_result
-            k0s, Ns = max(20, res_.period_converged or 20), res_.d_est.shape[1] - 1
+            k0s, Ns = res_.settled(20), res_.d_est.shape[1] - 1
             g = tr_.static.direction(res_.x_filt[:, k0s:Ns], u[:, k0s:Ns])
             if g is None:
                 continue
@@ -1000,7 +1000,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
 
         # 3. gate on the law's BIC gain and the SE drop
         Nf = res.d_est.shape[1] - 1
-        k0f = max(20, res.period_converged or 20)
+        k0f = res.settled(20)
         d = res.d_est[:, k0f:Nf]
         x = res.x_filt[:, k0f:Nf]
         uu = u[:, k0f:Nf]
@@ -1144,7 +1144,7 @@ def _noise_by_likelihood(model: UpdatedModel, Q, y, u, skip, notes) -> UpdatedMo
     if Qa.shape != Qp.shape or np.allclose(Qa, Qp, rtol=1e-9, atol=0.0):  # Q may be ~1e-12
         return model
     kfs = [kalman_filter(model.sys, y, u, Q=Qx, R=model.R) for Qx in (Qa, Qp)]
-    k0 = max(max(skip, kf.period_converged or skip) for kf in kfs)
+    k0 = max(kf.settled(skip) for kf in kfs)
     ll = []
     for kf in kfs:
         S = np.atleast_2d(kf.innovation_cov)
@@ -1292,7 +1292,7 @@ def _sparse_start(tr):
     lam = np.linalg.eigvals(dyn.Ad) if dyn is not None and dyn.order else np.zeros(0)
     lam = lam[np.isreal(lam) & (lam.real > 0) & (lam.real < 1)].real
     res = tr.filter_result
-    return (res, max(20, res.period_converged or 20), res.d_est.shape[1] - 1,
+    return (res, res.settled(20), res.d_est.shape[1] - 1,
             float(lam.max()) if lam.size else None)
 
 

@@ -1917,7 +1917,7 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
         model = _add_sensor_law(res.sys, eff.law, f"{rep.nominal.name}_updated")
     else:
         model = add_law(res.sys, res.G, eff.law.evaluate, name=f"{rep.nominal.name}_updated")
-    k0 = max(SKIP, res.period_converged or SKIP)
+    k0 = res.settled(SKIP)
     x_op = res.x_filt[:, k0:].mean(axis=1)
     u = np.asarray(res.u, dtype=float)
     u_op = u[:, k0:].mean(axis=1) if u.shape[0] else np.zeros(0)

@@ -200,6 +200,29 @@ class FilterResult:
         """Upper bound of the ``level`` confidence interval of d_est, shape (md, nsteps)."""
         return self.d_est + self.d_halfwidth
 
+    def settled(self, floor: int = 20) -> int:
+        """First sample past the filter's transient: where fits on this result start.
+
+        ``period_converged`` (the sample the gains were frozen at), at least
+        ``floor``, but never past a tenth of the record: a covariance that
+        creeps (an unknown-input zero on the unit circle, e.g. a force with
+        only positions measured) meets the convergence test only after most
+        of a long record, long after its estimates settled (EMPS, 22000
+        samples: at sample 21969), and skipping to there would leave a few
+        dozen samples to every fit.
+
+        Parameters
+        ----------
+        floor : int
+            Samples skipped at least (the start-up of the initial state).
+
+        Returns
+        -------
+        int
+        """
+        kc = self.period_converged
+        return max(floor, min(kc, self.x_filt.shape[1] // 10) if kc is not None else floor)
+
     def plot(self, channel: int | str = 0, *, d_true=None, ax=None):
         """Plot d_est with its confidence band (see :func:`greybox.plotting.plot_unknown_input`)."""
         from ..plotting import plot_unknown_input

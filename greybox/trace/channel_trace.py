@@ -182,7 +182,7 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
     N = y.shape[1]
-    k0 = skip if skip is not None else max(20, res.period_converged or 20)
+    k0 = skip if skip is not None else res.settled(20)
     m = model.ninputs - 1
     nterms = 4 if nonlinear else 1
     if N - k0 <= 10 * nterms:
@@ -718,7 +718,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     labels = list(channel.labels)
     res = uikf(model, y, u, unknown=labels, Q=Q, R=R)
     N = y.shape[1] - 1
-    k0 = skip if skip is not None else max(20, res.period_converged or 20)
+    k0 = skip if skip is not None else res.settled(20)
     nterms = (4 * n + 1 if nonlinear else n) + m
     if N - k0 <= nterms:
         raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a law of "

@@ -120,7 +120,7 @@ def screen_equations(sys: ct.StateSpace, y: NDArray, u: NDArray, *, Q: NDArray, 
     except GreyboxError as e:
         return EquationScreen(False, f"the joint filter failed: {e}")
     N = y.shape[1] - res.relative_degree
-    k0 = max(skip, res.period_converged or skip)
+    k0 = res.settled(skip)
     d = res.d_est[:, k0:N]
     if not np.all(np.isfinite(d)):
         return EquationScreen(False, "the joint filter's estimates are not finite")
