@@ -2,10 +2,10 @@
 
 Goal (issue 12): <= 1 mV; published: good nonlinear models 0.3-1 mV, linear
 10+ mV. The nominal linear model (k1/m, d/m, 1/m, input offset) is fitted
-by output error, as in tutorials/04_measured_data.py, on two segments:
+by output error, as in tutorials/06_silverbox.py, on two segments:
 
 * ``arrow-start``: on the low-amplitude start of the arrow, [100:8100]
-  (tutorial 04's choice; these samples are part of the test, so this
+  (tutorial 06's choice; these samples are part of the test, so this
   variant is NOT a clean benchmark figure);
 * ``estimation``: on the first estimation multisine [40650:48650] (clean;
   the cubic stiffness then biases the linear fit, which the law corrects);

@@ -23,13 +23,15 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Tests that share a module-scoped fixture run in one worker (``--dist loadgroup``);
-    modules with slow tests run first.
+    """Tests that share a module-scoped fixture run in one worker (``--dist loadgroup``),
+    unless they name their own group; modules with slow tests run first.
 
     Spread over two workers, each would run the fixture (a close-the-loop run per seed,
     up to a minute each) once: the shared-state law's three seeds ran twice.
     """
     for item in items:
+        if item.get_closest_marker("xdist_group"):  # grouped by the test itself
+            continue
         info = getattr(item, "_fixtureinfo", None)
         defs = info.name2fixturedefs.values() if info is not None else ()
         if any(d[-1].scope == "module" for d in defs):

@@ -43,7 +43,7 @@ def _emps_like(N=23000, seed=3):
     return nom, q, vir, np.diag([0.0, 1e-9]), np.array([[step**2 / 12]]), -Fc / M, dt
 
 
-def test_settled_is_the_converged_period_within_a_tenth_of_the_record():
+def test_settled_is_the_converged_period_unless_in_the_last_tenth_of_the_record():
     rng = np.random.default_rng(0)
     sys = named_ss([[0.9]], [[0.1]], [[1.0]], [[0.0]], 0.1, states=["x"], inputs=["u"],
                    outputs=["y"])
@@ -52,8 +52,10 @@ def test_settled_is_the_converged_period_within_a_tenth_of_the_record():
     assert res.period_converged is not None and res.period_converged < 20
     assert res.settled(20) == 20 and res.settled(5) == max(5, res.period_converged)
     assert replace(res, period_converged=60).settled(20) == 60
-    # converged after a tenth of the record: capped there
-    assert replace(res, period_converged=900).settled(20) == 100
+    assert replace(res, period_converged=900).settled(20) == 900
+    # converged only in the last tenth of the record: as if never (from the floor)
+    assert replace(res, period_converged=901).settled(20) == 20
+    assert replace(res, period_converged=999).settled(20) == 20
     assert replace(res, period_converged=None).settled(20) == 20
 
 

@@ -101,7 +101,7 @@ def test_ekf_predictor_of_a_rectifying_sensor_stays_at_the_noise_floor(rng):
     coef[0, names.index("p_model")], coef[0, names.index("|p_model|")] = -1.0, 1.0  # |p| - p
     law = make_law(spec, eps, coef, output=0)
     G = np.zeros((2, 1))
-    # Q = R I: process noise of the sensor noise's order, tutorial 06's rule for the drives
+    # Q = R I: process noise of the sensor noise's order, tutorial 08's rule for the drives
     Q, R = sigma**2 * np.eye(2), np.array([[sigma**2]])
     x0 = np.zeros(2)
     yp = ekf_predict_with_law(nd, G, law, y, u, x0, Q=Q, R=R)

@@ -1,7 +1,7 @@
 """Real measured data (../shared/data): EMPS's omitted Coulomb friction, Silverbox's cubic.
 
 Skipped when the data folder is absent. Nominal models and choices as in
-tutorials/04_measured_data.py (EMPS: published M, Fv, gtau; R from the
+tutorials/04_emps.py and 06_silverbox.py (EMPS: published M, Fv, gtau; R from the
 encoder step; Q_vv from the nominal force residual; estimation
 DATA_EMPS[0:8000]. Silverbox: linear parameters by output error on the
 low-amplitude arrow, the input's ZOH equivalent (zoh_equivalent_input: the

@@ -1,8 +1,8 @@
-"""Three real measured sets (tutorials/06_real_data_sets.py): what greybox says, before/after.
+"""Five real measured sets (tutorials 04, 06-09): what greybox says, before/after.
 
-The tutorial runs once (a subprocess, as a user runs it) and writes a JSON
-summary; the tests assert on it: the channel named, the law's terms and
-their 95 % intervals, the before/after errors on each benchmark's official
+Each set's tutorial runs once (a subprocess, as a user runs it; one xdist
+group per set) and writes a JSON summary; the tests assert on it: the
+channel named, the law's terms and their 95 % intervals, the before/after errors on each benchmark's official
 test split, and that ``greybox update`` on the written MODEL.json / MODEL.py
 and CSV files reaches the one call's verdict. The goals the current code does
 not reach are strict xfails (they fail, as XPASS, the day they are reached,
@@ -28,7 +28,7 @@ from greybox.trace import law_terms
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
-SETS = ("daisy_exchanger", "coupled_electric_drives", "cascaded_tanks")
+SETS = ("emps", "silverbox", "daisy_exchanger", "coupled_electric_drives", "cascaded_tanks")
 HAVE_DATA = all((DATA / s).is_dir() for s in SETS)
 needs_data = pytest.mark.skipif(not HAVE_DATA, reason=f"measured data {DATA}/{{{','.join(SETS)}}}"
                                 " not present (see ../shared/data/INDEX.md)")
@@ -70,26 +70,134 @@ def test_trace_finds_a_flow_dependent_time_constant_as_the_product_term():
 
 
 # ---------------------------------------------------------------------- the real sets
-@pytest.fixture(scope="module")
-def summary(tmp_path_factory):
-    if not HAVE_DATA:
-        pytest.skip("measured data not present")
-    out = tmp_path_factory.mktemp("tutorial06")
+def _run_tutorial(tmp_path_factory, script, name):
+    """Run one real-data tutorial as a user does (a subprocess); its JSON summary."""
+    out = tmp_path_factory.mktemp(name)
     env = dict(os.environ, GREYBOX_TUTORIAL_OUT=str(out), MPLBACKEND="Agg",
                PYTHONPATH=os.pathsep.join([str(ROOT)] + [p for p in
                                                          [os.environ.get("PYTHONPATH")] if p]))
-    proc = subprocess.run([sys.executable, str(ROOT / "tutorials" / "06_real_data_sets.py")],
+    proc = subprocess.run([sys.executable, str(ROOT / "tutorials" / script)],
                           env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    s = json.loads((out / "real_sets_summary.json").read_text())
+    s = json.loads((out / f"{name}_summary.json").read_text())
     s["_out"], s["_stdout"] = out, proc.stdout
     return s
 
 
-@needs_data
-@pytest.mark.slow
-def test_exchanger_law_contains_the_bilinear_q_T_term(summary):
-    hx = summary["exchanger"]
+# one fixture per set, each in its own xdist group: the five tutorials run in parallel
+@pytest.fixture(scope="module")
+def emps(tmp_path_factory):
+    if not HAVE_DATA:
+        pytest.skip("measured data not present")
+    return _run_tutorial(tmp_path_factory, "04_emps.py", "emps")
+
+
+@pytest.fixture(scope="module")
+def silverbox(tmp_path_factory):
+    if not HAVE_DATA:
+        pytest.skip("measured data not present")
+    return _run_tutorial(tmp_path_factory, "06_silverbox.py", "silverbox")
+
+
+@pytest.fixture(scope="module")
+def exchanger(tmp_path_factory):
+    if not HAVE_DATA:
+        pytest.skip("measured data not present")
+    return _run_tutorial(tmp_path_factory, "07_heat_exchanger.py", "exchanger")
+
+
+@pytest.fixture(scope="module")
+def drives(tmp_path_factory):
+    if not HAVE_DATA:
+        pytest.skip("measured data not present")
+    return _run_tutorial(tmp_path_factory, "08_electric_drives.py", "drives")
+
+
+@pytest.fixture(scope="module")
+def tanks(tmp_path_factory):
+    if not HAVE_DATA:
+        pytest.skip("measured data not present")
+    return _run_tutorial(tmp_path_factory, "09_cascaded_tanks.py", "tanks")
+
+
+def _group(name):
+    return [needs_data, pytest.mark.slow, pytest.mark.xdist_group(f"real_{name}")]
+
+
+def _marks(name):
+    def deco(f):
+        for m in _group(name):
+            f = m(f)
+        return f
+    return deco
+
+
+# ------------------------------------------------------------------------------- EMPS
+@_marks("emps")
+def test_emps_friction_in_the_velocity_equation_with_the_published_coulomb_force(emps):
+    assert emps["updated"] and emps["channel"] == "eq(v)" and emps["kind"] == "static"
+    # the law is the Coulomb friction and the friction asymmetry, nothing else:
+    # d_v = -(0.215 +- 0.0034)*sign(v) + (0.393 +- 0.034)*|v| (measured)
+    assert sorted(emps["terms"]) == ["sign(v)", "|v|"], emps["formula"]
+    # goal: Fc within 5 % of the published 20.39 N, with its 95 % interval (measured
+    # 20.49 +- 0.32 N: the published value lies inside)
+    Fc, h = emps["Fc"], emps["Fc_halfwidth"]
+    assert abs(Fc - 20.39) <= 0.05 * 20.39 and abs(Fc - 20.39) <= h, (Fc, h)
+    # |v| is half the friction asymmetry, (Fv- - Fv+)/2 = 36.86 N s/m published: measured
+    # 0.393 * M = 37.4 +- 3.3
+    c, hc = emps["terms"]["|v|"]
+    assert abs(95.1089 * c - 36.86) <= 95.1089 * hc, emps["terms"]
+    # goal: the offset within 1 N of -3.16 N with its interval. The selection does not keep
+    # an offset beside |v| (|v| carries it: the published symmetric model's offset is the
+    # mean of the asymmetry term); the published model's terms forced in by least squares on
+    # the same d^: -2.92 +- 0.57 N (measured), Fc 20.57 +- 0.67 N
+    off, hoff = emps["offset_fit"]["without_abs_v"]
+    assert abs(off - -3.16) <= 1.0 and abs(off - -3.16) <= hoff + 0.5, (off, hoff)
+    assert emps["relative_degree"] == 2
+
+
+@_marks("emps")
+def test_emps_before_after_on_the_official_test_file(emps):
+    t = emps["table"]
+    # DATA_EMPS_PULSES, all 24841 samples simulated in open loop from vir: the nominal
+    # (M, Fv only) drifts away, SE 109 %, RMS 163 mm; with the friction law SE 4.58 %,
+    # RMS 6.8 mm (measured; the pure integrator accumulates any force error, so 5 % covers
+    # platform rounding of the simulation)
+    np.testing.assert_allclose([t["nominal"]["se"], 1e3 * t["nominal"]["rms"]], [109.1, 162.5],
+                               rtol=0.02)
+    np.testing.assert_allclose([t["updated"]["se"], 1e3 * t["updated"]["rms"]], [4.58, 6.82],
+                               rtol=0.05)
+    # the pulses of the test record are in vir: the published inverse model's force residual
+    # holds -0.054 of them (an external force would read -1)
+    assert abs(emps["pulse_coef"]) < 0.2
+
+
+# -------------------------------------------------------------------------- Silverbox
+@_marks("silverbox")
+def test_silverbox_cubic_stiffness_in_the_velocity_equation(silverbox):
+    sb = silverbox
+    assert sb["updated"] and sb["channel"] == "eq(v)" and sb["relative_degree"] == 2
+    k3, h3 = sb["terms"]["y^3"]
+    # a hardening spring: negative in d_v, its interval far from 0 (measured
+    # -7.68e5 +- 0.011e5 1/(V^2 s^2)), the dominant term on the arrow's amplitudes
+    assert k3 < 0 and abs(k3) > 20 * h3, sb["formula"]
+    # the Duffing law (y, v, y^3) on the same d^: k3 -7.47e5 +- 0.035e5, within 5 %
+    k3d, h3d = sb["duffing_on_dhat"]["coef"][2], sb["duffing_on_dhat"]["halfwidth"][2]
+    assert abs(k3d / k3 - 1) < 0.05 and h3d > 0
+
+
+@_marks("silverbox")
+def test_silverbox_arrow_test_goal(silverbox):
+    rms = silverbox["rms_mV"]
+    # the official test (the arrow without extrapolation, [100:32100]): linear models 10+ mV
+    # published, ours 12.4 mV (measured); goal <= 1 mV, measured 0.304 mV
+    assert rms["nominal"] > 10 and rms["updated"] <= 1.0, rms
+    np.testing.assert_allclose(rms["updated"], 0.304, rtol=0.1)
+
+
+@_marks("exchanger")
+def test_exchanger_law_contains_the_bilinear_q_T_term(exchanger):
+    hx = exchanger
     assert hx["detected"]
     coef, half = hx["eq_terms"]["T*q"]
     # negative (more flow: faster, smaller response) and its 95 % interval excludes 0
@@ -100,10 +208,9 @@ def test_exchanger_law_contains_the_bilinear_q_T_term(summary):
     assert list(hx["eq_terms"]) == ["T*q"], hx["eq_law"]
 
 
-@needs_data
-@pytest.mark.slow
-def test_exchanger_before_after(summary):
-    hx = summary["exchanger"]
+@_marks("exchanger")
+def test_exchanger_before_after(exchanger):
+    hx = exchanger
     t = hx["table"]
     # the nominal lag on the test split (deterministic code and data): SE 35.1 %,
     # RMS 0.545 degC; 2 % covers BLAS/platform rounding in the filter's initial state
@@ -119,10 +226,9 @@ def test_exchanger_before_after(summary):
     assert abs(hx["forced_static"]["se"] / t["nominal"]["se"] - 1) < 0.05, hx["forced_static"]
 
 
-@needs_data
-@pytest.mark.slow
-def test_drives_error_is_named_on_the_sensor_side_with_a_rectifier(summary):
-    low = summary["drives"]["low"]
+@_marks("drives")
+def test_drives_error_is_named_on_the_sensor_side_with_a_rectifier(drives):
+    low = drives["low"]
     assert low["updated"] and low["channel"] == "output(z)" and low["kind"] == "output"
     coef, half = low["terms"]["|z_model|"]
     # |.| of the model's own speed, positive, its 95 % interval excluding 0; a pure
@@ -133,10 +239,9 @@ def test_drives_error_is_named_on_the_sensor_side_with_a_rectifier(summary):
     assert c_lin < 0 and abs(c_lin) > h_lin
 
 
-@needs_data
-@pytest.mark.slow
-def test_drives_before_after(summary):
-    t = summary["drives"]["low"]["table"]
+@_marks("drives")
+def test_drives_before_after(drives):
+    t = drives["low"]["table"]
     # nominal (reference linear part, gain rescaled on the estimation data): SE 50.0 %,
     # RMS 0.218 sensor units; with the sensor law: SE 26.2 %, RMS 0.114; 2 %: rounding
     np.testing.assert_allclose([t["nominal"]["se"], t["nominal"]["rms"]], [50.0, 0.218],
@@ -150,15 +255,14 @@ def test_drives_before_after(summary):
                                rtol=0.02)
     # high-amplitude record: only 13 % of its model speed samples are < 0; the sensor
     # channel is the best candidate but its law's BIC gain on d^ fails the gate: unchanged
-    high = summary["drives"]["high"]
+    high = drives["high"]
     assert high["detected"] and not high["updated"]
     assert high["passed"] == {"whiteness": True, "bic": False, "se_drop": True}
 
 
-@needs_data
-@pytest.mark.slow
-def test_tanks_the_trace_names_the_upper_tank_saturation_but_the_gate_refuses_it(summary):
-    tk = summary["tanks"]
+@_marks("tanks")
+def test_tanks_the_trace_names_the_upper_tank_saturation_but_the_gate_refuses_it(tanks):
+    tk = tanks
     assert tk["detected"] and not tk["updated"]
     t = tk["table"]
     # Torricelli nominal with the sensor's offset on the test split: RMS 0.667 V from sample
@@ -210,37 +314,54 @@ def test_tanks_the_trace_names_the_upper_tank_saturation_but_the_gate_refuses_it
     assert best["rms_forced"] < 0.52 < 0.6 < t["nominal"]["rms"], best["rms_forced"]
 
 
-@needs_data
-@pytest.mark.slow
+@_marks("tanks")
 @pytest.mark.xfail(strict=True, reason="the trace names the upper tank's saturation (eq(x1), "
                    "a max(x1 - c, 0) hinge) and, with the nominal's k1..k3 and sensor offset "
                    "refitted jointly, its spill into the lower tank: estimation SE 9.8 -> "
                    "6.5 % and a test RMS of 0.486 V if made, but its evidence against the "
                    "parameters refitted alone (69.6) is below the gate's 10 x 13.5: the model "
                    "stays unchanged at 0.667 V (goal <= 0.5 V)")
-def test_tanks_goal_test_rms(summary):
-    tk = summary["tanks"]
+def test_tanks_goal_test_rms(tanks):
+    tk = tanks
     assert tk["updated"] and tk["table"]["updated"]["rms"] <= 0.5
 
 
-@needs_data
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["exchanger", "drives", "tanks"])
-def test_cli_on_the_written_files_reaches_the_same_verdict(summary, name):
-    one = summary[name] if name != "drives" else summary["drives"]["low"]
+def _cli_check(one, out, name, model):
+    """``greybox update`` on the files the tutorial wrote: exit 0, the one call's verdict."""
     cli = one["cli"]
     assert cli["exit_code"] == 0
     assert cli["message"] == one["message"] and cli["updated"] == one["updated"]
-    model = "tanks_MODEL.py" if name == "tanks" else f"{name}_MODEL.json"
     for f in (model, f"{name}_estimation.csv", f"{name}_test.csv",
               f"{name}_report/summary.json", f"{name}_report/updated_model.json"):
-        assert (summary["_out"] / f).is_file(), f
+        assert (out / f).is_file(), f
 
 
-@needs_data
-@pytest.mark.slow
-def test_tutorial_saves_a_figure_per_set(summary):
-    for name in ("fig9_exchanger.png", "fig10_drives_low.png", "fig10_drives_high.png",
-                 "fig11_tanks.png"):
-        path = summary["_out"] / name
-        assert path.is_file() and path.stat().st_size > 1000, name
+@_marks("emps")
+def test_emps_cli_and_figure(emps):
+    _cli_check(emps, emps["_out"], "emps", "emps_MODEL.json")
+    assert (emps["_out"] / "fig6_emps.png").stat().st_size > 1000
+
+
+@_marks("silverbox")
+def test_silverbox_cli_and_figure(silverbox):
+    _cli_check(silverbox, silverbox["_out"], "silverbox", "silverbox_MODEL.json")
+    assert (silverbox["_out"] / "fig7_silverbox.png").stat().st_size > 1000
+
+
+@_marks("exchanger")
+def test_exchanger_cli_and_figure(exchanger):
+    _cli_check(exchanger, exchanger["_out"], "exchanger", "exchanger_MODEL.json")
+    assert (exchanger["_out"] / "fig9_exchanger.png").stat().st_size > 1000
+
+
+@_marks("drives")
+def test_drives_cli_and_figures(drives):
+    _cli_check(drives["low"], drives["_out"], "drives", "drives_MODEL.json")
+    for name in ("fig10_drives_low.png", "fig10_drives_high.png"):
+        assert (drives["_out"] / name).stat().st_size > 1000, name
+
+
+@_marks("tanks")
+def test_tanks_cli_and_figure(tanks):
+    _cli_check(tanks, tanks["_out"], "tanks", "tanks_MODEL.py")
+    assert (tanks["_out"] / "fig11_tanks.png").stat().st_size > 1000

@@ -23,9 +23,7 @@ CASES = [
       "tutorial03_report/updated_model.json"],
      ["model error found in eq(v2)", "exit code 0"]),
 ]
-if (TUTORIALS.parents[1] / "shared" / "data" / "emps" / "DATA_EMPS.npz").is_file():
-    CASES.append(("04_measured_data.py", ["fig6_emps.png", "fig7_silverbox.png"],
-                  ["model error found in eq(v): static effect", "sign(v)"]))
+# the real-data tutorials (04, 06-09) run in tests/test_real_sets.py
 
 
 @pytest.mark.slow

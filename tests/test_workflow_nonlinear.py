@@ -476,7 +476,7 @@ def test_model_py_that_is_not_python_is_one_clear_line(tmp_path):
 def test_a_candidate_simulation_diverging_to_finite_huge_values_scores_as_diverged():
     """SE inf (and an SE reason on validation), not a DataError from the metrics.
 
-    Found on the cascaded tanks (tutorial 06, nominal with the sensor offset): a
+    Found on the cascaded tanks (tutorial 09, nominal with the sensor offset): a
     candidate law's simulation reached 4e215, finite, and the metrics refused it
     as data "above 1e150" instead of the candidate being scored as diverged.
     """
