@@ -1,11 +1,11 @@
 """Where fits on a filter's result start: past its transient, never most of the record.
 
 A force with only positions measured puts the unknown-input filter's zero
-on the unit circle: its covariance creeps and meets the convergence test
-only near the end of a long record (the EMPS data, 22000 samples: at sample
-21969). The law used to be fitted from there on, on a few dozen samples
-(EMPS's whole estimation file gave ``(16.2 ± 0.95)*q^3`` instead of the
-Coulomb friction it gives on 20000 samples).
+on the unit circle: its covariance converges slowly and meets the
+convergence test only near the end of a long record (the EMPS data, 22000
+samples: at sample 21969). The law used to be fitted from there on, on a
+few dozen samples (EMPS's first 22000 samples gave ``(16.2 ± 0.95)*q^3``
+instead of the Coulomb friction it gives on 20000 samples).
 """
 
 from __future__ import annotations
@@ -43,19 +43,21 @@ def _emps_like(N=23000, seed=3):
     return nom, q, vir, np.diag([0.0, 1e-9]), np.array([[step**2 / 12]]), -Fc / M, dt
 
 
-def test_settled_is_the_converged_period_unless_in_the_last_tenth_of_the_record():
+def test_settled_is_the_converged_period_or_the_settled_one_when_late():
     rng = np.random.default_rng(0)
     sys = named_ss([[0.9]], [[0.1]], [[1.0]], [[0.0]], 0.1, states=["x"], inputs=["u"],
                    outputs=["y"])
     y, u = rng.standard_normal((1, 1000)), rng.standard_normal((1, 1000))
     res = gb.kalman_filter(sys, y, u, Q=[[0.1]], R=[[0.1]])
-    assert res.period_converged is not None and res.period_converged < 20
-    assert res.settled(20) == 20 and res.settled(5) == max(5, res.period_converged)
-    assert replace(res, period_converged=60).settled(20) == 60
-    assert replace(res, period_converged=900).settled(20) == 900
-    # converged only in the last tenth of the record: as if never (from the floor)
-    assert replace(res, period_converged=901).settled(20) == 20
-    assert replace(res, period_converged=999).settled(20) == 20
+    kc, ks = res.period_converged, res.period_settled
+    # a geometric recursion: within 10 % of its converged variance well before the test
+    assert kc is not None and ks is not None and 1 <= ks < kc < 20
+    assert res.settled(20) == 20 and res.settled(5) == max(5, kc)
+    assert replace(res, period_converged=500).settled(20) == 500
+    # converged only in the second half of the record: from where P settled
+    assert replace(res, period_converged=501, period_settled=40).settled(20) == 40
+    assert replace(res, period_converged=900, period_settled=5).settled(20) == 20
+    assert replace(res, period_converged=900, period_settled=None).settled(20) == 900
     assert replace(res, period_converged=None).settled(20) == 20
 
 
@@ -65,10 +67,13 @@ def test_a_creeping_filter_still_fits_the_law_on_the_whole_record():
     tr = trace_channel(nom, ch, q[None], vir[None], Q=Q, R=R, dt=dt, max_order=0)
     # the precondition: the r = 1 filter's covariance meets the test only near the end
     # (measured at sample 21603 of 23000); without it this test could not fail
-    assert tr.filter_result.period_converged > 0.9 * q.size
+    res = tr.filter_result
+    assert res.period_converged > 0.9 * q.size
+    assert res.settled(20) == res.period_settled < 0.5 * q.size
     names = [s[0] for s in tr.static.spec]
     j = names.index("sign(v)")
-    # the Coulomb friction, -Fc/M = -0.2145 m/s^2: measured -0.228 +- 0.004 (+6 %: the
+    # the Coulomb friction, -Fc/M = -0.2145 m/s^2: measured -0.226 +- 0.005, fitted from
+    # sample 8445, where the variances came within 10 % of their converged values (+5 %: the
     # simulated friction is tanh(v / 1 mm/s), the law's sign(v) a sharper tanh, and small v,
     # vir, v^3 terms share the shape); 10 % bounds it. Before the fix the law was fitted on
     # the 1397 samples after sample 21603 and read -(0.067 +- 0.016)*sign(q)

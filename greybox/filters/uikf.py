@@ -129,6 +129,10 @@ class FilterResult:
         Whether the covariance recursion converged.
     period_converged : int or None
         First sample index from which the constant gains were used.
+    period_settled : int or None
+        First sample from which every predicted state variance stays within
+        10 % of its converged value (None if the recursion did not converge,
+        or where the filter does not track it).
     sys : control.StateSpace
         Model from the known inputs (A, B, C, D) with its signal names.
     G : ndarray, shape (nstates, md)
@@ -174,6 +178,7 @@ class FilterResult:
     y: NDArray[np.float64] = field(repr=False)
     relative_degree: int = 1
     smoothed: bool = False
+    period_settled: int | None = None
 
     @property
     def y_filt(self) -> NDArray[np.float64]:
@@ -204,15 +209,14 @@ class FilterResult:
         """First sample past the filter's transient: where fits on this result start.
 
         ``period_converged`` (the sample the gains were frozen at), at least
-        ``floor``. A filter whose recursion meets the convergence test only in
-        the last tenth of the record is taken as one that never met it
-        (``period_converged`` None): fits start at ``floor``. A covariance that
-        creeps (an unknown-input zero on the unit circle, e.g. a force with
-        only positions measured) meets the test long after its estimates
-        settled (EMPS, 22000 samples: at sample 21969, and never on 20000);
-        skipping to there left a few dozen samples to every fit. (A short
-        record's slow transient is kept skipped: the coupled drives' sensor
-        channel converges at sample 336 of 400.)
+        ``floor``; ``floor`` if the recursion never converged. A recursion
+        that converges only in the second half of the record starts at
+        ``period_settled`` instead, the first sample from which every
+        predicted variance stays within 10 % of its converged value. A
+        slowly converging covariance (an unknown-input zero near the unit
+        circle, e.g. a force with only positions measured) meets the test
+        long after its estimates settled: EMPS's whole estimation file
+        (24841 samples) at sample 21969, and every fit started there.
 
         Parameters
         ----------
@@ -223,10 +227,11 @@ class FilterResult:
         -------
         int
         """
-        kc = self.period_converged
-        N = self.x_filt.shape[1]
-        if kc is None or N - kc < N // 10:
+        kc, ks = self.period_converged, self.period_settled
+        if kc is None:
             return floor
+        if ks is not None and kc > self.x_filt.shape[1] // 2:
+            return max(floor, min(ks, kc))
         return max(floor, kc)
 
     def plot(self, channel: int | str = 0, *, d_true=None, ax=None):
@@ -523,6 +528,9 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
     auto = gain == "auto"
     xf = x_filt[:, 0]
     k = 1
+    # diag P[k|k-1] until the gains are frozen, every stride-th step (for period_settled;
+    # at most ~4096 rows whatever the record's length)
+    pdiag, pk, stride = [], [], max(1, N // 4096)
     while k < N:
         Pp = A @ Pf @ At + Q
         Pp = 0.5 * (Pp + Pp.T)
@@ -530,6 +538,9 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
                 tol * max(np.max(np.abs(Pp)), tiny):
             converged, kconv = True, k
             break
+        if auto and k % stride == 0:
+            pdiag.append(np.diag(Pp))
+            pk.append(k)
         Pp_prev = Pp
         K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
         xp = A @ xf
@@ -555,6 +566,14 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         # report convergence of the recursion even though gains were not frozen
         Pn = A @ Pf @ A.T + Q
         converged = bool(np.max(np.abs(Pn - Pp_prev)) <= tol * max(np.max(np.abs(Pn)), 1e-300))
+    ksettled = None
+    if kconv is not None:
+        # the first step from which every variance stays within 10 % of its converged value
+        far = np.flatnonzero(np.any(np.abs(np.reshape(pdiag, (-1, n)) - np.diag(Pp)) >
+                                    0.1 * np.maximum(np.abs(np.diag(Pp)), tiny), axis=1))
+        ksettled = pk[far[-1] + 1] if far.size and far[-1] + 1 < len(pk) else \
+            (kconv if far.size else 1)
+        pdiag = pk = None
     if kconv is not None:
         # constant-gain fast path from sample kconv on, no per-sample Python loop:
         # x^[k+1|k] = A (I - L C) x^[k|k-1] + A L y[k] + (B - A L D) u[k], run in time
@@ -604,7 +623,7 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         t=t, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var, d_cov=Pd, level=level,
         innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=Pp, P_filt_history=Phist,
         K=K, M=M, converged=converged, period_converged=kconv, sys=model, G=G,
-        unknown_labels=labels, u=u, y=y,
+        unknown_labels=labels, u=u, y=y, period_settled=ksettled,
     )
 
 
