@@ -407,8 +407,8 @@ def aligned(terms: NDArray, w: NDArray) -> NDArray[np.float64]:
     return out
 
 
-# largest AR order of the prewhitening filter of a smoothed or delayed d^ (chosen by BIC)
-_AR_ORDER = 32
+# AR order of the prewhitening filter of a smoothed or delayed d^
+_AR_ORDER = 4
 
 
 def _ls_fit(terms: NDArray, d: NDArray) -> NDArray[np.float64]:
@@ -426,34 +426,13 @@ def _ls_fit(terms: NDArray, d: NDArray) -> NDArray[np.float64]:
 
 
 def _whitening(e: NDArray, p: int) -> NDArray[np.float64]:
-    """``[1, -a_1, ..., -a_q]``: the Yule-Walker AR(q) whitening filter of the residual e.
-
-    q <= p is chosen by BIC (Levinson-Durbin: every order's prediction-error
-    variance in one pass). The delayed, smoothed d^ of a long record has long
-    memory: a fixed AR(4) left half of EMPS's residual variance coloured, and
-    slow terms (a position, an offset) gained evidence with the record's
-    length (the whole estimation file named q, v, v^3 and an offset beside
-    the friction, and the simulation then preferred the kinematic equation).
-    """
+    """``[1, -a_1, ..., -a_p]``: the Yule-Walker AR(p) whitening filter of the residual e."""
     e = e - e.mean()
     K = e.size
-    p = int(max(0, min(p, K // 50)))
     acf = np.array([e[:K - lag] @ e[lag:] for lag in range(p + 1)]) / K
-    if acf[0] <= 0 or p == 0:
-        return np.r_[1.0, np.zeros(max(p, 1))][:2]
-    a = np.zeros(0)
-    s2 = acf[0]
-    best = (K * np.log(s2), np.zeros(0))
-    for q in range(1, p + 1):  # Levinson-Durbin
-        kq = (acf[q] - a @ acf[q - 1:0:-1]) / s2 if q > 1 else acf[1] / s2
-        a = np.r_[a - kq * a[::-1], kq]
-        s2 = s2 * (1.0 - kq * kq)
-        if s2 <= 0:
-            break
-        bic = K * np.log(s2) + q * np.log(K)
-        if bic < best[0]:
-            best = (bic, a.copy())
-    return np.r_[1.0, -best[1]] if best[1].size else np.r_[1.0, 0.0]
+    if acf[0] <= 0:
+        return np.r_[1.0, np.zeros(p)]
+    return np.r_[1.0, -solve_toeplitz(acf[:p], acf[1:p + 1])]
 
 
 def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
@@ -510,10 +489,9 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             tcur, dc = tcur[:, ok], dc[ok]
         if tscale is None:  # the scale of the first component's terms, no squared copy
             tscale = np.sqrt(np.einsum("ij,ij->i", tcur, tcur) / tcur.shape[1])
-        if whiten and tcur.shape[1] > 10 * (4 + len(spec)):
+        if whiten and tcur.shape[1] > 10 * (_AR_ORDER + len(spec)):
             aw = _whitening(dc - _ls_fit(tcur, dc), _AR_ORDER)
-            pw = len(aw) - 1
-            dw = lfilter(aw, [1.0], dc)[pw:]
+            dw = lfilter(aw, [1.0], dc)[_AR_ORDER:]
             gram, cross = _filtered_products(tcur, aw, dw)
             sel = _select_gram(gram, cross, dw, names)
         else:
@@ -522,7 +500,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
         idx, cf = list(sel.index), sel.coef
         coef[c, idx] = cf
         if idx:  # 95 % half-widths of the regression on d^, robust to its autocorrelation
-            X = tcur[idx] if aw is None else lfilter(aw, [1.0], tcur[idx], axis=1)[:, pw:]
+            X = tcur[idx] if aw is None else lfilter(aw, [1.0], tcur[idx], axis=1)[:, _AR_ORDER:]
             sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
             cov = hac_covariance((X / sx[:, None]).T, dw - cf @ X, 1) / np.outer(sx, sx)
             half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
