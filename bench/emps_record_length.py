@@ -7,12 +7,14 @@ names, Fc = -M x its sign(v) coefficient, the test simulation error (SE %,
 RMS mm, the whole test record simulated from vir) and the time, with the
 published M, Fv, gtau and the tutorial's Q and R.
 
-    python bench/emps_record_length.py [N ...]      (default 8000 16000 24841)
+    python bench/emps_record_length.py [N ...]      (default 8000 16000 24841; ~50 s)
 
-Before FilterResult.settled (this commit's parent) N = 24841 read
-``(16.2 ± 0.95)*q^3`` (fitted on the 28 samples after the r = 1 filter's
-covariance met its convergence test at sample 21969) and the model stayed
-unchanged.
+Before FilterResult.settled, N = 22000 read ``(16.2 ± 0.95)*q^3`` (fitted on
+the 28 samples after the r = 1 filter's covariance met its convergence test
+at sample 21969) and N = 24841 left the model unchanged. Now N = 8000 and
+16000 give the two friction terms; N = 24841 names the kinematic equation
+eq(q) (an open defect of the law selection on long records: README, "Real
+data").
 """
 
 from __future__ import annotations
