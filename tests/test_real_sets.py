@@ -84,40 +84,22 @@ def _run_tutorial(tmp_path_factory, script, name):
     return s
 
 
+def _tutorial_fixture(script, name):
+    """A module-scoped fixture: the summary of one tutorial's run."""
+    @pytest.fixture(scope="module")
+    def run(tmp_path_factory):
+        if not HAVE_DATA:
+            pytest.skip("measured data not present")
+        return _run_tutorial(tmp_path_factory, script, name)
+    return run
+
+
 # one fixture per set, each in its own xdist group: the five tutorials run in parallel
-@pytest.fixture(scope="module")
-def emps(tmp_path_factory):
-    if not HAVE_DATA:
-        pytest.skip("measured data not present")
-    return _run_tutorial(tmp_path_factory, "04_emps.py", "emps")
-
-
-@pytest.fixture(scope="module")
-def silverbox(tmp_path_factory):
-    if not HAVE_DATA:
-        pytest.skip("measured data not present")
-    return _run_tutorial(tmp_path_factory, "06_silverbox.py", "silverbox")
-
-
-@pytest.fixture(scope="module")
-def exchanger(tmp_path_factory):
-    if not HAVE_DATA:
-        pytest.skip("measured data not present")
-    return _run_tutorial(tmp_path_factory, "07_heat_exchanger.py", "exchanger")
-
-
-@pytest.fixture(scope="module")
-def drives(tmp_path_factory):
-    if not HAVE_DATA:
-        pytest.skip("measured data not present")
-    return _run_tutorial(tmp_path_factory, "08_electric_drives.py", "drives")
-
-
-@pytest.fixture(scope="module")
-def tanks(tmp_path_factory):
-    if not HAVE_DATA:
-        pytest.skip("measured data not present")
-    return _run_tutorial(tmp_path_factory, "09_cascaded_tanks.py", "tanks")
+emps = _tutorial_fixture("04_emps.py", "emps")
+silverbox = _tutorial_fixture("06_silverbox.py", "silverbox")
+exchanger = _tutorial_fixture("07_heat_exchanger.py", "exchanger")
+drives = _tutorial_fixture("08_electric_drives.py", "drives")
+tanks = _tutorial_fixture("09_cascaded_tanks.py", "tanks")
 
 
 def _group(name):

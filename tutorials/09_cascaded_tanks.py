@@ -1,27 +1,11 @@
 """Tutorial 09: the cascaded tanks, REAL data, a nonlinear Torricelli model, through the one call and the CLI.
 
 One REAL measured system from ``../shared/data`` (read its folder's README), on
-the benchmark's official estimation/test split:
-
-1. the nominal physical model (structure from the data's README; its few
-   unknown nominal parameters fitted by least squares on the ESTIMATION data
-   only, on samples where the nominal model holds: stated below);
-2. Q and R from one stated rule (never from the test data): R from the
-   sensor (here the stated SNR) and
-   Q = R * I per sample, process noise of the sensor noise's order. The model
-   error is what the trace is for: a Q as large as the nominal model's
-   one-step equation residual would call all of it noise (tried on the
-   exchanger, tutorial 07: the trace then reports "d^ is mostly estimation noise" and an
-   empty law);
-3. :func:`greybox.close_the_loop` end to end, its verdict in physical words;
-4. before/after on the official test split: SE and PE (eq. 42, relative
-   RMS, %) and the simulation RMS in the data's units, from sample 20 on
-   (every row's simulation starts from the filter's state there);
-5. ``greybox update`` on the MODEL.py and CSV files written here, so that
-   the command line runs on real files (its verdict must equal the one
-   call's);
-6. a figure: the measured test output beside each model's
-   simulation (fig11_tanks.png).
+the benchmark's official estimation/test split, through the steps every
+real-data tutorial takes (the nominal model fitted on estimation data only,
+Q and R from one rule, ``close_the_loop``, before/after on the test split,
+``greybox update`` on written files, a figure and a JSON summary: listed in
+``_real_data.py``).
 
 **Cascaded tanks** (Ts = 4 s, estimation uEst/yEst, test uVal/yVal,
 1024 samples each). Nominal: Torricelli, ``dx1/dt = -k1 sqrt(x1) + k4 u``,

@@ -8,6 +8,28 @@ here: where the data and the outputs are, the table's rows (SE and PE, eq.
 42, and the simulation RMS in the data's units, from sample ``SKIP`` on), the
 figure, the CSV writer and the command-line run; for the two position-only
 sets (EMPS, Silverbox) a look inside the velocity equation's channel.
+
+The steps every set goes through:
+
+1. the nominal physical model (structure from the data's README; its few
+   unknown nominal parameters fitted by least squares on the ESTIMATION data
+   only, on samples where the nominal model holds: stated in each tutorial);
+2. Q and R from one stated rule (never from the test data): R from the
+   sensor (resolution, quantization step or the stated SNR, per set) and
+   Q = R * I per sample, process noise of the sensor noise's order. The model
+   error is what the trace is for: a Q as large as the nominal model's
+   one-step equation residual would call all of it noise (tried on the
+   exchanger: the trace then reports "d^ is mostly estimation noise" and an
+   empty law);
+3. :func:`greybox.close_the_loop` end to end, its verdict in physical words;
+4. before/after on the official test split: SE and PE (eq. 42, relative
+   RMS, %) and the simulation RMS in the data's units, from sample 20 on
+   (every row's simulation starts from the filter's state there);
+5. ``greybox update`` on the MODEL.json / MODEL.py and CSV files the
+   tutorial writes, so that the command line runs on real files (its
+   verdict must equal the one call's);
+6. a figure (the measured test output beside each model's simulation) and
+   a JSON summary (``tests/test_real_sets.py`` asserts on it).
 """
 
 from __future__ import annotations
