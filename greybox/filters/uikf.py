@@ -132,7 +132,9 @@ class FilterResult:
     period_settled : int or None
         First sample from which every predicted state variance stays within
         10 % of its converged value (None if the recursion did not converge,
-        or where the filter does not track it).
+        or where the filter does not track it: feedthrough, unscented and
+        ensemble filters; a delayed filter's is that of its shifted-state
+        recursion, on the same time axis as ``period_converged``).
     sys : control.StateSpace
         Model from the known inputs (A, B, C, D) with its signal names.
     G : ndarray, shape (nstates, md)
@@ -216,7 +218,10 @@ class FilterResult:
         slowly converging covariance (an unknown-input zero near the unit
         circle, e.g. a force with only positions measured) meets the test
         long after its estimates settled: EMPS's whole estimation file
-        (24841 samples) at sample 21969, and every fit started there.
+        (24841 samples) at sample 21969, and every fit started there. Where
+        ``period_settled`` is None (feedthrough filters of sensor channels,
+        unscented, ensemble) a late convergence still starts the fits at
+        ``period_converged``.
 
         Parameters
         ----------
@@ -530,7 +535,7 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
     k = 1
     # diag P[k|k-1] until the gains are frozen, every stride-th step (for period_settled;
     # at most ~4096 rows whatever the record's length)
-    pdiag, pk, stride = [], [], max(1, N // 4096)
+    pdiag, pk, stride = [], [], max(1, -(-N // 4096))
     while k < N:
         Pp = A @ Pf @ At + Q
         Pp = 0.5 * (Pp + Pp.T)
@@ -539,7 +544,7 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
             converged, kconv = True, k
             break
         if auto and k % stride == 0:
-            pdiag.append(np.diag(Pp))
+            pdiag.append(Pp.diagonal().copy())  # a copy: a view would keep all of Pp
             pk.append(k)
         Pp_prev = Pp
         K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
@@ -571,8 +576,10 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         # the first step from which every variance stays within 10 % of its converged value
         far = np.flatnonzero(np.any(np.abs(np.reshape(pdiag, (-1, n)) - np.diag(Pp)) >
                                     0.1 * np.maximum(np.abs(np.diag(Pp)), tiny), axis=1))
-        ksettled = pk[far[-1] + 1] if far.size and far[-1] + 1 < len(pk) else \
-            (kconv if far.size else 1)
+        if far.size:
+            ksettled = pk[far[-1] + 1] if far[-1] + 1 < len(pk) else kconv
+        else:  # the first recorded step (earlier ones were not checked)
+            ksettled = pk[0] if pk else kconv
         pdiag = pk = None
     if kconv is not None:
         # constant-gain fast path from sample kconv on, no per-sample Python loop:
