@@ -9,7 +9,7 @@ the arrow from sample 50 (state from y and its central difference): the
 arrow RMS is that structure's floor. Continuous-time ODEs, RK4 with 2
 sub-steps per sample, the input between samples taken as
 
-* ``midpoint held``: (u[k] + u[k+1]) / 2 held over [k, k+1] (tutorial 04 before);
+* ``midpoint held``: (u[k] + u[k+1]) / 2 held over [k, k+1] (the former tutorials/04_measured_data.py);
 * ``interval mean held``: the band-limited input's mean over [k, k+1];
 * ``linear``: straight lines between the samples (first-order hold);
 * ``band-limited``: the band-limited (DFT) interpolation of the samples, the

@@ -134,7 +134,7 @@ def test_emps_friction_in_the_velocity_equation_with_the_published_coulomb_force
     # mean of the asymmetry term); the published model's terms forced in by least squares on
     # the same d^: -2.92 +- 0.57 N (measured), Fc 20.57 +- 0.67 N
     off, hoff = emps["offset_fit"]["without_abs_v"]
-    assert abs(off - -3.16) <= 1.0 and abs(off - -3.16) <= hoff + 0.5, (off, hoff)
+    assert abs(off - -3.16) <= 1.0 and abs(off - -3.16) <= hoff, (off, hoff)
     assert emps["relative_degree"] == 2
 
 
@@ -143,8 +143,8 @@ def test_emps_before_after_on_the_official_test_file(emps):
     t = emps["table"]
     # DATA_EMPS_PULSES, all 24841 samples simulated in open loop from vir: the nominal
     # (M, Fv only) drifts away, SE 109 %, RMS 163 mm; with the friction law SE 4.58 %,
-    # RMS 6.8 mm (measured; the pure integrator accumulates any force error, so 5 % covers
-    # platform rounding of the simulation)
+    # RMS 6.8 mm (measured; 2 % covers platform rounding of the nominal's simulation, 5 %
+    # the updated one's: the pure integrator accumulates any rounding of the law's force)
     np.testing.assert_allclose([t["nominal"]["se"], 1e3 * t["nominal"]["rms"]], [109.1, 162.5],
                                rtol=0.02)
     np.testing.assert_allclose([t["updated"]["se"], 1e3 * t["updated"]["rms"]], [4.58, 6.82],
@@ -165,7 +165,10 @@ def test_silverbox_cubic_stiffness_in_the_velocity_equation(silverbox):
     assert k3 < 0 and abs(k3) > 20 * h3, sb["formula"]
     # the Duffing law (y, v, y^3) on the same d^: k3 -7.47e5 +- 0.035e5, within 5 %
     k3d, h3d = sb["duffing_on_dhat"]["coef"][2], sb["duffing_on_dhat"]["halfwidth"][2]
-    assert abs(k3d / k3 - 1) < 0.05 and h3d > 0
+    assert abs(k3d / k3 - 1) < 0.05 and abs(k3d) > 20 * h3d
+    # and, simulated alone on the arrow test, under the goal too (measured 0.396 mV against
+    # greybox's six-term law's 0.304 mV)
+    assert sb["duffing_on_dhat"]["rms_mV"] < 1.0, sb["duffing_on_dhat"]
 
 
 @_marks("silverbox")
@@ -174,7 +177,9 @@ def test_silverbox_arrow_test_goal(silverbox):
     # the official test (the arrow without extrapolation, [100:32100]): linear models 10+ mV
     # published, ours 12.4 mV (measured); goal <= 1 mV, measured 0.304 mV
     assert rms["nominal"] > 10 and rms["updated"] <= 1.0, rms
-    np.testing.assert_allclose(rms["updated"], 0.304, rtol=0.1)
+    # (deterministic code and data; 5 % covers BLAS/platform rounding in the law's
+    # output-error refit, whose arrow simulation runs 32000 samples)
+    np.testing.assert_allclose(rms["updated"], 0.304, rtol=0.05)
 
 
 @_marks("exchanger")
@@ -257,7 +262,6 @@ def test_tanks_the_trace_names_the_upper_tank_saturation_but_the_gate_refuses_it
     # state for both records" (the estimation fit's x(0) reused) is as good as x(0) fitted
     # on the whole test output (a floor; measured 0.661 vs 0.660 V, bench/tanks_floors.py),
     # and greybox's UKF start at sample 20 from the test record alone is within 0.01 V
-    assert tk["rms_nominal_x0_floor"] <= tk["rms_nominal_all_samples"] + 1e-9
     assert tk["rms_nominal_all_samples"] - tk["rms_nominal_x0_floor"] < 0.005
     assert abs(t["nominal"]["rms"] - tk["rms_nominal_x0_floor"]) < 0.01
     # only the lower tank is measured: eq(x1) has relative degree 2 and is traced by the
@@ -321,12 +325,15 @@ def _cli_check(one, out, name, model):
 @_marks("emps")
 def test_emps_cli_and_figure(emps):
     _cli_check(emps, emps["_out"], "emps", "emps_MODEL.json")
+    assert "model error found in eq(v): static effect" in emps["_stdout"]
+    assert "Coulomb friction Fc =" in emps["_stdout"]
     assert (emps["_out"] / "fig6_emps.png").stat().st_size > 1000
 
 
 @_marks("silverbox")
 def test_silverbox_cli_and_figure(silverbox):
     _cli_check(silverbox, silverbox["_out"], "silverbox", "silverbox_MODEL.json")
+    assert "model error found in eq(v): static effect" in silverbox["_stdout"]
     assert (silverbox["_out"] / "fig7_silverbox.png").stat().st_size > 1000
 
 

@@ -44,11 +44,16 @@ has long memory, so slow terms gain evidence with the record's length
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
-from _real_data import (DATA, cli, data_or_exit, fit_terms, inside, out_dir, save_summary,
-                        show, terms_of, write_csv)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
+from _real_data import (  # noqa: E402
+    DATA, cli, data_or_exit, fit_terms, inside, out_dir, save_summary, show, terms_of,
+    write_csv)
 
 data_or_exit("emps")
 

@@ -39,11 +39,16 @@ y (a position) is measured.
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
-from _real_data import (DATA, cli, data_or_exit, fit_terms, inside, out_dir, save_summary, se,
-                        show, terms_of, write_csv)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
+from _real_data import (  # noqa: E402
+    DATA, cli, data_or_exit, fit_terms, inside, out_dir, save_summary, se, show,
+    simulate_law, terms_of, with_terms, write_csv)
 
 data_or_exit("silverbox")
 
@@ -130,8 +135,14 @@ print("trace law on d^ (GLS on the delayed, smoothed d^; refitted by output erro
       "simulation contradicts it):", fs["trace"].static.formula)
 # the physically expected law d_v = a*y + b*v + k*y^3 on the same d^, with intervals
 th_s, hw_s = fit_terms(fs, ["y", "v", "y^3"])
+# the Duffing law alone, simulated on the arrow test from a finite-difference initial state
+x0 = np.array([y_sb[test.start], (y_sb[test.start + 1] - y_sb[test.start - 1]) / (2 * dt)])
+y_duf = simulate_law(fs, with_terms(fs["trace"].static, ["y", "v", "y^3"], th_s),
+                     uc[None, test], x0)
+rms_duf = 1e3 * float(np.sqrt(np.mean((y_sb[test] - y_duf[0])[20:] ** 2)))
 print(f"  the Duffing law on the same d^: d_v = {th_s[0]:.4g}*y + {th_s[1]:.3g}*v + "
-      f"({th_s[2]:.4g} +- {hw_s[2]:.2g})*y^3")
+      f"({th_s[2]:.4g} +- {hw_s[2]:.2g})*y^3: arrow RMS {rms_duf:.3g} mV (greybox's law: "
+      f"{rms['updated']:.3g} mV)")
 
 paths = [OUT / f"silverbox_{s}" for s in ("MODEL.json", "estimation.csv", "test.csv")]
 write_model(paths[0], silver, Q, R, Ts=dt)
@@ -142,7 +153,8 @@ summary = {"message": rep.message, "updated": rep.updated,
            "channel": rep.channel.name if rep.channel is not None else None,
            "kind": rep.effect.kind, "formula": rep.effect.formula, "terms": terms,
            "table": table, "rms_mV": rms, "relative_degree": fs["r"],
-           "duffing_on_dhat": {"coef": th_s.tolist(), "halfwidth": hw_s.tolist()},
+           "duffing_on_dhat": {"coef": th_s.tolist(), "halfwidth": hw_s.tolist(),
+                               "rms_mV": rms_duf},
            "nominal": {"k1/m": w2, "d/m": c_d, "1/m": b_in, "offset": off},
            "cli": cli(*paths, OUT / "silverbox_report")}
 

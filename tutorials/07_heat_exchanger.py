@@ -24,11 +24,15 @@ bilinear q*T term of the energy balance.
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
-from _real_data import (DATA, SKIP, cli, data_or_exit, figure, out_dir, save_summary, show,
-                        terms_of, write_csv)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
+from _real_data import (  # noqa: E402
+    DATA, SKIP, cli, data_or_exit, figure, out_dir, save_summary, show, terms_of, write_csv)
 
 data_or_exit("daisy_exchanger")
 
@@ -43,7 +47,7 @@ from greybox.trace import resolve_channel_spec, simulate_with_law, trace_channel
 OUT = out_dir("greybox07_")
 
 # %% Heat exchanger ------------------------------------------------------------------------
-print("=== 1. Heat exchanger (DaISy 97-002, steam-heated liquid, Ts = 1 s) ===")
+print("=== Heat exchanger (DaISy 97-002, steam-heated liquid, Ts = 1 s) ===")
 d = np.loadtxt(DATA / "daisy_exchanger" / "exchanger.csv", delimiter=",", skiprows=1)
 q, T = d[:, 1], d[:, 2]
 est, val = slice(0, 2800), slice(2800, 4000)

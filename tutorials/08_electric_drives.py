@@ -21,11 +21,15 @@ R = one sensor quantization step squared (0.0049^2). Omitted effect: the rectify
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
-from _real_data import (DATA, cli, data_or_exit, figure, out_dir, save_summary, show, terms_of,
-                        write_csv)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
+from _real_data import (  # noqa: E402
+    DATA, cli, data_or_exit, figure, out_dir, save_summary, show, terms_of, write_csv)
 
 data_or_exit("coupled_electric_drives")
 
@@ -38,7 +42,7 @@ from greybox.system import named_ss  # noqa: E402
 OUT = out_dir("greybox08_")
 
 # %% Coupled electric drives ---------------------------------------------------------------
-print("===  Coupled electric drives (CE8, DATAUNIF, Ts = 20 ms) ===")
+print("=== Coupled electric drives (CE8, DATAUNIF, Ts = 20 ms) ===")
 d = np.genfromtxt(DATA / "coupled_electric_drives" / "DATAUNIF.csv", delimiter=",",
                   skip_header=1)[:, :4]
 den = np.array([1, -2.6011, 2.4060, -0.7823])       # the report's reference H(z), eq. 9

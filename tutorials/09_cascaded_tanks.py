@@ -36,10 +36,15 @@ by ``bench/tanks_floors.py``.
 from __future__ import annotations
 
 import math
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
-from _real_data import DATA, SKIP, cli, data_or_exit, figure, out_dir, save_summary, show, write_csv
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
+from _real_data import (  # noqa: E402
+    DATA, SKIP, cli, data_or_exit, figure, out_dir, save_summary, show, write_csv)
 
 data_or_exit("cascaded_tanks")
 
@@ -50,7 +55,7 @@ import greybox as gb  # noqa: E402
 OUT = out_dir("greybox09_")
 
 # %% Cascaded tanks ------------------------------------------------------------------------
-print("===  Cascaded tanks (Ts = 4 s, Torricelli nominal as control.nlsys) ===")
+print("=== Cascaded tanks (Ts = 4 s, Torricelli nominal as control.nlsys) ===")
 d = np.genfromtxt(DATA / "cascaded_tanks" / "dataBenchmark.csv", delimiter=",",
                   skip_header=1)[:, :4]
 uE, uV, yE, yV = d.T

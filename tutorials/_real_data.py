@@ -13,10 +13,15 @@ The steps every set goes through:
 
 1. the nominal physical model (structure from the data's README; its few
    unknown nominal parameters fitted by least squares on the ESTIMATION data
-   only, on samples where the nominal model holds: stated in each tutorial);
+   only, on samples where the nominal model holds: stated in each tutorial).
+   Two exceptions: EMPS uses the published M, Fv, gtau; the Silverbox's
+   linear part is fitted on the low-amplitude start of the arrow, which lies
+   inside its test range (its test figure is not clean; the clean variant,
+   fitted on an estimation multisine: ``bench/silverbox_arrow.py``);
 2. Q and R from one stated rule (never from the test data): R from the
    sensor (resolution, quantization step or the stated SNR, per set) and
-   Q = R * I per sample, process noise of the sensor noise's order. The model
+   Q = R * I per sample, process noise of the sensor noise's order (EMPS
+   and the Silverbox state their own Q: the nominal force residual, 1e-3). The model
    error is what the trace is for: a Q as large as the nominal model's
    one-step equation residual would call all of it noise (tried on the
    exchanger: the trace then reports "d^ is mostly estimation noise" and an
