@@ -102,15 +102,10 @@ drives = _tutorial_fixture("08_electric_drives.py", "drives")
 tanks = _tutorial_fixture("09_cascaded_tanks.py", "tanks")
 
 
-def _group(name):
-    return [needs_data, pytest.mark.slow, pytest.mark.xdist_group(f"real_{name}")]
-
-
 def _marks(name):
+    """needs the data, slow, and in the set's own xdist group (where its fixture runs)."""
     def deco(f):
-        for m in _group(name):
-            f = m(f)
-        return f
+        return needs_data(pytest.mark.slow(pytest.mark.xdist_group(f"real_{name}")(f)))
     return deco
 
 

@@ -52,8 +52,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
 from _real_data import (  # noqa: E402
-    DATA, cli, data_or_exit, fit_terms, inside, out_dir, save_summary, show, terms_of,
-    write_csv)
+    DATA, cli_on_files, data_or_exit, fit_terms, inside, out_dir, save_summary, show,
+    terms_of, verdict)
 
 data_or_exit("emps")
 
@@ -62,7 +62,6 @@ import matplotlib  # noqa: E402
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from greybox.model_io import write_model  # noqa: E402
 from greybox.system import named_ss  # noqa: E402
 from greybox.workflow import close_the_loop  # noqa: E402
 
@@ -137,20 +136,15 @@ print(f"  mean|v| = {v_abs:.4f} m/s over the whole record: published -(Fv- - Fv+
       f"{-c_abs * float(np.mean(np.abs(fe['x'][1]))):.3g} N on its estimation samples "
       f"(the forced offset above: {-M * th1[1]:.3g} N)")
 
-paths = [OUT / f"emps_{s}" for s in ("MODEL.json", "estimation.csv", "test.csv")]
-write_model(paths[0], emps, Q, R, Ts=dt)
-write_csv(paths[1], ["vir", "q"], [vir[est], q[est]])
-write_csv(paths[2], ["vir", "q"], [virt, qt])
-summary = {"message": rep.message, "updated": rep.updated,
-           "detected": rep.model_error_detected,
-           "channel": rep.channel.name if rep.channel is not None else None,
-           "kind": rep.effect.kind, "formula": rep.effect.formula, "terms": terms,
+summary = {**verdict(rep), "kind": rep.effect.kind, "formula": rep.effect.formula, "terms": terms,
            "Fc": Fc, "Fc_halfwidth": hFc, "table": table,
            "offset_fit": {"with_abs_v": [-M * th[2], M * hw[2]],
                           "without_abs_v": [-M * th1[1], M * hw1[1]],
                           "Fc_without_abs_v": [-M * th1[0], M * hw1[0]]},
            "relative_degree": fe["r"], "lag1": [fe["lag1"], fe["lag1_2"]],
-           "pulse_coef": pulse_coef, "cli": cli(*paths, OUT / "emps_report")}
+           "pulse_coef": pulse_coef,
+           "cli": cli_on_files(OUT, "emps", emps, Q, R, ["vir", "q"], [vir[est], q[est]],
+                               [virt, qt], Ts=dt)}
 
 fig, ax = plt.subplots(3, 1, figsize=(8, 8))
 k = np.arange(200, 600)

@@ -47,8 +47,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
 from _real_data import (  # noqa: E402
-    DATA, cli, data_or_exit, fit_terms, inside, out_dir, save_summary, se, show,
-    simulate_law, terms_of, with_terms, write_csv)
+    DATA, cli_on_files, data_or_exit, fit_terms, inside, out_dir, save_summary, se, show,
+    simulate_law, terms_of, verdict, with_terms)
 
 data_or_exit("silverbox")
 
@@ -60,7 +60,6 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.signal import lfilter, welch  # noqa: E402
 
 import greybox as gb  # noqa: E402
-from greybox.model_io import write_model  # noqa: E402
 from greybox.system import named_ss  # noqa: E402
 from greybox.workflow import close_the_loop  # noqa: E402
 
@@ -144,19 +143,13 @@ print(f"  the Duffing law on the same d^: d_v = {th_s[0]:.4g}*y + {th_s[1]:.3g}*
       f"({th_s[2]:.4g} +- {hw_s[2]:.2g})*y^3: arrow RMS {rms_duf:.3g} mV (greybox's law: "
       f"{rms['updated']:.3g} mV)")
 
-paths = [OUT / f"silverbox_{s}" for s in ("MODEL.json", "estimation.csv", "test.csv")]
-write_model(paths[0], silver, Q, R, Ts=dt)
-write_csv(paths[1], ["u", "y"], [uc[est], y_sb[est]])
-write_csv(paths[2], ["u", "y"], [uc[test], y_sb[test]])
-summary = {"message": rep.message, "updated": rep.updated,
-           "detected": rep.model_error_detected,
-           "channel": rep.channel.name if rep.channel is not None else None,
-           "kind": rep.effect.kind, "formula": rep.effect.formula, "terms": terms,
+summary = {**verdict(rep), "kind": rep.effect.kind, "formula": rep.effect.formula, "terms": terms,
            "table": table, "rms_mV": rms, "relative_degree": fs["r"],
            "duffing_on_dhat": {"coef": th_s.tolist(), "halfwidth": hw_s.tolist(),
                                "rms_mV": rms_duf},
            "nominal": {"k1/m": w2, "d/m": c_d, "1/m": b_in, "offset": off},
-           "cli": cli(*paths, OUT / "silverbox_report")}
+           "cli": cli_on_files(OUT, "silverbox", silver, Q, R, ["u", "y"], [uc[est], y_sb[est]],
+                               [uc[test], y_sb[test]], Ts=dt)}
 
 x2, d2 = fs["x"], fs["d2"]
 fig, ax = plt.subplots(2, 1, figsize=(8, 6))

@@ -32,7 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
 from _real_data import (  # noqa: E402
-    DATA, SKIP, cli, data_or_exit, figure, out_dir, save_summary, show, terms_of, write_csv)
+    DATA, SKIP, cli_on_files, data_or_exit, figure, out_dir, save_summary, show, terms_of,
+    verdict)
 
 data_or_exit("daisy_exchanger")
 
@@ -40,7 +41,6 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.signal import lfilter  # noqa: E402
 
 import greybox as gb  # noqa: E402
-from greybox.model_io import write_model  # noqa: E402
 from greybox.system import named_ss  # noqa: E402
 from greybox.trace import resolve_channel_spec, simulate_with_law, trace_channel  # noqa: E402
 
@@ -104,17 +104,12 @@ se_forced = float(gb.relative_error(dT[None, val], y_forced, skip=SKIP).value)
 rms_forced = float(np.sqrt(np.mean((dT[None, val] - y_forced)[:, SKIP:] ** 2)))
 print(f"   the static law added anyway (not what greybox does): test SE {se_forced:.3g} %, "
       f"RMS {rms_forced:.3g} degC")
-paths = [OUT / f"exchanger_{s}" for s in ("MODEL.json", "estimation.csv", "test.csv")]
-write_model(paths[0], hx, Q_hx, R_hx, Ts=dt)
-write_csv(paths[1], ["q", "T"], [dq[est], dT[est]])
-write_csv(paths[2], ["q", "T"], [dq[val], dT[val]])
-summary = {"message": rep.message, "updated": rep.updated,
-           "detected": rep.model_error_detected,
-           "channel": rep.channel.name if rep.channel is not None else None,
-           "passed": rep.gate.get("passed"), "table": table,
+summary = {**verdict(rep), "passed": rep.gate.get("passed"), "table": table,
            "eq_law": tr.static.formula, "eq_terms": law_terms_hx,
            "forced_static": {"se": se_forced, "rms": rms_forced},
            "candidates": [c.__dict__.copy() for c in rep.candidates],
-           "cli": cli(*paths, OUT / "exchanger_report"), "units": "degC",
+           "cli": cli_on_files(OUT, "exchanger", hx, Q_hx, R_hx, ["q", "T"], [dq[est], dT[est]],
+                               [dq[val], dT[val]], Ts=dt),
+           "units": "degC",
            "nominal": {"a": float(a_T), "b": float(b_q)}}
 save_summary(OUT, "exchanger", summary)

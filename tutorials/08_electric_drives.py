@@ -29,14 +29,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
 from _real_data import (  # noqa: E402
-    DATA, cli, data_or_exit, figure, out_dir, save_summary, show, terms_of, write_csv)
+    DATA, cli_on_files, data_or_exit, figure, out_dir, save_summary, show, terms_of, verdict)
 
 data_or_exit("coupled_electric_drives")
 
 from scipy.signal import lfilter  # noqa: E402
 
 import greybox as gb  # noqa: E402
-from greybox.model_io import write_model  # noqa: E402
 from greybox.system import named_ss  # noqa: E402
 
 OUT = out_dir("greybox08_")
@@ -71,8 +70,7 @@ for rec, (u, z) in {"low (u11)": (d[:, 0], d[:, 2]), "high (u12)": (d[:, 1], d[:
     figure(rep, z[None, val], dt, "pulley speed z (sensor units)",
            f"coupled electric drives, record {rec}, test [400:500]",
            OUT / f"fig10_drives_{rec.split()[0]}.png")
-    out = {"message": rep.message, "updated": rep.updated, "detected": rep.model_error_detected,
-           "channel": rep.channel.name if rep.channel is not None else None,
+    out = {**verdict(rep),
            "kind": rep.channel.kind if rep.channel is not None else None,
            "passed": rep.gate.get("passed"), "table": table, "gain": gain,
            "terms": terms_of(rep.effect.law) if rep.effect.law is not None else {},
@@ -82,10 +80,7 @@ for rec, (u, z) in {"low (u11)": (d[:, 0], d[:, 2]), "high (u12)": (d[:, 1], d[:
         if rep.channel is not None and rep.channel.kind == "output":
             print("   -> the error is on the SENSOR side (output(z)), not in a state equation: "
                   "z = (1 + c_z) z_model + c_abs |z_model| + c_1, a rectifying speed sensor")
-        paths = [OUT / f"drives_{s}" for s in ("MODEL.json", "estimation.csv", "test.csv")]
-        write_model(paths[0], ced, Q_ced, R_ced)
-        write_csv(paths[1], ["u", "z"], [u[est], z[est]])
-        write_csv(paths[2], ["u", "z"], [u[val], z[val]])
-        out["cli"] = cli(*paths, OUT / "drives_report")
+        out["cli"] = cli_on_files(OUT, "drives", ced, Q_ced, R_ced, ["u", "z"],
+                                  [u[est], z[est]], [u[val], z[val]])
     summary[rec.split()[0]] = out
 save_summary(OUT, "drives", summary)

@@ -44,7 +44,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _real_data, beside this file
 from _real_data import (  # noqa: E402
-    DATA, SKIP, cli, data_or_exit, figure, out_dir, save_summary, show, write_csv)
+    DATA, SKIP, cli, data_or_exit, figure, out_dir, save_summary, show, verdict, write_csv)
 
 data_or_exit("cascaded_tanks")
 
@@ -191,10 +191,7 @@ if tr is not None and tr.static is not None:
           f"{g['bic_penalty']:.3g}; {g['evidence']}); estimation SE "
           f"{g['se_estimation_nominal']:.3g} % -> {g['se_estimation_updated']:.3g} % "
           f"(needs < {g['min_se_drop']:g} x)")
-summary = {"message": rep.message, "updated": rep.updated,
-           "detected": rep.model_error_detected,
-           "channel": rep.channel.name if rep.channel is not None else None,
-           "passed": rep.gate.get("passed"), "table": table, "k": kk.tolist(),
+summary = {**verdict(rep), "passed": rep.gate.get("passed"), "table": table, "k": kk.tolist(),
            "rms_nominal_all_samples": rms_nom_all,
            "rms_nominal_x0_floor": rms_nom_x0_floor,
            "candidates": [c.__dict__.copy() for c in rep.candidates],

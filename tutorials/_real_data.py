@@ -52,6 +52,7 @@ import numpy as np
 
 import greybox as gb
 from greybox.trace import aligned, law_terms, resolve_channel_spec, simulate_with_law, trace_channel
+from greybox.model_io import write_model
 from greybox.trace.intervals import hac_covariance
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -159,6 +160,26 @@ def cli(model, est_csv, val_csv, report):
             "updated": s["updated"], "formula": s["effect"]["formula"],
             "se": {k: v["se"]["value"] if isinstance(v["se"], dict) else v["se"]
                    for k, v in s["table"].items()}}
+
+
+def verdict(rep):
+    """The one call's verdict as every summary records it (channel None when unchanged)."""
+    return {"message": rep.message, "updated": rep.updated,
+            "detected": rep.model_error_detected,
+            "channel": rep.channel.name if rep.channel is not None else None}
+
+
+def cli_on_files(out, name, model, Q, R, names, est, test, Ts=None):
+    """Write ``<name>_MODEL.json`` and the estimation/test CSVs, then run :func:`cli` on them.
+
+    ``names``: the CSV's columns (inputs, then outputs); ``est``, ``test``:
+    the signals in that order. Returns :func:`cli`'s summary.
+    """
+    paths = [out / f"{name}_{s}" for s in ("MODEL.json", "estimation.csv", "test.csv")]
+    write_model(paths[0], model, Q, R, Ts=Ts)
+    write_csv(paths[1], names, est)
+    write_csv(paths[2], names, test)
+    return cli(*paths, out / f"{name}_report")
 
 
 def terms_of(law):

@@ -581,7 +581,6 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         else:  # the first recorded step (earlier ones were not checked)
             ksettled = pk[0] if pk else kconv
         pdiag = pk = None
-    if kconv is not None:
         # constant-gain fast path from sample kconv on, no per-sample Python loop:
         # x^[k+1|k] = A (I - L C) x^[k|k-1] + A L y[k] + (B - A L D) u[k], run in time
         # chunks written straight into the outputs (temporaries O(n * chunk))
