@@ -17,7 +17,8 @@ fresh process per case), whether the right pair and a one-term law in the
 relative coordinate were found, and the validation SE against the true
 model's (the floor). An n written ``32:all`` or ``32:positions`` runs that case
 only; wall and CPU time are both printed (CPU time is the fairer figure on a
-loaded machine).
+loaded machine). The whole update runs, the parallel delta baseline included;
+``--no-baseline`` skips it.
 
 Three-mass chain (states p1 v1 p2 v2 p3 v3, force on mass 1, dt = 0.01 s),
 the nominal model misses a 15 N/m spring from mass 3 to the wall. Run:
@@ -335,7 +336,10 @@ def _chain_case(n_masses, measured, N, seed=1):
              r_std=1e-3, n_est=N, n_val=3000, sub=2)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     t, c = time.perf_counter(), time.process_time()
-    rep = close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt, delta=False)
+    # the whole update, the parallel delta baseline included (its cost is bounded by
+    # the trace's: see greybox.workflow._delta_baseline); --no-baseline skips it
+    rep = close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                         delta=not _NO_BASELINE)
     el, cpu = time.perf_counter() - t, time.process_time() - c
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     floor = gb.validate_model(gb.discretize(chain(n_masses, k=20.0, measured=meas), d.dt),
@@ -369,13 +373,14 @@ def main_chains(N=100_000, sizes=(8, 16, 32, 64)):
     for size in sizes:
         n, _, only = str(size).partition(":")
         for meas in (only,) if only else ("all", "positions"):
-            subprocess.run([sys.executable, __file__, "_chain", str(int(n) // 2), meas, str(N)],
-                           check=False)
+            subprocess.run([sys.executable, __file__, "_chain", str(int(n) // 2), meas, str(N)]
+                           + (["--no-baseline"] if _NO_BASELINE else []), check=False)
 
 
 if __name__ == "__main__":
     _whole = "--whole-record" in sys.argv
-    sys.argv = [a for a in sys.argv if a != "--whole-record"]
+    _NO_BASELINE = "--no-baseline" in sys.argv
+    sys.argv = [a for a in sys.argv if a not in ("--whole-record", "--no-baseline")]
     if sys.argv[1:2] == ["_chain"]:
         _chain_case(int(sys.argv[2]), sys.argv[3], int(sys.argv[4]))
     elif sys.argv[1:2] == ["chains"]:

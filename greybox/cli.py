@@ -294,7 +294,8 @@ def _update(args, run: _Run) -> int:
               "measures the fit, not the prediction of fresh data")
     with run.computing():
         rep = close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
-                             channels=spec.channels, progress=run.progress)
+                             channels=spec.channels, progress=run.progress,
+                             delta=not args.no_baseline)
         stage = run.stage_dir()
         figures = {}
         if not args.no_plots:
@@ -374,6 +375,9 @@ def _parser() -> argparse.ArgumentParser:
                                         "optional time)")
     upd.add_argument("--validate", required=True, metavar="VALIDATION.csv",
                      help="validation data CSV, same columns")
+    upd.add_argument("--no-baseline", action="store_true",
+                     help="skip the parallel delta baseline (a comparison row of the report; "
+                          "its cost is bounded by the trace's time anyway)")
     _common(upd, "greybox-update-report", "report folder")
     upd.set_defaults(func=_update)
     return p

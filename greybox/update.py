@@ -16,6 +16,7 @@ and the static candidate (order 0) by least squares; see
 
 from __future__ import annotations
 
+import time
 import warnings
 from dataclasses import dataclass, field
 
@@ -483,6 +484,10 @@ class DeltaModel:
         failed or drove a pole to the unit circle).
     message : str
         One line for reports, e.g. "parallel model: no improvement found".
+    bounded : str
+        Empty when every candidate was fitted; else what the ``deadline`` of
+        :func:`delta_update` cut (e.g. "stopped at its time budget after 12 of
+        32 candidates; pole refinement skipped"), also ending ``message``.
     """
 
     updated: UpdatedModel
@@ -495,6 +500,7 @@ class DeltaModel:
     se: dict
     criterion: dict
     message: str
+    bounded: str = ""
 
     def initial_state(self, y: ArrayLike, u: ArrayLike) -> NDArray[np.float64]:
         """Initial state of the combined model for a record: the initial model's
@@ -536,8 +542,12 @@ class DeltaModel:
         return np.concatenate([x0, np.zeros(nD)])
 
 
-def _n4sid_fits(data: NDArray, u: NDArray, orders, dt: float, horizon: int | None):
-    """N4SID models of several orders sharing one block-Hankel factor; {order: result}."""
+def _n4sid_fits(data: NDArray, u: NDArray, orders, dt: float, horizon: int | None,
+                late=lambda: False):
+    """N4SID models of several orders sharing one block-Hankel factor; {order: result}.
+
+    ``late()`` True stops before the next order (the orders fitted so far are returned).
+    """
     from .ident._hankel import hankel_r, small_blas
     from .ident.n4sid import (
         DEFAULT_RTOL,
@@ -556,6 +566,8 @@ def _n4sid_fits(data: NDArray, u: NDArray, orders, dt: float, horizon: int | Non
         for k in orders:
             if k > (i - 1) * l:
                 continue
+            if late():
+                break
             try:
                 out[k] = _n4sid_from_factor(h, i, ys, us, l, m, dt, il, ol, fed, k, None,
                                             rtol, sy, su, "N4SID", "bic", "z")
@@ -570,6 +582,41 @@ _MODAL_COND = 1e8
 #: N4SID horizons tried by :func:`delta_update` (poles from each are candidates):
 #: short horizons suit fast dynamics, long ones oversampled slow dynamics.
 _HORIZONS = (10, 40)
+#: Largest block-Hankel factor (rows ``2 x horizon x (noutputs + ninputs)``) of the
+#: default horizons: its QR costs rows^2 x samples (a 32-output model at horizon 40:
+#: 2640 rows, minutes at 2e4 samples); a longer default horizon is shortened to fit.
+#: Models with noutputs + ninputs <= 10 keep both default horizons.
+_MAX_HANKEL_ROWS = 800
+
+
+def _default_horizons(width: int) -> list[int]:
+    """The default N4SID horizons ``_HORIZONS``, each at most ``_MAX_HANKEL_ROWS`` rows."""
+    top = max(_MAX_HANKEL_ROWS // (2 * max(width, 1)), 2)
+    return sorted({min(h, top) for h in _HORIZONS})
+
+
+class _Cut:
+    """The deadline of :func:`delta_update`: what it cut, for the report."""
+
+    def __init__(self, deadline: float | None):
+        self.deadline, self.cut = deadline, []
+
+    def late(self, what: str) -> bool:
+        """True (and ``what`` recorded) once the deadline has passed."""
+        if self.deadline is None or time.monotonic() < self.deadline:
+            return False
+        if what not in self.cut:
+            self.cut.append(what)
+        return True
+
+    def what(self) -> str:
+        return ("" if not self.cut else
+                "stopped at its time budget: skipped the remaining " + ", ".join(self.cut))
+
+    def note(self) -> str:
+        return "" if not self.cut else f"; {self.what()}"
+
+
 #: Candidates (in BIC order) :func:`delta_update` checks on the held-out tail
 #: before it reports "no improvement found".
 _TAIL_TRIES = 5
@@ -590,7 +637,7 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                  marginal: bool | None = None, holdout: float = 0.25,
                  refine: bool = True, refine_iter: int = 20, nrefine: int = 1,
                  refine_window: int | None = None,
-                 state_prefix: str = "delta") -> DeltaModel:
+                 state_prefix: str = "delta", deadline: float | None = None) -> DeltaModel:
     """Parallel delta augmentation: a model from u to the output error, run beside ``sys``.
 
     ``dy = y - y_initial`` (the initial model's simulated output) is modelled
@@ -729,6 +776,12 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
         do beyond ~1e5; the held-out check still uses the whole tail.
     state_prefix : str
         Names of the delta states: ``delta[0]``, ``delta[1]``, ...
+    deadline : float, optional
+        A :func:`time.monotonic` time [s] after which no further N4SID order,
+        candidate score or pole refinement is started: the choice is made
+        among the candidates scored by then (``DeltaModel.bounded`` says what
+        was cut). Default: none (every candidate). :func:`greybox.close_the_loop`
+        sets it so that the baseline costs no more than the trace.
 
     Returns
     -------
@@ -840,14 +893,18 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     r1 = min(max(r1, 0.0), 0.999)
     Neff = max((N - k0) * (1.0 - r1) / (1.0 + r1), 1.0)
     crit, cands, origin = {("initial", 0): Neff * logdet(ew)}, [], {}
-    horizons = [horizon] if horizon is not None else list(_HORIZONS)
+    horizons = [horizon] if horizon is not None else _default_horizons(p + m)
+    cut = _Cut(deadline)
     for name, (data, hold) in variants.items():
         starts = {}
         if order is None and hold is not None and name == list(variants)[-1]:
             starts[(name, 0)] = None  # held integrators only
         for h in horizons:
+            if cut.late("N4SID horizons"):
+                break
             try:
-                fits = _n4sid_fits(data, u, orders, float(sys.dt), h)
+                fits = _n4sid_fits(data, u, orders, float(sys.dt), h,
+                                   late=lambda: cut.late("N4SID orders"))
             except GreyboxError:
                 continue  # horizon too long for these data
             for k in orders:
@@ -861,6 +918,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                     continue
                 starts[key] = fABC
         for key, fABC in starts.items():
+            if cut.late("candidate scores"):
+                break
             poles = np.zeros(0, dtype=complex) if fABC is None else _upper_poles(fABC[0])
             crit[key], fit = score(poles, hold)
             if fit is not None:
@@ -875,6 +934,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
                      ((nk, (crit[nk[1]], nk[1][1])) for nk in origin) if k > 0),
                     key=lambda c: (c[0], c[1]))
     for _, k, name, key in ranked[:nrefine if refine else 0]:
+        if cut.late("pole refinement"):
+            break
         (fA, fB, fC), data, hold = origin[(name, key)]
         try:
             # output error simulates from rest: from the record's start, not k0
@@ -907,7 +968,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
         upd = UpdatedModel(sys=sys, Q=Q, R=R, order=n, kind="delta")
         return DeltaModel(updated=upd, delta=delta, order=0, improved=False, marginal=False,
                           nfixed=0, refined=False, se=se, criterion=crit,
-                          message=f"parallel model: no improvement found ({why})")
+                          message=f"parallel model: no improvement found ({why})" + cut.note(),
+                          bounded=cut.what())
 
     if not cands:
         return no_improvement("no stable candidate")
@@ -973,7 +1035,8 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
            f"estimation SE {se['initial_estimation']:.3g} % -> {se['delta_estimation']:.3g} %")
     return DeltaModel(updated=UpdatedModel(sys=combined, Q=Qa, R=R, order=n + nD, kind="delta"),
                       delta=delta, order=nD, improved=True, marginal=name == "marginal",
-                      nfixed=rho, refined=True, se=se, criterion=crit, message=msg)
+                      nfixed=rho, refined=True, se=se, criterion=crit,
+                      message=msg + cut.note(), bounded=cut.what())
 
 
 def _upper_poles(A: NDArray) -> NDArray:

@@ -22,6 +22,7 @@ an estimation record and a validation record, and returns a
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 
 import control as ct
@@ -106,6 +107,17 @@ MAX_SHARED_ORDER = 3
 # many residuals (outputs x samples, like the trace's oe_window); its N4SID candidates
 # and the held-out choice use the search window below.
 DELTA_REFINE_RESIDUALS = 200_000
+# The baseline is a comparison row; above ten states its cost is bounded (see
+# _delta_baseline): its orders stop here (n + 6 up to ten states, as before) ...
+DELTA_MAX_ORDER = 16
+# ... its samples at DELTA_WORK / ((n + 1) x order x inputs)^2 (each candidate's Gram
+# matrix then costs about DELTA_WORK flops; a 10-state model with one input keeps
+# 1.6e5 samples, more than the search window) ...
+DELTA_WORK = 5e9
+# ... and it starts no new candidate once it has taken as long as the trace before it,
+# but never stops before this many seconds: below it the baseline runs whole whatever
+# the machine's speed, so the reports of small models do not depend on it.
+DELTA_MIN_BUDGET_S = 10.0
 # The search runs on the first SEARCH_WINDOW samples of the estimation record: the
 # equation screen, every candidate channel's trace and law fits, the sparse and
 # higher-order dynamic fits, the estimation SEs that rank the candidates and gate the
@@ -482,10 +494,15 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     lags : int
         Lags of the whiteness test and correlations.
     delta : bool
-        Also fit the parallel delta baseline (21)-(24) for the table.
+        Also fit the parallel delta baseline (21)-(24) for the table (a
+        comparison row: the update never depends on it). False skips it (the
+        CLI's ``--no-baseline``). Its cost is bounded so that it takes no
+        longer than the trace (at least ``DELTA_MIN_BUDGET_S`` = 10 s): above
+        ten states fewer orders and samples, then a time budget; a note says
+        when it was bounded.
     delta_max_order : int, optional
-        Highest order of the delta baseline; default that of
-        :func:`greybox.update.delta_update` (n + 6).
+        Highest order of the delta baseline; default n + 6 (that of
+        :func:`greybox.update.delta_update`), at most ``DELTA_MAX_ORDER`` = 16.
     parsimony : float
         Candidates with estimation SE within this factor of the best count
         as equally good; the one with fewest parameters wins.
@@ -618,6 +635,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
 
     def _once(sys, nominal, Q, chans, delta):
         """One pass: residual, trace, choose, gate, before/after for the model ``sys``."""
+        t_pass = time.monotonic()  # the delta baseline's budget: this pass's time
         n, m = nominal.nstates, nominal.ninputs
         unstable = unstable_reason(nominal, y.shape[1])
         crit = (CRITERION_PE if unstable else CRITERION).format(pct=100 * (parsimony - 1))
@@ -1068,8 +1086,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         if delta:
             tick("validation", 1, 2)
             try:
-                dm = _delta_baseline(nominal, y, u, Q, R, delta_max_order, x0n)
+                dm, bound = _delta_baseline(nominal, y, u, Q, R, delta_max_order, x0n,
+                                            max(time.monotonic() - t_pass, DELTA_MIN_BUDGET_S))
                 notes.append(dm.message)
+                if bound:
+                    notes.append(bound)
                 table["delta"] = validate_model(dm.updated.sys, y_val, u_val, Q=dm.updated.Q,
                                                 R=dm.updated.R, name="delta",
                                                 x0=dm.initial_state(y_val, u_val),
@@ -1258,20 +1279,42 @@ def _search_record(y, u):
     return y[:, :SEARCH_WINDOW], u[:, :SEARCH_WINDOW]
 
 
-def _delta_baseline(nominal, y, u, Q, R, max_order, x0):
-    """The parallel delta baseline on the search window, refined on a window, one BLAS thread.
+def _delta_baseline(nominal, y, u, Q, R, max_order, x0, budget_s: float):
+    """The parallel delta baseline, its cost bounded; (DeltaModel, note on the bounds or None).
 
     Its N4SID candidates, residue fits and order choice cost O(samples) each: on
     the first ``SEARCH_WINDOW`` samples (at 1e6 samples of a 2-state model 12 s on
     the whole record, 2 s on 1e5 samples; validation SE 0.159 % vs 0.166 %). The
     refinement's dense Jacobian has ``noutputs x samples`` rows: on at most
     ``DELTA_REFINE_RESIDUALS`` of them (36 s and 2.4 GB on the whole estimation part).
+
+    Above ten states its cost grows as n^4 or faster (each candidate's residue fit
+    forms the Gram matrix of ``(n + 1) x order`` whitened regressors, for every
+    order up to n + 6): the orders stop at ``DELTA_MAX_ORDER``, the samples at
+    ``DELTA_WORK / ((n + 1) order m)^2`` (at least 2000), and no new candidate is
+    started after ``budget_s`` seconds (a 32-state chain: over 17 minutes before).
     """
-    win = max(2000, DELTA_REFINE_RESIDUALS // max(y.shape[0], 1))
+    n, m = nominal.nstates, max(nominal.ninputs, 1)
+    cut = []
+    if max_order is None:
+        max_order = min(n + 6, DELTA_MAX_ORDER)
+        if max_order < n + 6:
+            cut.append(f"orders up to {max_order} (of n + 6 = {n + 6})")
     y, u = _search_record(y, u)  # x0: the record's first state, the same for its prefix
+    keep = int(max(2000, DELTA_WORK // ((n + 1) * max_order * m) ** 2))
+    if keep < y.shape[1]:
+        cut.append(f"the first {keep} samples (of {y.shape[1]})")
+        y, u = y[:, :keep], u[:, :keep]
+    win = max(2000, DELTA_REFINE_RESIDUALS // max(y.shape[0], 1))
+    deadline = time.monotonic() + budget_s
     with single_thread_blas():  # thin and small products: a second thread only stalls
-        return delta_update(nominal, y, u, Q=Q, R=R, max_order=max_order, x0=x0,
-                            refine_window=win)
+        dm = delta_update(nominal, y, u, Q=Q, R=R, max_order=max_order, x0=x0,
+                          refine_window=win, deadline=deadline)
+    if dm.bounded:
+        cut.append(f"a time budget of {budget_s:.3g} s (the trace's time, at least "
+                   f"{DELTA_MIN_BUDGET_S:g} s)")
+    return dm, (None if not cut else "parallel delta baseline bounded (a comparison row, "
+                "never dearer than the trace): " + "; ".join(cut))
 
 
 def _d_noise(res) -> float | None:

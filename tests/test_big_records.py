@@ -248,3 +248,53 @@ def test_delta_baseline_runs_on_the_search_window(monkeypatch):
     x0 = gb.estimate_initial_state(gb.discretize(_osc(), DT), y, u)
     np.testing.assert_array_equal(seen["x0"], x0)
     assert "delta" in rep.table and rep.table["delta"].y_sim.shape == (2, 2000)
+
+
+def test_delta_update_past_its_deadline_fits_nothing_and_says_so():
+    """A deadline already passed: no N4SID order, score or refinement is started, and the
+    model says what was cut (the report's note), never a half-fitted candidate."""
+    import time
+
+    y, u, _, _, Q, R = _records(2000, seed=1)
+    dm = delta_update(gb.discretize(_osc(), DT), y, u, Q=Q, R=R, deadline=time.monotonic())
+    assert not dm.improved and dm.order == 0
+    assert dm.bounded.startswith("stopped at its time budget") and "N4SID" in dm.bounded
+    assert dm.message.endswith(dm.bounded)
+    # no deadline: nothing cut (the same model as before the deadline existed)
+    assert delta_update(gb.discretize(_osc(), DT), y, u, Q=Q, R=R).bounded == ""
+
+
+def test_default_horizons_keep_the_hankel_factor_small():
+    from greybox.update import _MAX_HANKEL_ROWS, _default_horizons
+
+    assert _default_horizons(3) == [10, 40]      # small models: both default horizons
+    for width in (11, 33, 65, 129):              # outputs + inputs of 10 to 128-state chains
+        hs = _default_horizons(width)
+        assert all(2 * h * width <= max(_MAX_HANKEL_ROWS, 4 * width) for h in hs), (width, hs)
+        assert hs and min(hs) >= 2
+
+
+def test_close_the_loop_bounds_the_baseline_and_says_so(monkeypatch):
+    """Orders above DELTA_MAX_ORDER and samples above DELTA_WORK's share are cut, and
+    the report's note says which; the update itself does not depend on the baseline."""
+    import greybox.workflow as wf
+
+    seen = {}
+    real = wf.delta_update
+
+    def spy(sys, y, u, **kw):
+        seen.update(kw, steps=y.shape[1])
+        return real(sys, y, u, **kw)
+
+    monkeypatch.setattr(wf, "delta_update", spy)
+    monkeypatch.setattr(wf, "DELTA_MAX_ORDER", 3)   # n + 6 = 8 for the oscillator
+    monkeypatch.setattr(wf, "DELTA_WORK", 81 * 2500.0)  # ((n+1) order m)^2 = 81: 2500 steps
+    y, u, yv, uv, Q, R = _records(3000)
+    rep = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, max_effects=1)
+    assert seen["max_order"] == 3 and seen["steps"] == 2500 and seen["deadline"] is not None
+    note = [s for s in rep.notes if s.startswith("parallel delta baseline bounded")]
+    assert len(note) == 1 and "orders up to 3 (of n + 6 = 8)" in note[0], rep.notes
+    assert "the first 2500 samples (of 3000)" in note[0]
+    skip = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, max_effects=1, delta=False)
+    assert "delta" in rep.table and "delta" not in skip.table
+    assert skip.message == rep.message  # the verdict never depends on the baseline

@@ -242,3 +242,16 @@ def test_report_files_respect_the_umask(tmp_path, capsys):
     for f in c.out.iterdir():
         assert stat.S_IMODE(f.stat().st_mode) == 0o644, f
     capsys.readouterr()
+
+
+def test_no_baseline_skips_the_delta_row_only(tmp_path, capsys):
+    """``--no-baseline``: no parallel delta row, the same verdict and updated row."""
+    model, est, val = _write_case(tmp_path, "spring")
+    argv = ["update", str(model), str(est), "--validate", str(val), "--json", "--no-plots"]
+    assert main(argv + ["--out", str(tmp_path / "a")]) == 0
+    full = json.loads(capsys.readouterr().out)
+    assert main(argv + ["--out", str(tmp_path / "b"), "--no-baseline"]) == 0
+    lean = json.loads(capsys.readouterr().out)
+    assert "delta" in full["table"] and "delta" not in lean["table"]
+    assert lean["message"] == full["message"]
+    assert lean["table"]["updated"] == full["table"]["updated"]
