@@ -68,6 +68,7 @@ from .trace.channels import force_channel, relative_coordinates
 from .trace.laws import direction, sensor_states
 from .trace.screen import screen_equations
 from .update import Subsystem, UpdatedModel, delta_update
+from .workflow_nonlinear import close_the_loop_nonlinear, nonlinear_update_of_linear
 from .validate import (
     ModelValidation,
     describe_before_after,
@@ -130,226 +131,14 @@ DELTA_MIN_BUDGET_S = 10.0
 # record; bench/RESULTS_workflow.md).
 SEARCH_WINDOW = 100_000
 
-CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
-             "among candidates within {pct:.0f}% of the lowest, the fewest parameters")
-CRITERION_PE = ("lowest one-step prediction error PE (eq. 42) of the augmented model on the "
-                "estimation data (the nominal model is unstable, so SE is undefined); among "
-                "candidates within {pct:.0f}% of the lowest, the fewest parameters")
-
-
-@dataclass(frozen=True)
-class Effect:
-    """The effect the model lacked, as found.
-
-    Attributes
-    ----------
-    kind : str
-        "static", "dynamic", "sensor", "parameters" or "none". "parameters":
-        a nonlinear nominal's declared parameters were wrong and refitting
-        them alone left white innovations (no law; ``formula`` lists the
-        changes, ``report.nonlinear.parameters`` holds them). "sensor": a sensor-error law
-        the updated model carries as sensor states (a first-order lag: the
-        reading; a drift: offset and drift rate); a static sensor law (gain,
-        offset, |.|, saturation) is "static".
-    order : int
-        Subsystem order (0 for a static law or none; the number of sensor
-        states for "sensor").
-    formula : str
-        Readable law in the physical names.
-    channel : str
-        Name of the channel (which state equations).
-    equations : tuple of str
-        States whose equations the error enters.
-    nonlinear : bool
-        A nonlinear static law was found.
-    linearized : bool
-        The updated StateSpace carries only the best linear part of a
-        nonlinear law (a StateSpace cannot hold it); ``law`` has the full one.
-    parameter_notes : tuple of str
-        Which existing model parameters the law re-scales, and by how much.
-    law : StaticLaw or None
-    subsystem : Subsystem or None
-    dynamic_law : DynamicLaw or SharedLaw or SharedLaw2 or None
-        A sparse first-order law in continuous time (pole, drivers, intervals);
-        a SharedLaw for one state shared by the equations of a pair; a
-        SharedLaw2 for a second-order subsystem shared by them.
-    """
-
-    kind: str
-    order: int = 0
-    formula: str = ""
-    channel: str = ""
-    equations: tuple[str, ...] = ()
-    nonlinear: bool = False
-    linearized: bool = False
-    parameter_notes: tuple[str, ...] = ()
-    law: StaticLaw | None = field(default=None, repr=False)
-    subsystem: Subsystem | None = field(default=None, repr=False)
-    dynamic_law: DynamicLaw | SharedLaw | SharedLaw2 | None = field(default=None, repr=False)
-
-    def as_dict(self) -> dict:
-        """JSON-ready summary."""
-        return {"kind": self.kind, "order": self.order, "formula": self.formula,
-                "channel": self.channel, "equations": list(self.equations),
-                "nonlinear": self.nonlinear, "linearized": self.linearized,
-                "parameter_notes": list(self.parameter_notes)}
-
-
-@dataclass(frozen=True)
-class CandidateScore:
-    """One (channel, kind) candidate and its score.
-
-    Attributes
-    ----------
-    channel : str
-    kind : str
-        "static" or "dynamic" (or "-" for a skipped channel).
-    order : int
-    se_estimation : float
-        SE [%] of the augmented model on the estimation data (inf if it diverged).
-    npar : int
-        Number of fitted parameters.
-    status : str
-        "ok", "skipped" or "failed".
-    reason : str
-    """
-
-    channel: str
-    kind: str
-    order: int
-    se_estimation: float
-    npar: int
-    status: str
-    reason: str = ""
-
-
-@dataclass(frozen=True)
-class EffectStep:
-    """One effect added by :func:`close_the_loop` (one row of the several-effects loop).
-
-    Attributes
-    ----------
-    effect : Effect
-    channel : str
-        Name of the channel.
-    message : str
-        The step's one-sentence conclusion.
-    se_before, se_after : float
-        Validation SE [%] of the model before and after this step (NaN when
-        undefined: an unstable model).
-    model : UpdatedModel
-        The model after this step (it holds this and every earlier effect).
-    """
-
-    effect: Effect
-    channel: str
-    message: str
-    se_before: float
-    se_after: float
-    model: UpdatedModel = field(repr=False)
-
-    def as_dict(self) -> dict:
-        """JSON-ready row."""
-        return {"channel": self.channel, "effect": self.effect.as_dict(),
-                "message": self.message, "se_before": self.se_before,
-                "se_after": self.se_after}
-
-
-@dataclass(frozen=True)
-class LoopReport:
-    """Result of :func:`close_the_loop`.
-
-    Attributes
-    ----------
-    model_error_detected : bool
-        The nominal residual is not white on some output (p < alpha).
-    updated : bool
-        The model was changed (all gates passed).
-    message : str
-        One-sentence conclusion.
-    residual : WhitenessTest
-        Ljung-Box test of the nominal one-step residuals, estimation data.
-    effect : Effect
-    channel : Channel or None
-    candidates : tuple of CandidateScore
-    gate : dict
-        The gate's signals: whiteness p-values, BIC gain and penalty,
-        estimation SE before and after, and which gates passed.
-    criterion : str
-        The stated selection criterion.
-    nominal : control.StateSpace
-        The discrete nominal model.
-    model : UpdatedModel
-        The updated model (kind "static" or "dynamic"), or the nominal one
-        (kind "nominal") when nothing was changed.
-    table : dict of str -> ModelValidation
-        Validation-data rows: "nominal", "updated", "delta" (when computed);
-        for a nonlinear law also "updated (linearized)".
-    trace : ChannelTrace or None
-        The chosen channel's filter, laws and models (d^ for plots).
-    notes : tuple of str
-    steps : tuple of EffectStep
-        One row per effect added, in order (several effects: after each
-        update the updated model's innovations are tested again, and traced
-        again while they are not white). ``effect``, ``channel``,
-        ``candidates``, ``gate`` and ``trace`` describe the first step;
-        ``model`` and ``table["updated"]`` hold every effect.
-    nonlinear : greybox.NonlinearUpdate or None
-        Set when the updated model is nonlinear (a nonlinear nominal model,
-        or a nonlinear law): the ``NonlinearIOSystem`` that the "updated"
-        row simulates and its linearization at a stated operating point. The
-        row of a nonlinear law starts from
-        ``estimate_initial_state(model.sys, y_val, u_val, slow_modes=False)``.
-    """
-
-    model_error_detected: bool
-    updated: bool
-    message: str
-    residual: WhitenessTest
-    effect: Effect
-    channel: Channel | None
-    candidates: tuple[CandidateScore, ...]
-    gate: dict
-    criterion: str
-    nominal: ct.StateSpace = field(repr=False)
-    model: UpdatedModel = field(repr=False)
-    table: dict = field(repr=False)
-    trace: ChannelTrace | None = field(default=None, repr=False)
-    notes: tuple[str, ...] = ()
-    steps: tuple[EffectStep, ...] = ()
-    nonlinear: object = field(default=None, repr=False)
-
-    def se_ratio(self) -> float:
-        """Validation SE of the nominal model divided by that of the updated model.
-
-        NaN when either SE is undefined (an unstable model): compare the PE then.
-        """
-        a, b = self.table["nominal"], self.table["updated"]
-        if not (a.se_defined and b.se_defined):
-            return float("nan")
-        return a.se.value / b.se.value
-
-    def as_dict(self) -> dict:
-        """JSON-ready summary (the ``greybox update --json`` document)."""
-        return {
-            "model_error_detected": self.model_error_detected,
-            "updated": self.updated,
-            "message": self.message,
-            "residual": {"pvalue": self.residual.pvalue.tolist(),
-                         "statistic": self.residual.statistic.tolist(),
-                         "lags": self.residual.lags, "alpha": self.residual.alpha},
-            "channels": list(self.effect.equations),
-            "channel": self.channel.name if self.channel is not None else None,
-            "effect": self.effect.as_dict(),
-            "criterion": self.criterion,
-            "gate": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                     for k, v in self.gate.items()},
-            "candidates": [c.__dict__.copy() for c in self.candidates],
-            "table": {k: v.as_dict() for k, v in self.table.items()},
-            "notes": list(self.notes),
-            "steps": [st.as_dict() for st in self.steps],
-            **({"nonlinear": self.nonlinear.as_dict()} if self.nonlinear is not None else {}),
-        }
+from .records import (  # noqa: E402,F401  (re-exported: greybox.workflow.LoopReport)
+    CRITERION,
+    CRITERION_PE,
+    CandidateScore,
+    Effect,
+    EffectStep,
+    LoopReport,
+)
 
 
 def _flag(value, name):
@@ -547,7 +336,6 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     estimation SEs in ``gate`` and ``candidates`` are the window's.
     """
     if isinstance(sys, ct.NonlinearIOSystem) and not isinstance(sys, ct.StateSpace):
-        from .workflow_nonlinear import close_the_loop_nonlinear  # issue 10: section IV
         return close_the_loop_nonlinear(
             sys, y, u, y_val, u_val, Q=Q, R=R, dt=dt, channels=channels, nonlinear=nonlinear,
             alpha=alpha, lags=lags, parsimony=parsimony, min_se_drop=min_se_drop,
@@ -1144,7 +932,6 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
         rep = _with_record(rep, y, u, Q, R)
         tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
-        from .workflow_nonlinear import nonlinear_update_of_linear  # a nonlinear law: its nlsys
         return nonlinear_update_of_linear(rep)
 
 
@@ -1524,7 +1311,6 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
                           for st in steps) + "; " + describe_before_after(table))
     nl = None
     if last.effect.nonlinear:  # the last pass's law is nonlinear: its exact model
-        from .workflow_nonlinear import nonlinear_update_of_linear
         nl = nonlinear_update_of_linear(last).nonlinear
     return replace(first, message=msg, model=model, table=table, steps=tuple(steps),
                    notes=tuple(notes), nonlinear=nl)

@@ -136,7 +136,7 @@ from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
 from .trace.oe import _noise_floor, forward_select_oe
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after, undefined_error
-from .workflow import CRITERION, CandidateScore, Effect, LoopReport
+from .records import CRITERION, CandidateScore, Effect, LoopReport
 
 __all__ = ["NonlinearUpdate", "close_the_loop_nonlinear", "nonlinear_update_of_linear"]
 

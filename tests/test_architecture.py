@@ -1,10 +1,14 @@
-"""The house plan: a layer never imports a layer above it (module-level imports).
+"""The house plan: a layer never imports a layer above it; no import circle.
 
 Layers, bottom first: base helpers; plants and signals; metrics; filters;
-ident; update (and validation); trace; workflow; top (plotting, I/O, CLI,
-reproduction of the paper). Lazy imports inside ``.plot()`` methods, which
-delegate to the plotting module as STYLE.md asks, are function-level and
-not counted. Only plotting may import matplotlib, and only lazily.
+ident; update (and validation); trace; workflow (its records first); top
+(plotting, I/O, CLI, reproduction of the paper). Imports inside functions
+count as much as those at module level, with one exception: the lazy import
+of :mod:`greybox.plotting` inside ``.plot()`` methods, which delegate to the
+plotting module as STYLE.md asks. Only plotting may import matplotlib, and
+only lazily. No function over ``MAX_LINES`` lines, except the debts listed in
+``LONG_FUNCTIONS`` (which may only shrink); imports of another sub-package's
+``_private`` names may only become fewer.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ LAYER = {
     "ident": 4,
     "update": 5, "validate": 5,
     "trace": 6,
-    "workflow": 7, "workflow_nonlinear": 7, "nominal_refit": 7,
+    "records": 7, "workflow": 7, "workflow_nonlinear": 7, "nominal_refit": 7,
     "reproduce": 8, "plotting": 8, "io": 8, "model_io": 8, "cli": 8, "__main__": 8,
     "__init__": 9,
 }
@@ -35,11 +39,19 @@ def _module_key(path: Path) -> str:
     return rel.parts[0] if len(rel.parts) > 1 else rel.name
 
 
+def _is_plot_delegation(node, tree) -> bool:
+    """A function-level ``from ..plotting import ...`` (a ``.plot()`` delegating)."""
+    return (node not in tree.body and isinstance(node, ast.ImportFrom)
+            and (node.module or "").split(".")[-1] == "plotting")
+
+
 def _imported_keys(path: Path):
-    """(key, lineno) of greybox modules imported at module level by ``path``."""
+    """(key, lineno) of greybox modules imported by ``path`` (functions included)."""
     tree = ast.parse(path.read_text())
     pkg_parts = path.relative_to(PKG).parent.parts
-    for node in tree.body:
+    for node in ast.walk(tree):
+        if _is_plot_delegation(node, tree):
+            continue
         if isinstance(node, ast.ImportFrom) and node.level:
             base = list(pkg_parts[:len(pkg_parts) - (node.level - 1)])
             target = base + (node.module.split(".") if node.module else [])
@@ -80,3 +92,173 @@ def test_matplotlib_only_lazily_in_plotting(path):
             names = [node.module]
         assert not any(n.split(".")[0] == "matplotlib" for n in names), \
             f"{path.relative_to(PKG)} imports matplotlib at module level"
+
+
+# ------------------------------------------------------------------ import circles
+def _dotted(path: Path) -> str:
+    parts = list(path.relative_to(PKG.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {_dotted(p): p for p in FILES}
+
+
+def _targets(path: Path, node: ast.ImportFrom) -> list[str]:
+    """greybox modules an ImportFrom names (the module, and names that are submodules)."""
+    me = _dotted(path).split(".")
+    package = me if path.name == "__init__.py" else me[:-1]
+    if node.level:
+        base = package[:len(package) - (node.level - 1)]
+        mod = ".".join(base + (node.module.split(".") if node.module else []))
+    elif (node.module or "").startswith("greybox"):
+        mod = node.module
+    else:
+        return []
+    out = [mod] if mod in MODULES else []
+    out += [f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in MODULES]
+    return out
+
+
+def _graph() -> dict[str, dict[str, int]]:
+    """module -> {imported module: line}, imports inside functions included."""
+    edges = {}
+    for name, path in MODULES.items():
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and not _is_plot_delegation(node, tree):
+                for t in _targets(path, node):
+                    if t != name and not name.startswith(t + "."):  # a package's own parent
+                        edges.setdefault(name, {})[t] = node.lineno
+    return edges
+
+
+def _cycles(edges) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan, iterative enough)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in edges.get(v, {}):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(set(edges) | {w for ws in edges.values() for w in ws}):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_circle():
+    edges = _graph()
+    cycles = _cycles(edges)
+    detail = [f"{a} -> {b} (line {edges[a][b]})" for c in cycles for a in c
+              for b in edges.get(a, {}) if b in c]
+    assert not cycles, f"import circles: {cycles}; edges: {detail}"
+
+
+def test_the_circle_check_can_fail():
+    """The detector finds a planted circle (a test that cannot fail is a defect)."""
+    assert _cycles({"a": {"b": 1}, "b": {"c": 2}, "c": {"a": 3}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b": 1}, "b": {}}) == []
+
+
+# ------------------------------------------------------------------ function length
+MAX_LINES = 120
+# The debts: functions over MAX_LINES today, with their length (lines from ``def`` to
+# the last line of the body, the docstring left out). The pipeline rebuild (one path for linear and nonlinear
+# models, named stages) removes them; an entry may only shrink or go.
+LONG_FUNCTIONS = {
+    "workflow.py:close_the_loop": 605,
+    "workflow.py:close_the_loop._once": 484,
+    "workflow_nonlinear.py:close_the_loop_nonlinear": 454,
+    "update.py:delta_update": 237,
+    "filters/ukf.py:_run_ukf": 205,
+    "trace/channel_trace.py:trace_channel": 158,
+    "filters/kernels.py:_run": 130,
+}
+
+
+def _code_lines(fn) -> int:
+    """Lines from ``def`` to the end of the body, the docstring left out (numpydoc
+    docstrings are long by design: Parameters, Returns, Notes, Examples)."""
+    body = fn.body
+    doc = (body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+           and isinstance(body[0].value.value, str))
+    skipped = body[0].end_lineno - body[0].lineno + 1 if doc else 0
+    return fn.end_lineno - fn.lineno + 1 - skipped
+
+
+def _long_functions() -> dict[str, int]:
+    found = {}
+    for path in FILES:
+        tree = ast.parse(path.read_text())
+
+        def walk(node, prefix):
+            for child in ast.iter_child_nodes(node):
+                if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                    name = f"{prefix}{child.name}"
+                    if not isinstance(child, ast.ClassDef):
+                        length = _code_lines(child)
+                        if length > MAX_LINES:
+                            found[f"{path.relative_to(PKG)}:{name}"] = length
+                    walk(child, name + ".")
+
+        walk(tree, "")
+    return found
+
+
+def test_no_function_over_the_limit_but_the_listed_debts():
+    found = _long_functions()
+    new = {k: v for k, v in found.items() if k not in LONG_FUNCTIONS}
+    grown = {k: (v, LONG_FUNCTIONS[k]) for k, v in found.items()
+             if k in LONG_FUNCTIONS and v > LONG_FUNCTIONS[k]}
+    paid = sorted(k for k in LONG_FUNCTIONS if k not in found)
+    assert not new, f"functions over {MAX_LINES} lines: {new}; split them into named steps"
+    assert not grown, f"listed long functions grew (now, listed): {grown}"
+    assert not paid, f"these are no longer over {MAX_LINES} lines: remove them from " \
+                     f"LONG_FUNCTIONS: {paid}"
+
+
+# ------------------------------------------------------------------ private imports
+# Imports of another sub-package's ``_private`` name (``from ..trace.laws import
+# _fit_static`` in workflow_nonlinear.py): a debt that may only shrink.
+MAX_PRIVATE_IMPORTS = 15
+
+
+def _private_imports() -> list[str]:
+    out = []
+    for path in FILES:
+        tree = ast.parse(path.read_text())
+        me = _dotted(path).split(".")
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            for t in _targets(path, node) or []:
+                if t not in MODULES or t.split(".")[:2] == me[:2]:
+                    continue  # the same sub-package (or module) may share its privates
+                out += [f"{path.relative_to(PKG)}:{node.lineno} {t}.{a.name}"
+                        for a in node.names if a.name.startswith("_")
+                        and not a.name.startswith("__")]
+    return out
+
+
+def test_private_imports_across_subpackages_only_become_fewer():
+    found = _private_imports()
+    assert len(found) <= MAX_PRIVATE_IMPORTS, (
+        f"{len(found)} imports of another sub-package's private names (at most "
+        f"{MAX_PRIVATE_IMPORTS}); make the name public or move the helper: " + "; ".join(found))

@@ -32,7 +32,7 @@ def test_every_parameter_is_documented(name):
     assert not missing, f"{name}: parameters not documented: {missing}"
 
 
-@pytest.mark.parametrize("module", ["greybox.filters.uikf", "greybox.ident.n4sid",
+@pytest.mark.parametrize("module", ["greybox.filters.uikf", "greybox.filters.kernels", "greybox.ident.n4sid",
                                     "greybox.ident.closedloop", "greybox.metrics"])
 def test_doctests(module):
     mod = importlib.import_module(module)

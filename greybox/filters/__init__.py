@@ -1,13 +1,13 @@
 """State and unknown-input filters."""
 
-from .uikf import (
+from .kernels import (
     FilterResult,
     SteadyStateFilter,
     check_rank_condition,
     kalman_filter,
     steady_state_filter,
-    uikf,
 )
+from .uikf import uikf
 from .delayed import RelativeDegree, delayed_uikf, detect_relative_degree, input_weights
 from .feedthrough import feedthrough_uikf, with_sensor_error
 from .smoother import smooth_uikf

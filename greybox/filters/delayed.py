@@ -47,7 +47,7 @@ from .._blas import single_thread_blas
 from .._validation import check_covariance, check_positive
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
 from .feedthrough import _unknown_feedthrough
-from .uikf import (
+from .kernels import (
     FilterResult,
     _check_options,
     _iterate_to_steady_state,

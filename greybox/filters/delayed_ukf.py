@@ -56,7 +56,7 @@ from ..exceptions import DimensionError, GreyboxError, RankConditionError
 from ..nonlinear import as_nonlinear
 from .delayed import _choose, _unshift
 from .sigma_points import MerweScaledSigmaPoints
-from .uikf import FilterResult, _check_options, check_rank_condition
+from .kernels import FilterResult, _check_options, check_rank_condition
 from .ukf import _initial_G, _points, _prepare_nl, _propagate, _run_ukf
 
 __all__ = ["delayed_ui_ukf"]

@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike
 from .._validation import check_positive
 from ..exceptions import DataError
 from ..signals import _rng
-from .uikf import FilterResult, _check_options, _measurement_gains, check_rank_condition
+from .kernels import FilterResult, _check_options, _measurement_gains, check_rank_condition
 from .ukf import _check_d, _initial_G, _linearized_record_sys, _prepare_nl, _propagate
 
 __all__ = ["ensemble_uikf"]

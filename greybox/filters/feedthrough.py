@@ -26,7 +26,7 @@ from .._lti import lti_states
 from .._validation import check_statespace, resolve_channels
 from ..exceptions import DimensionError, RankConditionError
 from ..system import named_ss, split_inputs
-from .uikf import FilterResult, _check_options, _prepare
+from .kernels import FilterResult, _check_options, _prepare
 
 __all__ = ["feedthrough_uikf", "with_sensor_error"]
 

@@ -45,7 +45,7 @@ from .feedthrough import (
     _unknown_feedthrough,
     _use_feedthrough,
 )
-from .uikf import FilterResult, _check_options, _measurement_gains, _prepare, _run
+from .kernels import FilterResult, _check_options, _measurement_gains, _prepare, _run
 
 __all__ = ["smooth_uikf"]
 

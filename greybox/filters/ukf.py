@@ -72,7 +72,7 @@ from ..exceptions import DataError, DimensionError, ModelError
 from ..nonlinear import linear_output_map, state_map
 from ..system import named_ss
 from .sigma_points import MerweScaledSigmaPoints, robust_cholesky
-from .uikf import FilterResult, _check_options, _measurement_gains, _split, check_rank_condition
+from .kernels import FilterResult, _check_options, _measurement_gains, _split, check_rank_condition
 
 __all__ = ["ukf", "ui_ukf"]
 
@@ -275,7 +275,7 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     ``FX W`` for the mean, G and the covariance square root, and one LAPACK
     positive-definite solve ``Rt^-1 [C P, C G, e]`` whose product ``T`` with
     ``[C P, C G, e]'`` holds every term of (8)-(10) (the algebra of
-    :func:`greybox.filters.uikf._measurement_gains`). Inputs were validated
+    :func:`greybox.filters.kernels._measurement_gains`). Inputs were validated
     once on entry; inside the loop only finiteness is checked (F's output and
     d^).
     """
