@@ -1,0 +1,245 @@
+"""Golden verdicts: every ``close_the_loop`` report a test computes, checked against its snapshot.
+
+The pipeline rebuild (one path for linear and nonlinear models, named stages) must
+keep every verdict. Rather than run every test plant a second time, the suite's own
+calls are checked: ``conftest.py`` wraps the public entry points
+(``greybox.close_the_loop``, ``greybox.workflow.close_the_loop``,
+``greybox.workflow_nonlinear.close_the_loop_nonlinear``) before the test modules
+import them, and each report is compared with ``tests/golden/<key>.json``, the key a
+hash of the call's inputs (:func:`fingerprint`).
+
+What is compared (:func:`snapshot`): whether an error was detected and the model
+updated, the channels, the effect (kind, order, law formula with its coefficients
+and intervals), every step, the candidates' scores, the gate and the validation
+rows (SE and PE); a key the report gained since the snapshot is not a difference.
+Numbers match to ``RTOL`` relative (every test worker runs BLAS on one thread, so
+runs repeat to the last bit on one machine; 1e-6 leaves room for a different BLAS
+build's summation order); numbers printed inside text (a formula's
+"0.502 ± 0.0074") to one unit of their last printed digit. Left out: the parallel
+delta baseline's row and notes (a comparison row whose cost is bounded by a time
+budget, so it depends on the machine's load) and the decision notes (text).
+
+Modes (environment variable ``GREYBOX_GOLDEN``): unset, check (a call without a
+snapshot is not checked: a new test); ``record``, write the snapshots anew (then commit them in a commit of
+their own that says which numbers moved and why).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from pathlib import Path
+
+GOLDEN = Path(__file__).resolve().parent / "golden"
+RTOL = 1e-6
+_NUM = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
+_SKIP_KEYS = {"notes", "figures", "updated_model"}
+
+
+def _clean(obj):
+    """JSON-ready copy without the baseline and the notes."""
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()
+                if k not in _SKIP_KEYS and k != "delta"}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return repr(obj)
+    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):  # numpy scalars
+        return _clean(obj.item())
+    return obj
+
+
+def snapshot(rep) -> dict:
+    """The verdict of a LoopReport, JSON-ready."""
+    return _clean(json.loads(json.dumps(rep.as_dict(), default=_default)))
+
+
+def _default(o):
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    return repr(o)
+
+
+def _last_digit(text: str) -> float:
+    mant = text.lower().split("e")[0]
+    exp = int(text.lower().split("e")[1]) if "e" in text.lower() else 0
+    decimals = len(mant.split(".")[1]) if "." in mant else 0
+    return 10.0 ** (exp - decimals)
+
+
+def _diff(a, b, path="") -> list[str]:
+    """Where ``b`` (now) differs from ``a`` (golden) beyond the tolerances."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        # a key the report gained is new information, not a moved verdict (it is
+        # checked once the snapshots are recorded again); a key it lost is a change
+        out = [f"{path}: key {k!r} lost" for k in sorted(set(a) - set(b))]
+        for k in sorted(set(a) & set(b)):
+            out += _diff(a[k], b[k], f"{path}.{k}")
+        return out
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: {len(a)} items -> {len(b)}"]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _diff(x, y, f"{path}[{i}]")]
+    if isinstance(a, bool) or isinstance(b, bool) or a is None or b is None:
+        return [] if a == b else [f"{path}: {a!r} -> {b!r}"]
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        ok = abs(a - b) <= RTOL * max(abs(a), abs(b)) + 1e-300
+        return [] if ok else [f"{path}: {a!r} -> {b!r}"]
+    if isinstance(a, str) and isinstance(b, str):
+        if _NUM.sub("#", a) != _NUM.sub("#", b):
+            return [f"{path}: {a!r} -> {b!r}"]
+        for x, y in zip(_NUM.findall(a), _NUM.findall(b)):
+            if abs(float(x) - float(y)) > 1.01 * max(_last_digit(x), _last_digit(y)):
+                return [f"{path}: {a!r} -> {b!r}"]
+        return []
+    return [] if a == b else [f"{path}: {a!r} -> {b!r}"]
+
+
+def fingerprint(args, kwargs) -> str:
+    """A hash of a call's inputs: model (matrices, names, parameters), data and options.
+
+    Keyed by its inputs, a snapshot does not depend on which test made the call first
+    (cached cases and module fixtures run in whichever test asks first).
+    """
+    import hashlib
+
+    import numpy as np
+
+    h = hashlib.sha256()
+
+    def numeric(x):
+        try:
+            return np.ascontiguousarray(np.asarray(x, dtype=float))
+        except (TypeError, ValueError):
+            return None
+
+    seen = set()
+
+    def feed(x):
+        if id(x) in seen:  # a closure that holds itself
+            return
+        a = numeric(x) if isinstance(x, (np.ndarray, list, tuple)) else None
+        if a is not None and a.size:
+            h.update(repr(a.shape).encode() + a.tobytes())
+        elif isinstance(x, dict):
+            for k in sorted(x, key=str):
+                h.update(str(k).encode())
+                feed(x[k])
+        elif isinstance(x, (list, tuple)):
+            for v in x:
+                feed(v)
+        elif hasattr(x, "state_labels"):  # a python-control system
+            for name in ("A", "B", "C", "D"):
+                if hasattr(x, name):
+                    feed(np.asarray(getattr(x, name)))
+            h.update(repr((list(x.state_labels), list(x.input_labels), list(x.output_labels),
+                           x.dt, sorted(getattr(x, "params", {}).items()))).encode())
+            for name in ("updfcn", "outfcn"):  # a NonlinearIOSystem: its equations
+                feed(getattr(x, name, None))
+        elif callable(x):
+            # a function: its code, constants and the values it closes over (pendulum(c3)
+            # and pendulum(0) differ only in the closure's c3)
+            seen.add(id(x))
+            h.update(getattr(x, "__qualname__", "fn").encode())
+            code = getattr(x, "__code__", None)
+            if code is not None:
+                h.update(code.co_code + repr(code.co_consts).encode())
+            for cell in getattr(x, "__closure__", None) or ():
+                try:
+                    feed(cell.cell_contents)
+                except ValueError:  # an empty cell
+                    pass
+            for name in ("__self__", "func"):  # a bound method, a functools.partial
+                if hasattr(x, name):
+                    feed(getattr(x, name))
+        else:  # an address in a default repr would make every run's key new
+            h.update(re.sub(r" at 0x[0-9a-fA-F]+", "", repr(x)).encode())
+
+    feed(list(args))
+    feed({k: v for k, v in kwargs.items() if k != "progress"})
+    feed(_constants())
+    return h.hexdigest()[:24]
+
+
+def _module_constants() -> dict:
+    """greybox's module constants (UPPER_CASE numbers, strings, tuples) as they are now."""
+    import sys
+
+    out = {}
+    for name, mod in list(sys.modules.items()):
+        if not name.startswith("greybox") or mod is None:
+            continue
+        for k, v in vars(mod).items():
+            if k.lstrip("_").isupper() and isinstance(v, (int, float, str, tuple)):
+                out[f"{name}.{k}"] = repr(v)
+    return out
+
+
+_DEFAULTS: dict = {}
+
+
+def _constants() -> dict:
+    """The constants a test has changed from their values at install (a monkeypatched,
+    smaller search window makes calls of its own); a new constant in the code changes
+    no key."""
+    now = _module_constants()
+    return {k: v for k, v in now.items() if k in _DEFAULTS and _DEFAULTS[k] != v}
+
+
+def check(rep, args=(), kwargs=None) -> None:
+    """Record or check one report (called by the wrapped entry points)."""
+    current = os.environ.get("PYTEST_CURRENT_TEST", "")
+    if not current:
+        return
+    nodeid = current.rsplit(" (", 1)[0]
+    key = fingerprint(args, kwargs or {})
+    path, snap = GOLDEN / f"{key}.json", snapshot(rep)
+    if os.environ.get("GREYBOX_GOLDEN") == "record":
+        # (clear tests/golden first) the same inputs with another verdict: a test that
+        # patches a function, not a constant; such a key is marked and not checked
+        old = json.loads(path.read_text()) if path.exists() else None
+        conflict = old is not None and (old.get("conflict") or _diff(old["report"], snap))
+        GOLDEN.mkdir(exist_ok=True)
+        path.write_text(json.dumps({"test": nodeid, "report": snap, "conflict": bool(conflict)},
+                                   indent=1, sort_keys=True))
+        return
+    if not path.exists():
+        return
+    golden = json.loads(path.read_text())
+    if golden.get("conflict"):
+        return
+    diffs = _diff(golden["report"], snap)
+    if diffs:
+        raise AssertionError(
+            f"the verdict of a close_the_loop call in {nodeid} moved from "
+            f"tests/golden/{path.name} (recorded in {golden['test']}; {len(diffs)} "
+            f"differences): " + "; ".join(diffs[:8]) + ("" if len(diffs) <= 8 else "; ...")
+            + ". If intended, rerun with GREYBOX_GOLDEN=record and commit the snapshots "
+              "on their own, saying which numbers moved.")
+
+
+def install() -> None:
+    """Wrap the public entry points (before the test modules import them)."""
+    import functools
+
+    import greybox
+    import greybox.workflow as wf
+    import greybox.workflow_nonlinear as wfn
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def checked(*args, **kwargs):
+            rep = fn(*args, **kwargs)
+            check(rep, args, kwargs)
+            return rep
+        checked.__wrapped_by_golden__ = True
+        return checked
+
+    if getattr(wf.close_the_loop, "__wrapped_by_golden__", False):
+        return
+    _DEFAULTS.update(_module_constants())
+    greybox.close_the_loop = wf.close_the_loop = wrap(wf.close_the_loop)
+    wfn.close_the_loop_nonlinear = wrap(wfn.close_the_loop_nonlinear)
