@@ -23,7 +23,40 @@ if TYPE_CHECKING:  # annotations only
     from .trace.shared_order2 import SharedLaw2
     from .update import Subsystem
 
-__all__ = ["CRITERION", "CRITERION_PE", "CandidateScore", "Effect", "EffectStep", "LoopReport"]
+__all__ = ["CRITERION", "CRITERION_PE", "Candidate", "CandidateScore", "Effect", "EffectStep",
+           "LoopReport"]
+
+@dataclass(frozen=True)
+class Candidate:
+    """One scored candidate of a pass: a channel's law and its estimation error.
+
+    Attributes
+    ----------
+    se : float
+        Estimation SE (or PE, for an unstable nominal) of the model with this
+        candidate's law, on the search window [%]; inf when it cannot be simulated.
+    npar : int
+        Parameters the law adds.
+    trace : ChannelTrace
+        The channel's trace (filter, d^, laws, models).
+    kind : str
+        "static" (``trace.static``), "dynamic" (``trace.dynamic``) or "sparse"
+        (the sparse or shared dynamic law in ``law``).
+    law : DynamicLaw or SharedLaw or SharedLaw2 or None
+        The sparse or shared dynamic law of a "sparse" candidate.
+    """
+
+    se: float
+    npar: int
+    trace: ChannelTrace = field(repr=False)
+    kind: str
+    law: object = field(default=None, repr=False)
+
+    @property
+    def channel(self):
+        """The candidate's channel (``trace.channel``)."""
+        return self.trace.channel
+
 
 CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
              "among candidates within {pct:.0f}% of the lowest, the fewest parameters")

@@ -133,6 +133,7 @@ SEARCH_WINDOW = 100_000
 
 from .records import (  # noqa: E402,F401  (re-exported: greybox.workflow.LoopReport)
     CRITERION,
+    Candidate,
     CRITERION_PE,
     CandidateScore,
     Effect,
@@ -471,8 +472,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         # 2. trace every channel: static laws and order-1 dynamics for all channels, then
         #    higher orders for the two channels that explain the data best (cost control)
         cands, notes = [], []
-        scored = []  # (se, npar, trace, kind)
-        sparse = {}  # id(trace) -> DynamicLaw or SharedLaw
+        scored: list[Candidate] = []  # every scored candidate, in the order scored
 
         def _score(tr):
             tr = _light(tr)  # every candidate's full filter record would be kept to the end
@@ -495,14 +495,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 else:
                     se = _fit_error(sm.sys, sm.Q, sm.R)
                 cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
-                scored.append((se, tr.static.npar, tr, "static"))
+                scored.append(Candidate(se, tr.static.npar, tr, "static"))
             if tr.dynamic_model is not None:
                 dm, sub = tr.dynamic_model, tr.dynamic
                 se = _fit_error(dm.sys, dm.Q, dm.R)
                 nw, md = n + m, ch.md
                 npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
                 cands.append(CandidateScore(ch.name, "dynamic", sub.order, se, npar, "ok"))
-                scored.append((se, npar, tr, "dynamic"))
+                scored.append(Candidate(se, npar, tr, "dynamic"))
 
         first_max = min(max_order, 1)
         big = channels is None and n > SCREEN_ABOVE
@@ -540,12 +540,12 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             if tr_.status != "ok":
                 return None
             _score(tr_)
-            return next((t[2] for t in scored[::-1] if t[2].channel == ch_), None)
+            return next((t.trace for t in scored[::-1] if t.trace.channel == ch_), None)
 
         def _retraced(pick):
-            """``pick`` = (se, npar, trace, kind), or the force traced again along its refitted
-            direction if that fits better (or as well with fewer terms), up to _MAX_RETRACE."""
-            se_c, npar, tr, kind = pick
+            """The Candidate ``pick``, or the force traced again along its refitted direction
+            if that fits better (or as well with fewer terms), up to _MAX_RETRACE."""
+            se_c, npar, tr, kind = pick.se, pick.npar, pick.trace, pick.kind
             for _ in range(_MAX_RETRACE):
                 if not (kind == "static" and tr.refined_G is not None):
                     break
@@ -561,14 +561,15 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                         _score(rtr)
                 except (GreyboxError, np.linalg.LinAlgError) as e:
                     notes.append(f"{tr.channel.name} along its refitted direction: {e}")
-                better = [s for s in scored[n_before:] if s[3] == "static" and (
-                    s[0] < se_c or (s[0] <= parsimony * se_c and s[1] < npar))]
+                better = [s for s in scored[n_before:] if s.kind == "static" and (
+                    s.se < se_c or (s.se <= parsimony * se_c and s.npar < npar))]
                 if not better:
                     break
-                se_c, npar, tr, kind = better[0]
-            return se_c, npar, tr, kind
+                pick = better[0]
+                se_c, npar, tr, kind = pick.se, pick.npar, pick.trace, pick.kind
+            return pick
 
-        for se_, _, tr_, kind_ in list(scored):
+        for se_, tr_, kind_ in [(c.se, c.trace, c.kind) for c in scored]:
             if kind_ != "static" or tr_.channel.md != 2 or tr_.channel.kind != "equation":
                 continue
             res_ = tr_.filter_result
@@ -584,21 +585,21 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             _static_trace(fch)
         # ... and along the screen's direction (rougher) where the pair law gave no force
         for fch in screen_forces:
-            if not any(t[2].channel.kind == "force" and
-                       set(t[2].channel.equations) == set(fch.equations) for t in scored):
+            if not any(t.trace.channel.kind == "force" and
+                       set(t.trace.channel.equations) == set(fch.equations) for t in scored):
                 _static_trace(fch)
         # ... and the best force along its refitted direction already here (not only once
         # chosen, below): above SCREEN_ABOVE states the evidence for dynamics in 2b is that
         # the best static law leaves coloured innovations, and a force along its first,
         # noisy direction leaves them coloured where the refitted one leaves them white (the
         # 32-state chain, positions measured: a 30 s sparse dynamic fit for nothing)
-        forces = [t for t in scored if big and t[3] == "static" and
-                  t[2].channel.kind == "force" and np.isfinite(t[0])]
+        forces = [t for t in scored if big and t.kind == "static" and
+                  t.trace.channel.kind == "force" and np.isfinite(t.se)]
         if forces:
-            _retraced(min(forces, key=lambda t: t[0]))
+            _retraced(min(forces, key=lambda t: t.se))
         if max_order >= 2 and scored and not big:
             ranked = []
-            for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
+            for se_, tr_ in [(c.se, c.trace) for c in sorted(scored, key=lambda c: c.se)]:
                 if tr_.channel not in ranked and np.isfinite(se_):
                     ranked.append(tr_.channel)
             for kc, ch in enumerate(ranked[:2]):
@@ -618,16 +619,17 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         if max_order >= 1 and scored and not ct.isdtime(sys, strict=True) and not unstable \
                 and not (big and _static_is_enough(scored, y, u, Q, R, k0, lags, alpha)):
             done = set()
-            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
+            for cand in sorted(scored, key=lambda c: c.se):
+                se_, tr_, kind_ = cand.se, cand.trace, cand.kind
                 ch = tr_.channel
                 if len(done) >= (1 if big else 2) or ch in done or ch.md != 1 or \
                         not np.isfinite(se_) or ch.kind == "output":
                     continue
                 done.add(ch)
-                se_static = min((c[0] for c in scored
-                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
-                se_dyn = min((c[0] for c in scored
-                              if c[2].channel == ch and c[3] == "dynamic"), default=np.inf)
+                se_static = min((c.se for c in scored
+                                 if c.trace.channel == ch and c.kind == "static"), default=np.inf)
+                se_dyn = min((c.se for c in scored
+                              if c.trace.channel == ch and c.kind == "dynamic"), default=np.inf)
                 if not big and not se_dyn < SPARSE_IF * se_static:
                     continue  # no evidence of dynamics in this channel: the static law stands
                 res_, k0s, Ns, pole0 = _sparse_start(tr_)
@@ -642,8 +644,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     continue
                 se = _fit_error(dl.model.sys, dl.model.Q, dl.model.R)
                 cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
-                sparse[id(tr_)] = dl
-                scored.append((se, dl.npar, tr_, "sparse"))
+                scored.append(Candidate(se, dl.npar, tr_, "sparse", dl))
             # one state shared by a pair of equations along no fixed direction (a thermal
             # mass between two bodies): the best pair with evidence of dynamics
             white_shared = []  # the groups whose first-order shared law leaves white innovations
@@ -662,8 +663,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     notes.append(f"{ch.name}: shared-state law failed: {e}")
                     return False
                 if dl is not None and dl.one_direction and any(
-                        t[2].channel.kind == "force" and
-                        set(t[2].channel.equations) == set(ch.equations) for t in scored):
+                        t.trace.channel.kind == "force" and
+                        set(t.trace.channel.equations) == set(ch.equations) for t in scored):
                     cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
                                                 "redundant", "one state along one direction: "
                                                 "the force channel's law says the same"))
@@ -671,12 +672,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 elif dl is not None:
                     cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
                                                 "ok"))
-                    sparse[id(tr_)] = dl
-                    scored.append((se, dl.npar, tr_, "sparse"))
+                    scored.append(Candidate(se, dl.npar, tr_, "sparse", dl))
                     # a second order only where the first leaves coloured innovations, and no
                     # earlier group's shared law left white ones (on a first-order hidden
                     # mass, the order-2 fits cost 18 s of 41 s)
-                    others = [t[0] for t in scored[:-1] if np.isfinite(t[0])]
+                    others = [t.se for t in scored[:-1] if np.isfinite(t.se)]
                     if others and not se <= ORDER2_WITHIN * min(others):
                         notes.append(f"{ch.name}: no second-order shared law tried: the "
                                      f"first-order one ({se:.3g} %) is not within "
@@ -716,12 +716,11 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     return
                 cands.append(CandidateScore(ch.name, "dynamic (sparse)", dl2.order, se2,
                                             dl2.npar, "ok"))
-                tr2 = replace(tr_)  # its own key in ``sparse`` (the lower order keeps tr_)
-                sparse[id(tr2)] = dl2
-                scored.append((se2, dl2.npar, tr2, "sparse"))
+                tr2 = replace(tr_)  # its own trace (the lower order keeps tr_)
+                scored.append(Candidate(se2, dl2.npar, tr2, "sparse", dl2))
                 if dl2.order >= MAX_SHARED_ORDER:
                     return
-                others = [t[0] for t in scored[:-1] if np.isfinite(t[0])]
+                others = [t.se for t in scored[:-1] if np.isfinite(t.se)]
                 if not se2 < se:
                     notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
                                  f"one ({se2:.3g} %) fits no better than the first ({se:.3g} %)")
@@ -742,14 +741,14 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 for a dynamic effect: its law then adds compensating terms); the shared
                 law's k is refitted by output error with the dynamics.
                 """
-                fse = min((t[0] for t in scored if t[2].channel.kind == "force" and
-                           set(t[2].channel.equations) == set(ch.equations)), default=np.inf)
+                fse = min((t.se for t in scored if t.trace.channel.kind == "force" and
+                           set(t.trace.channel.equations) == set(ch.equations)), default=np.inf)
                 if not se < fse:
                     return
                 fch = force_channel(sys, ch, dl.k)
                 n_before = len(scored)
                 _static_trace(fch)
-                ftr = next((t[2] for t in scored[n_before:] if t[3] == "static"), None)
+                ftr = next((t.trace for t in scored[n_before:] if t.kind == "static"), None)
                 if ftr is None:
                     return
                 res_, k0s, Ns, _ = _sparse_start(ftr)
@@ -767,16 +766,16 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                 cands.append(CandidateScore(fch.name, "dynamic (sparse)", 1, fse, fl.npar, "ok",
                                             "along the shared-state law's direction "
                                             f"{np.array2string(dl.k, precision=3)}"))
-                sparse[id(ftr)] = fl
-                scored.append((fse, fl.npar, ftr, "sparse"))
+                scored.append(Candidate(fse, fl.npar, ftr, "sparse", fl))
 
-            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
+            for cand in sorted(scored, key=lambda c: c.se):
+                se_, tr_, kind_ = cand.se, cand.trace, cand.kind
                 ch = tr_.channel
                 if big or ch.md != 2 or ch.kind != "equation" or not np.isfinite(se_) or \
                         kind_ != "dynamic":
                     continue
-                se_static = min((c[0] for c in scored
-                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
+                se_static = min((c.se for c in scored
+                                 if c.trace.channel == ch and c.kind == "static"), default=np.inf)
                 if not se_ < se_static:
                     continue
                 # the evidence rule of the screened groups below: a static law that already
@@ -792,15 +791,16 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             for gtr in (_shared_groups(sys, chans, scored, _static_trace) if big else ()):
                 if not _shared(gtr):
                     break
-        finite = [s for s in scored if np.isfinite(s[0])]
+        finite = [s for s in scored if np.isfinite(s.se)]
         if not finite:
             gate["passed"] = {"whiteness": True, "trace": False}
             return _no_update("model error detected, but no candidate channel could explain it "
                               "(see candidates)", True, cands, notes)
-        best_se = min(s[0] for s in finite)
-        near = [s for s in finite if s[0] <= parsimony * best_se]
-        se_c, npar, tr, kind = _retraced(min(near, key=lambda s: (s[1], s[2].channel.md, s[0])))
-        dl_chosen = sparse.get(id(tr))
+        best_se = min(s.se for s in finite)
+        near = [s for s in finite if s.se <= parsimony * best_se]
+        chosen = _retraced(min(near, key=lambda s: (s.npar, s.trace.channel.md, s.se)))
+        se_c, npar, tr, kind = chosen.se, chosen.npar, chosen.trace, chosen.kind
+        dl_chosen = chosen.law
         res = tr.filter_result  # the gate's d^ and x^: the search window's, as the law's
         ch = tr.channel  # (the report's trace gets its whole record at the end: _with_record)
 
@@ -976,10 +976,10 @@ def _static_is_enough(scored, y, u, Q, R, k0, lags, alpha) -> bool:
     noise model (Q, R) -- the law is deterministic (the sparse dynamic law
     costs hundreds of simulations of the full model).
     """
-    stat = [s for s in scored if s[3] == "static" and np.isfinite(s[0])]
+    stat = [s for s in scored if s.kind == "static" and np.isfinite(s.se)]
     if not stat:
         return False
-    return _leaves_white(min(stat, key=lambda s: s[0])[2].static_model, y, u, Q, R, k0, lags,
+    return _leaves_white(min(stat, key=lambda s: s.se).trace.static_model, y, u, Q, R, k0, lags,
                          alpha)
 
 
@@ -1139,24 +1139,26 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
     16-state chain with positions only).
     """
     def static(t):
-        return t[3] == "static" and t[2].channel.kind == "equation" and np.isfinite(t[0])
+        return t.kind == "static" and t.trace.channel.kind == "equation" and np.isfinite(t.se)
 
     def forced(eqs):
-        return len(eqs) == 2 and any(t[2].channel.kind == "force" and
-                                     set(t[2].channel.equations) == eqs for t in scored)
+        return len(eqs) == 2 and any(t.trace.channel.kind == "force" and
+                                     set(t.trace.channel.equations) == eqs for t in scored)
 
     top = [c.equations[0] for c in chans if c.md == 1 and c.kind == "equation" and c.equations]
     group = set(top) if 2 <= len(top) <= SCREEN_TOP else None
     if group is not None and not forced(group):
-        tr = next((t[2] for t in scored if static(t) and set(t[2].channel.equations) == group
-                   and t[2].channel.md == len(group)), None)
+        tr = next((t.trace for t in scored if static(t) and
+                   set(t.trace.channel.equations) == group and t.trace.channel.md == len(group)),
+                  None)
         tr = tr if tr is not None else trace(resolve_channel_spec(sys, [tuple(top)])[0])
         if tr is not None:
             yield tr
-    pairs = sorted((t for t in scored if static(t) and t[2].channel.md == 2), key=lambda t: t[0])
-    if pairs and set(pairs[0][2].channel.equations) != group and \
-            not forced(set(pairs[0][2].channel.equations)):
-        yield pairs[0][2]
+    pairs = sorted((t for t in scored if static(t) and t.trace.channel.md == 2),
+                   key=lambda t: t.se)
+    if pairs and set(pairs[0].trace.channel.equations) != group and \
+            not forced(set(pairs[0].trace.channel.equations)):
+        yield pairs[0].trace
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:
