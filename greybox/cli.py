@@ -74,6 +74,7 @@ class _Run:
     def __init__(self, args):
         self.args = args
         self.stage = None
+        self.inputs = ()  # input files: never moved or removed with an old output
         self.progress = None
         if not args.quiet and sys.stderr.isatty():
             from .progress import TerminalProgress
@@ -114,7 +115,7 @@ class _Run:
         from .io import commit_output_dir
 
         out = commit_output_dir(self.stage, self.args.out, kind=kind, names=names,
-                                force=self.args.force)
+                                force=self.args.force, inputs=self.inputs)
         self.stage = None
         return out
 
@@ -280,7 +281,8 @@ def _update(args, run: _Run) -> int:
     from .workflow import close_the_loop
 
     # every precondition first: the output folder, then all input files
-    check_output_dir(args.out, force=args.force, kind="report")
+    run.inputs = (args.model, args.estimation, args.validate)
+    check_output_dir(args.out, force=args.force, kind="report", inputs=run.inputs)
     spec = read_model(args.model)
     ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
     y, u = read_csv(args.estimation, inputs=ins, outputs=outs, Ts=spec.Ts)
@@ -332,8 +334,8 @@ def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON summary only")
     p.add_argument("--out", default=default_out, help=f"{what} (default: %(default)s)")
     p.add_argument("--force", action="store_true",
-                   help="replace an existing output, or write into a folder holding files "
-                        "greybox did not write (they are kept)")
+                   help="replace a previous greybox output in that folder (files you added "
+                        "to it are kept; a folder greybox did not write is never used)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--quiet", action="store_true",
                    help="no progress on stderr (shown only when stderr is a terminal)")
