@@ -287,13 +287,7 @@ def _update(args, run: _Run) -> int:
     ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
     y, u = read_csv(args.estimation, inputs=ins, outputs=outs, Ts=spec.Ts)
     yv, uv = read_csv(args.validate, inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
-    try:
-        same = os.path.samefile(args.estimation, args.validate)
-    except OSError:
-        same = False
-    if same or (y.shape == yv.shape and np.array_equal(y, yv) and np.array_equal(u, uv)):
-        _warn("the estimation and validation data are the same; the validation table then "
-              "measures the fit, not the prediction of fresh data")
+    # close_the_loop warns when the validation data are the estimation data
     with run.computing():
         rep = close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
                              channels=spec.channels, progress=run.progress,

@@ -80,11 +80,14 @@ def relative_error(y: ArrayLike, y_hat: ArrayLike, *, squared: bool = False,
     check_same_length(("y", y), ("y_hat", y_hat))
     skip = check_positive(skip, "skip", integer=True, allow_zero=True)
     y, y_hat = y[:, skip:], y_hat[:, skip:]
-    den = np.sum(y**2, axis=1)
-    if np.any(den == 0):
+    peak = np.max(np.abs(y), axis=1, initial=0.0)
+    if np.any(peak == 0):
         raise DataError("an output of y is identically zero; its relative error is undefined")
+    # each output scaled by a power of two near its peak (exact): squares of 1e-300 do not
+    # underflow to a false "identically zero", nor do those of 1e150 overflow
+    scale = np.ldexp(1.0, np.minimum(-np.frexp(peak)[1], 1000))[:, None]
     with np.errstate(over="ignore", invalid="ignore"):
-        ratio = np.sum((y - y_hat) ** 2, axis=1) / den  # a diverged model gives inf
+        ratio = np.sum(((y - y_hat) * scale) ** 2, axis=1) / np.sum((y * scale) ** 2, axis=1)
     per = 100 * (ratio if squared else np.sqrt(ratio))
     return RelativeError(value=float(per.mean()), per_output=per, squared=squared)
 

@@ -656,7 +656,8 @@ def _check_header(header, want, path) -> None:
     expected = f"expected {want} (+ optional 'time')"
     for sep, what in _SEPARATORS:
         cells = [c.strip() for h in header for c in h.split(sep)]
-        if any(sep in h for h in header) and not [c for c in want if c not in cells]:
+        if missing and any(sep in h for h in header) and not [c for c in want
+                                                              if c not in cells]:
             raise DataError(f"{path}: the header {','.join(header)!r} is separated by {what}; "
                             f"the separator must be a comma (save as comma-separated values)")
     blank = [j for j, h in enumerate(header) if not h or h.startswith("Unnamed: ")]
@@ -702,8 +703,8 @@ def _check_time_column(t, Ts: float, path) -> None:
         raise DataError(f"{path}: {round(ratio) - 1} sample(s) missing before {at}; greybox "
                         f"needs {need}: fill the gap (interpolate) or cut the record there")
     worst = float(np.max(np.abs(dtv - Ts)))
-    raise DataError(f"{path}: the time steps jitter by up to {100 * worst / Ts:.2g} % of Ts "
-                    f"(first beyond the tolerance at {at}); greybox needs {need}: resample the "
+    raise DataError(f"{path}: the time steps jitter by up to {100 * worst / Ts:.2g} % of Ts, "
+                    f"first beyond the tolerance at {at}; greybox needs {need}: resample the "
                     f"data onto a regular time grid")
 
 
