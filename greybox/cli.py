@@ -6,7 +6,8 @@
 
 The command line only parses arguments, calls public functions and prints or
 saves their records. Bad input ends with one line on stderr and exit code 2;
-Ctrl-C with one line and exit code 130. Every precondition (input files,
+Ctrl-C with one line and exit code 130 (while the package imports too,
+through the ``greybox_cli`` entry module). Every precondition (input files,
 output folder writable) is checked before computing. Under ``--json`` stdout
 holds the JSON document alone (strict: no NaN or Infinity); warnings,
 progress and anything a numerical library prints go to stderr. A report
@@ -76,10 +77,10 @@ class _Run:
         self.stage = None
         self.inputs = ()  # input files: never moved or removed with an old output
         self.progress = None
-        if not args.quiet and sys.stderr.isatty():
-            from .progress import TerminalProgress
+        if not args.quiet:  # a rewritten line on a terminal, whole lines in a log (CI)
+            from .progress import LogProgress, TerminalProgress
 
-            self.progress = TerminalProgress()
+            self.progress = TerminalProgress() if sys.stderr.isatty() else LogProgress()
 
     @contextlib.contextmanager
     def computing(self):
@@ -332,7 +333,8 @@ def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
                         "to it are kept; a folder greybox did not write is never used)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--quiet", action="store_true",
-                   help="no progress on stderr (shown only when stderr is a terminal)")
+                   help="no progress on stderr (on a terminal one rewritten line, else a "
+                        "line at most every 10 s)")
 
 
 _UPDATE_EPILOG = """\
