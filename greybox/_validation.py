@@ -429,11 +429,12 @@ def _check_noise_scale(y, R, labels) -> None:
     """Refuse outputs that vary far less than the noise R gives them (units disagree)."""
     try:
         Rd = np.asarray(R, dtype=float)
-        sd = np.sqrt(np.diag(Rd) if Rd.ndim == 2 else Rd.reshape(-1))
-    except (TypeError, ValueError):
+        var = np.diag(Rd) if Rd.ndim == 2 else Rd.reshape(-1)
+    except (TypeError, ValueError, OverflowError):
         return  # check_covariance refuses it
-    if sd.size != y.shape[0] or not np.all(np.isfinite(sd)):
-        return
+    if var.size != y.shape[0] or not np.all(np.isfinite(var) & (var > 0)):
+        return  # check_covariance refuses it
+    sd = np.sqrt(var)
     rms = np.sqrt(np.mean((y - y.mean(axis=1, keepdims=True)) ** 2, axis=1))
     for i in range(y.shape[0]):
         if 0 < rms[i] < MIN_SIGNAL_TO_NOISE * sd[i]:

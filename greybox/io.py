@@ -317,7 +317,9 @@ def commit_output_dir(stage: str | os.PathLike, path: str | os.PathLike, *, kind
         Kind of output ("report", "demo").
     names : iterable of str
         The files greybox wrote (listed in the marker).
-    force, inputs
+    force : bool
+        As for :func:`check_output_dir`.
+    inputs : sequence of str or path-like
         As for :func:`check_output_dir`.
 
     Returns

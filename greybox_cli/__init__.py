@@ -12,17 +12,9 @@ __all__ = ["main"]
 
 
 def main(argv=None) -> int:
-    """Run :func:`greybox.cli.main`; Ctrl-C before it takes over gives one line, exit 130.
+    """Run :func:`greybox.cli.main` (same ``argv`` and exit codes), imported inside the try.
 
-    Parameters
-    ----------
-    argv : list of str, optional
-        Arguments (default: ``sys.argv[1:]``).
-
-    Returns
-    -------
-    int
-        The exit code.
+    Ctrl-C before ``greybox.cli.main`` takes over gives one line and exit code 130.
     """
     try:
         from greybox.cli import main as run

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import greybox as gb
 from greybox._validation import check_records
@@ -792,3 +794,53 @@ def test_progress_lines_when_stderr_is_not_a_terminal():
     lines = s.getvalue().splitlines()
     assert lines == ["greybox: progress: 11 s, a (0 of 2)", "greybox: progress: 25 s, b (0 of 2)",
                      "greybox: progress: 40 s, c (0 of 2)"]  # none in the first 10 s, then 10 s apart
+
+
+# --- issue 28: CSV text as a hostile spreadsheet may write it ----------------------------
+
+_TABLE = np.column_stack([np.arange(12) * TS,
+                          np.random.default_rng(4).standard_normal((12, 3)).round(4)])
+_DIGITS = {"ASCII": "0123456789", "Arabic-Indic": "٠١٢٣٤٥٦٧٨٩",
+           "fullwidth": "０１２３４５６７８９", "Devanagari": "०१२३४५६७८९"}
+
+
+def _csv_variant(sep, quoting, digits, minus, eol, bom, pad) -> bytes:
+    """The table as text: separator, quoted cells, digits, minus signs, line ends, BOM."""
+    rng = np.random.default_rng(quoting)
+    to = str.maketrans("0123456789-", _DIGITS[digits] + minus)
+
+    def cell(text: str, number: bool) -> str:
+        text = text.translate(to) if number else text
+        if quoting and rng.random() < 0.5:
+            return f'"{text}"'
+        return f" {text} " if pad else text
+
+    lines = [sep.join(cell(h, False) for h in ("time", "F", "x", "v"))]
+    lines += [sep.join(cell(f"{v:.6g}", True) for v in row) for row in _TABLE]
+    text = eol.join(lines) + eol
+    if bom == "UTF-16":
+        return text.encode("utf-16")
+    return {"": b"", "UTF-8": b"\xef\xbb\xbf", "UTF-8 twice": b"\xef\xbb\xbf" * 2}[bom] + \
+        text.encode("utf-8")
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(sep=st.sampled_from([",", ";", "\t", " "]), quoting=st.integers(0, 3),
+       digits=st.sampled_from(sorted(_DIGITS)), minus=st.sampled_from(["-", "\u2212", "\u2013"]),
+       eol=st.sampled_from(["\n", "\r\n", "\r"]),
+       bom=st.sampled_from(["", "UTF-8", "UTF-8 twice", "UTF-16"]), pad=st.booleans())
+def test_csv_text_gives_the_clean_numbers_or_one_clear_error(tmp_path, sep, quoting, digits,
+                                                             minus, eol, bom, pad):
+    from greybox.model_io import read_csv
+
+    path = tmp_path / "variant.csv"
+    path.write_bytes(_csv_variant(sep, quoting, digits, minus, eol, bom, pad))
+    legal = sep == "," and minus == "-" and eol != "\r" and bom != "UTF-16"
+    try:
+        y, u = read_csv(path, inputs=["F"], outputs=["x", "v"], Ts=TS, min_steps=5)
+    except gb.GreyboxError as e:
+        assert not legal, e
+        assert "\n" not in str(e) and str(path) in str(e)
+        return
+    clean = np.array([[float(f"{v:.6g}") for v in row] for row in _TABLE])
+    assert np.array_equal(u, clean[:, 1:2].T) and np.array_equal(y, clean[:, 2:].T)
