@@ -67,8 +67,9 @@ def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
     A folder that greybox created carries a marker file (its first line the
     kind of output, then the files it wrote) and may be reused: the files of
     the previous run are removed so that no stale figure survives. An
-    existing non-empty folder without the marker is refused unless ``force``;
-    a previous report is replaced only with ``force``. Writing straight into
+    existing non-empty folder without the marker is refused, even with
+    ``force``; a previous report is replaced only with ``force`` (see
+    :func:`check_output_dir` for every rule). Writing straight into
     the folder is not atomic: the command line uses :func:`stage_output_dir`
     and :func:`commit_output_dir` instead.
 
@@ -77,8 +78,7 @@ def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
     path : str or path-like
         The output folder.
     force : bool
-        Write into a folder holding files greybox did not write, or replace
-        a previous report.
+        Replace a previous greybox output.
     kind : str
         Kind of output ("report", "demo"), recorded in the marker.
 
@@ -144,8 +144,11 @@ def output_target(path: str | os.PathLike) -> Path:
 
 def _protected(p: Path, inputs) -> str:
     """Why writing ``p`` would move the working folder or an input file ('' if it would not)."""
-    here = Path.cwd().resolve()
-    if p == here or p in here.parents:
+    try:
+        here = Path.cwd().resolve()
+    except OSError:  # the working folder was removed: nothing of it to protect
+        here = None
+    if here is not None and (p == here or p in here.parents):
         return "the current folder" if p == here else f"a folder holding the current folder"
     for f in inputs:
         try:

@@ -188,6 +188,13 @@ def _model_py(c: Case, extra: str = "", text: str = _MODEL_PY):
     c.model.write_text(text + extra)
 
 
+def _model_py_chdir(c: Case):
+    """A MODEL.py that leaves the working folder, with every path relative to it."""
+    _model_py(c, "import os\nos.chdir('/')\n")
+    c.cwd = c.dir
+    c.model, c.est, c.val, c.out = (Path(p.name) for p in (c.model, c.est, c.val, c.out))
+
+
 def _greybox_folder(path: Path, kind: str, names=("summary.json",), foreign=()):
     """A folder as greybox leaves it (marker, listed files), plus a user's files."""
     path.mkdir()
@@ -491,8 +498,7 @@ ROWS = [
      "warning: input(s) ['F'] are zero throughout"),
     ("warn: constant validation output", _constant_validation_output, 0,
      "warning: validation output(s) ['v'] are constant"),
-    ("ok: model.py changes the working folder", lambda c: _model_py(
-        c, "import os\nos.chdir('/')\n"), 0, ""),
+    ("ok: model.py changes the working folder", _model_py_chdir, 0, ""),
     ("ok: header NFD, model NFC", _nfd_header, 0, ""),
     ("ok: link to a greybox report, --force", lambda c: (
         _greybox_folder(c.dir / "real", "report"), os.symlink(c.dir / "real", c.out),
