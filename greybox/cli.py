@@ -6,7 +6,8 @@
 
 The command line only parses arguments, calls public functions and prints or
 saves their records. Bad input ends with one line on stderr and exit code 2;
-Ctrl-C with one line and exit code 130. Every precondition (input files,
+Ctrl-C with one line and exit code 130 (while the package imports too,
+through the ``greybox_cli`` entry module). Every precondition (input files,
 output folder writable) is checked before computing. Under ``--json`` stdout
 holds the JSON document alone (strict: no NaN or Infinity); warnings,
 progress and anything a numerical library prints go to stderr. A report
@@ -74,11 +75,12 @@ class _Run:
     def __init__(self, args):
         self.args = args
         self.stage = None
+        self.inputs = ()  # input files: never moved or removed with an old output
         self.progress = None
-        if not args.quiet and sys.stderr.isatty():
-            from .progress import TerminalProgress
+        if not args.quiet:  # a rewritten line on a terminal, whole lines in a log (CI)
+            from .progress import LogProgress, TerminalProgress
 
-            self.progress = TerminalProgress()
+            self.progress = TerminalProgress() if sys.stderr.isatty() else LogProgress()
 
     @contextlib.contextmanager
     def computing(self):
@@ -114,7 +116,7 @@ class _Run:
         from .io import commit_output_dir
 
         out = commit_output_dir(self.stage, self.args.out, kind=kind, names=names,
-                                force=self.args.force)
+                                force=self.args.force, inputs=self.inputs)
         self.stage = None
         return out
 
@@ -280,18 +282,13 @@ def _update(args, run: _Run) -> int:
     from .workflow import close_the_loop
 
     # every precondition first: the output folder, then all input files
-    check_output_dir(args.out, force=args.force, kind="report")
+    run.inputs = (args.model, args.estimation, args.validate)
+    check_output_dir(args.out, force=args.force, kind="report", inputs=run.inputs)
     spec = read_model(args.model)
     ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
     y, u = read_csv(args.estimation, inputs=ins, outputs=outs, Ts=spec.Ts)
     yv, uv = read_csv(args.validate, inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
-    try:
-        same = os.path.samefile(args.estimation, args.validate)
-    except OSError:
-        same = False
-    if same or (y.shape == yv.shape and np.array_equal(y, yv) and np.array_equal(u, uv)):
-        _warn("the estimation and validation data are the same; the validation table then "
-              "measures the fit, not the prediction of fresh data")
+    # close_the_loop warns when the validation data are the estimation data
     with run.computing():
         rep = close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
                              channels=spec.channels, progress=run.progress,
@@ -332,11 +329,12 @@ def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON summary only")
     p.add_argument("--out", default=default_out, help=f"{what} (default: %(default)s)")
     p.add_argument("--force", action="store_true",
-                   help="replace an existing output, or write into a folder holding files "
-                        "greybox did not write (they are kept)")
+                   help="replace a previous greybox output in that folder (files you added "
+                        "to it are kept; a folder greybox did not write is never used)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--quiet", action="store_true",
-                   help="no progress on stderr (shown only when stderr is a terminal)")
+                   help="no progress on stderr (on a terminal one rewritten line, else a "
+                        "line at most every 10 s)")
 
 
 _UPDATE_EPILOG = """\

@@ -36,8 +36,7 @@ from ._lti import lti_states
 from ._validation import (
     check_covariance,
     check_positive,
-    check_same_length,
-    check_signal,
+    check_records,
     check_statespace,
 )
 from .exceptions import DataError, GreyboxError, ModelError
@@ -382,12 +381,8 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_orde
         nominal = discretize(sys, dt)
     n, m, p = nominal.nstates, nominal.ninputs, nominal.noutputs
     min_steps = max(200, 10 * (n + m) + 4 * lags)
-    y = check_signal(y, p, "y", min_steps=min_steps)
-    u = check_signal(u, m, "u")
-    check_same_length(("y", y), ("u", u))
-    y_val = check_signal(y_val, p, "y_val", min_steps=max(100, 2 * lags + 2))
-    u_val = check_signal(u_val, m, "u_val")
-    check_same_length(("y_val", y_val), ("u_val", u_val))
+    y, u, y_val, u_val = check_records(nominal, y, u, y_val, u_val, R, min_steps=min_steps,
+                                       min_val_steps=max(100, 2 * lags + 2))
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
     chans = resolve_channel_spec(sys, channels)

@@ -98,8 +98,7 @@ from ._validation import (
     MAX_MAGNITUDE,
     check_covariance,
     check_positive,
-    check_same_length,
-    check_signal,
+    check_records,
 )
 from .exceptions import DataError, GreyboxError, ModelError, RankConditionError
 from .filters import (
@@ -1442,12 +1441,9 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                          "so that it can be discretized (RK4 with the inputs held per sample)")
     dt = check_positive(dt, "dt")
     lags = check_positive(lags, "lags", integer=True)
-    y = check_signal(y, p, "y", min_steps=max(200, 10 * (n + m) + 4 * lags))
-    u = check_signal(u, m, "u")
-    check_same_length(("y", y), ("u", u))
-    y_val = check_signal(y_val, p, "y_val", min_steps=max(100, 2 * lags + 2 + SKIP))
-    u_val = check_signal(u_val, m, "u_val")
-    check_same_length(("y_val", y_val), ("u_val", u_val))
+    y, u, y_val, u_val = check_records(base, y, u, y_val, u_val, R,
+                                       min_steps=max(200, 10 * (n + m) + 4 * lags),
+                                       min_val_steps=max(100, 2 * lags + 2 + SKIP))
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
     nonlinear = _flag(nonlinear, "nonlinear")
