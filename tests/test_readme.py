@@ -56,8 +56,8 @@ def test_big_file_figures_are_the_measured_ones():
     for row in rows:
         for number in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?![\w.])", row.split("|", 2)[2]):
             assert re.search(rf"(?<![\w.]){re.escape(number)}(?![\w.])", raw), \
-                f"docs/results/benchmarks.md quotes {number} ({row.strip()}) but "
-                f"bench/RESULTS_workflow.md has not"
+                (f"docs/results/benchmarks.md quotes {number} ({row.strip()}) but "
+                 f"bench/RESULTS_workflow.md has not")
 
 
 RESULTS_UKF = ROOT / "bench" / "RESULTS_ukf.md"
@@ -71,5 +71,5 @@ def test_ukf_benchmark_figures_are_the_measured_ones():
         for number in re.findall(r"(?<![\w.])\d+(?:\.\d+)?(?:e-\d+)?(?![\d.e])",
                                  row.split("|", 3)[3]):  # "3.7x" counts as 3.7
             assert re.search(rf"(?<![\w.]){re.escape(number)}(?![\d.e])", raw), \
-                f"docs/results/benchmarks.md quotes {number} ({row.strip()}) but "
-                f"bench/RESULTS_ukf.md has not"
+                (f"docs/results/benchmarks.md quotes {number} ({row.strip()}) but "
+                 f"bench/RESULTS_ukf.md has not")
