@@ -149,7 +149,7 @@ def _protected(p: Path, inputs) -> str:
     except OSError:  # the working folder was removed: nothing of it to protect
         here = None
     if here is not None and (p == here or p in here.parents):
-        return "the current folder" if p == here else f"a folder holding the current folder"
+        return "the current folder" if p == here else "a folder holding the current folder"
     for f in inputs:
         try:
             real = Path(f).resolve()
