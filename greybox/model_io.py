@@ -759,13 +759,12 @@ def _read_header(f, path):
             raise DataError(f"{path} is not UTF-8 text (line {line_no}: {e.reason}); save it "
                             f"as UTF-8") from e
         if line.strip().strip(","):
+            line = line.lstrip("\ufeff")  # a second byte-order mark (before a quote too)
             try:
                 cells = next(csv.reader([line]))
             except csv.Error as e:
                 raise DataError(f"{path}: header is not readable CSV ({e})") from e
             cells = [_nfc(h.strip()) for h in cells]
-            if cells:
-                cells[0] = cells[0].lstrip("\ufeff").strip()  # a second byte-order mark
             return cells, line_no
 
 
