@@ -322,7 +322,12 @@ def _update(args, run: _Run) -> int:
     else:
         print(_fmt_update(rep))
         print(f"report: {out / 'report.md'}")
-    return 0
+    return 0 if rep.recommended else NOT_RECOMMENDED
+
+
+#: Exit code of ``greybox update`` when the update found is worse on the validation data
+#: than the nominal model: the report is written, but no model is handed over as better.
+NOT_RECOMMENDED = 4
 
 
 def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
@@ -396,7 +401,10 @@ def main(argv: list[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, 2 on bad input, 130 when interrupted (Ctrl-C).
+        0 on success, 2 on bad input, 4 when ``greybox update`` found an update
+        that predicts the validation data worse than the nominal model ("not
+        recommended": the report is written, the nominal model kept), 130 when
+        interrupted (Ctrl-C).
     """
     parser = _parser()
     args = parser.parse_args(argv)

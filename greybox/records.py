@@ -228,6 +228,12 @@ class LoopReport:
         row simulates and its linearization at a stated operating point. The
         row of a nonlinear law starts from
         ``estimate_initial_state(model.sys, y_val, u_val, slow_modes=False)``.
+    recommended : bool
+        False when the update the trace found predicts the validation data
+        worse than the nominal model (:func:`greybox.recommend.recommend`):
+        ``updated`` is then False too, ``model`` the nominal, the message
+        starts "not recommended", and ``table["not recommended"]`` holds the
+        refused model's row.
     """
 
     model_error_detected: bool
@@ -246,6 +252,7 @@ class LoopReport:
     notes: tuple[str, ...] = ()
     steps: tuple[EffectStep, ...] = ()
     nonlinear: object = field(default=None, repr=False)
+    recommended: bool = True
 
     def se_ratio(self) -> float:
         """Validation SE of the nominal model divided by that of the updated model.
@@ -262,6 +269,7 @@ class LoopReport:
         return {
             "model_error_detected": self.model_error_detected,
             "updated": self.updated,
+            "recommended": self.recommended,
             "message": self.message,
             "residual": {"pvalue": self.residual.pvalue.tolist(),
                          "statistic": self.residual.statistic.tolist(),

@@ -41,6 +41,7 @@ from ._validation import (
 )
 from .exceptions import DataError, GreyboxError, ModelError
 from .progress import ProgressClock
+from .recommend import recommend
 from .filters import feedthrough_uikf, kalman_filter, uikf
 from .metrics import (
     WhitenessTest,
@@ -359,7 +360,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     P.settings.max_effects, P.dt, functools.partial(_joint, P))
         rep = _with_record(rep, P.y, P.u, P.Q, P.R)
         P.tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
-        return nonlinear_update_of_linear(rep)
+        return recommend(nonlinear_update_of_linear(rep), P.Q, P.R)
 
 
 def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_order, alpha,
