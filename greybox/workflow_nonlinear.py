@@ -129,7 +129,7 @@ from .nonlinear import (
 )
 from .progress import ProgressClock
 from .trace import ChannelTrace, resolve_channel_spec
-from .trace.intervals import hac_covariance
+from .trace.intervals import hac_covariance, undetermined
 from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
                          hinge_name, linear_part)
 from .trace.oe import _noise_floor, forward_select_oe
@@ -638,7 +638,9 @@ class _LawOutputError:
             if np.all(np.isfinite(xs)):
                 cov = _oe_covariance(cov, jac, fun, self.model, xs, self.uu, self.C,
                                      self.scale, *self.noise)
-        return 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+        h = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+        h[undetermined(jac)] = np.inf  # "not determined", never a half-width of a singular fit
+        return h
 
     def line_search(self, sel, theta, cands, steps):
         """Each candidate's best coefficient on a grid, the current law held: (RSS, start).
