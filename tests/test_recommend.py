@@ -103,3 +103,25 @@ def test_cli_exits_4_and_writes_the_nominal_model(tmp_path, capsys):
     written = json.loads((out / "updated_model.json").read_text())
     # the nominal (discretized, as any report without an update writes it)
     np.testing.assert_allclose(written["A"], np.asarray(gb.discretize(nom, DT).A), rtol=1e-12)
+
+
+def test_the_json_explains_the_effect_as_data():
+    """``explanation``: channel (kind, equations, direction) and law terms with their
+    coefficient and interval, for a program to read (the spring k2 = 15 N/m on mass 2)."""
+    rep, _ = run_case("spring")
+    ex = rep.as_dict()["explanation"]
+    assert len(ex) == 1
+    ch, law = ex[0]["channel"], ex[0]["law"]
+    assert ch["kind"] == "equation" and ch["equations"] == ["v2"] and ch["direction"] == [1.0]
+    assert law["kind"] == "static" and law["order"] == 0 and law["formula"] == rep.effect.formula
+    terms = {t["expression"]: t for t in law["terms"]}
+    assert "p2" in terms, terms
+    t = terms["p2"]
+    assert t["determined"] and t["ci95"] > 0
+    # the truth, -15 N/m on a 1 kg mass: within two 95 % half-widths (about 4 sigma; one
+    # draw: coverage over seeds is asserted in test_nonlinear_intervals, test_sensor_*)
+    assert abs(t["coefficient"] + 15.0) <= 2 * t["ci95"], t
+    json.dumps(ex, allow_nan=False)  # strict JSON
+    # a correct model explains nothing
+    right, _ = run_case("right")
+    assert right.as_dict()["explanation"] == []
