@@ -252,23 +252,38 @@ def _fmt_update(rep) -> str:
 
 
 def _report_markdown(rep, figures) -> str:
-    out = ["# greybox update report", "", rep.message, "",
-           f"Selection criterion: {rep.criterion}.", "",
-           "## Residual of the nominal model (estimation data)", "",
-           "| output | Ljung-Box p |", "|---|---|"]
-    labels = list(rep.nominal.output_labels)
-    out += [f"| {labels[i]} | {p:.3g} |" for i, p in enumerate(rep.residual.pvalue)]
-    out += ["", "## Effect", "", f"- kind: {rep.effect.kind}, order {rep.effect.order}",
-            f"- channel: {rep.effect.channel or '-'}", f"- formula: `{rep.effect.formula}`"]
-    out += [f"- {s}" for s in rep.effect.parameter_notes]
-    out += [f"- note: {s}" for s in rep.notes]
-    out += ["", "## Validation data: before and after (eq. 42, relative RMS)", "",
+    """The report an engineer reads in ten seconds: the verdict, one line per effect, the
+    before/after table and the figures first; the evidence and the decision trail after."""
+    out = ["# greybox update report", "", f"**{rep.message.split('; ')[0]}**", "",
+           rep.message, ""]
+    effects = [st.effect for st in rep.steps] if len(rep.steps) > 1 else \
+        ([rep.effect] if rep.effect.kind != "none" else [])
+    if effects:
+        out += ["## Effects" + ("" if rep.recommended else " (proposed, not recommended)"), ""]
+        out += [f"{i + 1}. {e.kind} (order {e.order}) in {e.channel or '-'}: `{e.formula}`"
+                for i, e in enumerate(effects)]
+        out += [f"   - {s}" for e in effects for s in e.parameter_notes]
+        out.append("")
+    out += ["## Validation data: before and after (eq. 42, relative RMS)", "",
             "| model | order | SE [%] | PE [%] | residual white |", "|---|---|---|---|---|"]
     for name, v in rep.table.items():
         out.append(f"| {name} | {v.order} | {_pct(v.se.value, '.3g')} | "
                    f"{_pct(v.pe.value, '.3g')} | "
                    f"{'yes' if v.whiteness.all_white else 'no'} |")
     out += ["", "## Figures", ""] + [f"![{k}]({Path(v).name})" for k, v in figures.items()]
+    out += ["", "## Residual of the nominal model (estimation data)", "",
+            "| output | Ljung-Box p |", "|---|---|"]
+    labels = list(rep.nominal.output_labels)
+    out += [f"| {labels[i]} | {p:.3g} |" for i, p in enumerate(rep.residual.pvalue)]
+    out += ["", "## Decision trail", "", f"Selection criterion: {rep.criterion}.", ""]
+    if rep.candidates:
+        out += ["| candidate | kind | order | estimation SE [%] | parameters | status |",
+                "|---|---|---|---|---|---|"]
+        out += [f"| {c.channel} | {c.kind} | {c.order} | {_pct(c.se_estimation, '.3g')} | "
+                f"{c.npar} | {c.status}{': ' + c.reason if c.reason else ''} |"
+                for c in rep.candidates]
+        out.append("")
+    out += [f"- {s}" for s in rep.notes]
     return "\n".join(out) + "\n"
 
 

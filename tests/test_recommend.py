@@ -125,3 +125,19 @@ def test_the_json_explains_the_effect_as_data():
     # a correct model explains nothing
     right, _ = run_case("right")
     assert right.as_dict()["explanation"] == []
+
+
+def test_report_md_opens_with_the_answer(tmp_path):
+    """The verdict, the effect in one line and the before/after table come before the
+    residual test and the decision trail (candidates, notes)."""
+    from greybox.cli import _report_markdown
+
+    rep, _ = run_case("spring")
+    md = _report_markdown(rep, {"outputs": str(tmp_path / "outputs.png")})
+    heads = [ln for ln in md.splitlines() if ln.startswith("## ")]
+    assert heads[:3] == ["## Effects", "## Validation data: before and after (eq. 42, "
+                         "relative RMS)", "## Figures"], heads
+    assert heads.index("## Decision trail") > heads.index("## Figures")
+    assert md.splitlines()[2].startswith("**model error found in eq(v2)")
+    assert f"`{rep.effect.formula}`" in md.split("## Validation")[0]
+    assert all(f"| {c.channel} |" in md for c in rep.candidates)
