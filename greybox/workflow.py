@@ -150,9 +150,14 @@ def _flag(value, name):
 
 
 def _se(y, ysim, skip):
+    """SE (eq. 42) [%] of a simulated output; inf when the simulation diverged (a
+    candidate that cannot be simulated loses, it does not end the run)."""
     if not np.all(np.isfinite(ysim)):
         return np.inf
-    return float(relative_error(y, ysim, skip=skip).value)
+    try:
+        return float(relative_error(y, ysim, skip=skip).value)
+    except DataError:  # values beyond the magnitude check (1e252 from a diverged candidate)
+        return np.inf
 
 
 def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, skip, name):
