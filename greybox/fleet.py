@@ -721,7 +721,7 @@ def _connect(client, workers):
 
     distributed = _dask()
     if client is not None and not isinstance(client, (str, os.PathLike)):
-        yield client, len(client.scheduler_info().get("workers", {}))
+        yield client, len(client.nthreads())
         return
     if client is not None:
         try:
@@ -730,7 +730,7 @@ def _connect(client, workers):
             raise DataError(f"cannot reach the Dask scheduler at {client}: {_one_line(e)}; "
                             f"check the address (tcp://host:8786)") from e
         try:
-            yield c, len(c.scheduler_info().get("workers", {}))
+            yield c, len(c.nthreads())
         finally:
             c.close()
         return
@@ -774,21 +774,21 @@ def _run_all(client, model, todo, out, *, delta, timeout, prints, arrived) -> di
                for u in todo}
     results = {}
     try:
-        for fut in distributed.as_completed(futures):
-            u = futures[fut]
+        for fut in distributed.as_completed(list(futures)):
+            u = futures.pop(fut)
             try:
                 d = fut.result()
             except Exception as e:  # noqa: BLE001 - a worker died, the task was lost
                 d = UnitResult(u.name, "failed", error=f"worker lost: {_one_line(e)}").as_dict()
+            fut.release()  # the worker may drop the result: it is on disk now
             d["inputs"] = prints[u.name]
             with deferred_interrupt():
                 atomic_write_json(out / "units" / f"{u.name}.json", d)
             results[u.name] = UnitResult.from_dict(d)
             arrived(results[u.name])
     finally:
-        pending = [f for f in futures if not f.done()]
-        if pending:
-            client.cancel(pending)
+        if futures:  # interrupted: the units not finished are cancelled
+            client.cancel(list(futures))
     return results
 
 
