@@ -715,6 +715,27 @@ def _cores() -> int:
 
 
 @contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while the block starts worker processes, which inherit it.
+
+    A terminal's Ctrl-C reaches every process of its group; workers that
+    ignore it do not die mid-task printing tracebacks: this process cancels
+    their tasks and closes the cluster. A no-op outside the main thread.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@contextlib.contextmanager
 def _connect(client, workers):
     """(Client, number of workers): the given one, one to an address, or a LocalCluster."""
     import logging
@@ -735,9 +756,10 @@ def _connect(client, workers):
             c.close()
         return
     n = workers or _cores()
-    cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                       dashboard_address=None, silence_logs=logging.ERROR,
-                                       env=dict(_BLAS_ENV))
+    with _sigint_ignored():  # the workers inherit it: Ctrl-C reaches this process alone
+        cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                           dashboard_address=None, silence_logs=logging.ERROR,
+                                           env=dict(_BLAS_ENV))
     try:
         c = distributed.Client(cluster)
         try:

@@ -272,7 +272,7 @@ def plot_fleet_coefficients(groups, *, max_panels: int = 12):
         ax.set_xticks([])
         key = g.key if len(g.key) <= 48 else g.key[:45] + "..."
         ax.set_title(f"group {i} ({len(g.units)} units): {key}", fontsize=8)
-        ax.set_ylabel(c.name)
+        ax.set_ylabel(f"coefficient of {c.name}")
     for ax in axes[len(panels):]:
         ax.set_visible(False)
     return {"figure": fig, "axes": axes[:len(panels)]}
