@@ -657,8 +657,10 @@ def fleet_markdown(report: FleetReport) -> str:
     str
     """
     out = ["# greybox fleet report", "", f"**{report.answer}**", "",
-           f"Model `{report.model}`; one close the loop per unit "
-           f"({report.workers} Dask workers, {report.seconds:.1f} s). Coefficients are in the "
+           f"Model `{report.model}`; one close the loop per unit ("
+           + (f"{report.workers} Dask workers, {report.seconds:.1f} s" if report.workers else
+              "none computed now: every unit was done before")
+           + "). Coefficients are in the "
            f"units of the state equations they enter; outliers: |x - median| > "
            f"{OUTLIER_Z:g} x 1.4826 MAD.", ""]
     if report.groups:
@@ -746,7 +748,7 @@ def _connect(client, workers):
         return
     if client is not None:
         try:
-            c = distributed.Client(str(client), timeout=30)
+            c = distributed.Client(str(client), timeout=10)
         except (OSError, TimeoutError) as e:
             raise DataError(f"cannot reach the Dask scheduler at {client}: {_one_line(e)}; "
                             f"check the address (tcp://host:8786)") from e
