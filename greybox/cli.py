@@ -420,13 +420,14 @@ def _parser() -> argparse.ArgumentParser:
         description="Close the loop on every unit of a fleet of one design, in parallel on "
                     "Dask, and report which units deviate from the model and how.",
         epilog=_FLEET_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    flt.add_argument("model", help="MODEL.json (or MODEL.py), the design's nominal model")
+    flt.add_argument("model", metavar="MODEL.json",
+                     help="the design's nominal model (MODEL.json, or MODEL.py)")
     flt.add_argument("units", metavar="UNITS_DIR",
                      help="folder with one sub-folder per unit, or a manifest CSV")
-    flt.add_argument("--out", default="greybox-fleet-report",
+    flt.add_argument("--out", default="greybox-fleet-report", metavar="DIR",
                      help="report folder, reused by a rerun (default: %(default)s)")
-    flt.add_argument("--workers", type=int, help="worker processes of the local cluster "
-                                                 "(default: one per core)")
+    flt.add_argument("--workers", type=int, metavar="N",
+                     help="worker processes of the local cluster (default: one per core)")
     flt.add_argument("--scheduler", metavar="ADDRESS",
                      help="use the Dask cluster at ADDRESS (tcp://host:8786) instead")
     flt.add_argument("--force", action="store_true", help="compute every unit again")

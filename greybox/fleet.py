@@ -45,13 +45,13 @@ import functools
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ._validation import check_positive
-from .exceptions import DataError, GreyboxError, MissingDependencyError
+from .exceptions import DataError, MissingDependencyError
 from .progress import Progress
 
 __all__ = ["FleetReport", "UnitResult", "ExplanationGroup", "CoefficientSpread", "UnitFiles",
