@@ -3,6 +3,8 @@
 ``greybox demo tape-drive|motor-pump [--json] [--out DIR] [--force] [--no-plots] [--quiet]``
 ``greybox update MODEL.json ESTIMATION.csv --validate VALIDATION.csv [--out DIR] [--json]
 [--force] [--no-plots] [--quiet]``
+``greybox fleet MODEL.json UNITS_DIR --out DIR [--workers N] [--scheduler ADDRESS] [--force]
+[--timeout S] [--json] [--quiet]`` (exit code 3 when some units failed)
 
 The command line only parses arguments, calls public functions and prints or
 saves their records. Bad input ends with one line on stderr and exit code 2;
@@ -345,6 +347,39 @@ def _update(args, run: _Run) -> int:
 NOT_RECOMMENDED = 4
 
 
+def _fleet(args, run: _Run) -> int:
+    from .fleet import EXIT_FAILED, fleet
+    from .io import dumps_json
+
+    def show(p):
+        print(f"greybox: [{p.k}/{p.K}] {p.stage}", file=sys.stderr, flush=True)
+
+    with run.computing():
+        rep = fleet(args.model, args.units, out=args.out, client=args.scheduler,
+                    workers=args.workers, force=args.force, timeout=args.timeout,
+                    progress=None if args.quiet else show)
+    if args.json:
+        print(dumps_json(rep.as_dict()))
+    else:
+        print(rep.answer)
+        print(f"report: {Path(rep.out) / 'fleet.md'}")
+    return EXIT_FAILED if rep.failed else 0
+
+
+_FLEET_EPILOG = """\
+UNITS_DIR holds one sub-folder per unit (its name is the unit's name) with
+estimation.csv and validation.csv, or is a manifest CSV with the header
+unit,estimation,validation (paths relative to the manifest). Each unit's
+result is written to DIR/units/<unit>.json as it arrives; a rerun skips the
+units done before (same files, same model) unless --force, and tries failed
+units again; Ctrl-C keeps every unit finished. DIR/fleet.md opens with the
+answer. Needs Dask: pip install "greybox[fleet]".
+
+exit codes: 0 every unit done, 3 some units failed (each with its line in
+fleet.md), 2 bad input (nothing written), 130 interrupted.
+"""
+
+
 def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON summary only")
     p.add_argument("--out", default=default_out, help=f"{what} (default: %(default)s)")
@@ -398,6 +433,27 @@ def _parser() -> argparse.ArgumentParser:
                           "its cost is bounded by the trace's time anyway)")
     _common(upd, "greybox-update-report", "report folder")
     upd.set_defaults(func=_update)
+    flt = sub.add_parser(
+        "fleet", help="close the loop on every unit of a fleet (Dask); report across units",
+        description="Close the loop on every unit of a fleet of one design, in parallel on "
+                    "Dask, and report which units deviate from the model and how.",
+        epilog=_FLEET_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    flt.add_argument("model", metavar="MODEL.json",
+                     help="the design's nominal model (MODEL.json, or MODEL.py)")
+    flt.add_argument("units", metavar="UNITS_DIR",
+                     help="folder with one sub-folder per unit, or a manifest CSV")
+    flt.add_argument("--out", default="greybox-fleet-report", metavar="DIR",
+                     help="report folder, reused by a rerun (default: %(default)s)")
+    flt.add_argument("--workers", type=int, metavar="N",
+                     help="worker processes of the local cluster (default: one per core)")
+    flt.add_argument("--scheduler", metavar="ADDRESS",
+                     help="use the Dask cluster at ADDRESS (tcp://host:8786) instead")
+    flt.add_argument("--force", action="store_true", help="compute every unit again")
+    flt.add_argument("--timeout", type=float, metavar="S",
+                     help="give up on a unit after S seconds (it is reported as failed)")
+    flt.add_argument("--json", action="store_true", help="print the JSON report only")
+    flt.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    flt.set_defaults(func=_fleet)
     return p
 
 
@@ -416,7 +472,8 @@ def main(argv: list[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, 2 on bad input, 4 when ``greybox update`` found an update
+        0 on success, 2 on bad input, 3 when ``greybox fleet`` could not do some
+        units (the others are reported), 4 when ``greybox update`` found an update
         that predicts the validation data worse than the nominal model ("not
         recommended": the report is written, the nominal model kept), 130 when
         interrupted (Ctrl-C).
