@@ -13,8 +13,7 @@ Before FilterResult.settled, N = 22000 read ``(16.2 ± 0.95)*q^3`` (fitted on
 the 28 samples after the r = 1 filter's covariance met its convergence test
 at sample 21969) and N = 24841 left the model unchanged. Now N = 8000 and
 16000 give the two friction terms; N = 24841 names the kinematic equation
-eq(q) (an open defect of the law selection on long records: README, "Real
-data").
+eq(q) (an open defect of the law selection on long records: ``docs/results/real-data.md``).
 """
 
 from __future__ import annotations

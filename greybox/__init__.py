@@ -194,3 +194,8 @@ __all__ += [
     "motor_pump_nominal",
     "motor_pump_true",
 ]
+
+# a fleet of units on Dask (issue 29): Dask itself is imported only when fleet() runs
+from .fleet import FleetReport, UnitResult, fleet  # noqa: E402
+
+__all__ += ["FleetReport", "UnitResult", "fleet"]

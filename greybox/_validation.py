@@ -8,18 +8,29 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import warnings
+
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .exceptions import CovarianceError, DataError, DimensionError, ModelError
+from .exceptions import CovarianceError, DataError, DimensionError, GreyboxWarning, ModelError
 
 #: Largest magnitude accepted in any signal or matrix: sums of squares and
 #: covariances of values up to 1e150 stay far below float64's 1.8e308.
 MAX_MAGNITUDE = 1e150
+#: Range of the peak magnitude of a measured record's signal in
+#: :func:`check_records`: the laws' cubic terms and their sums of squares
+#: (x^6) neither overflow nor underflow inside it.
+RECORD_RANGE = (1e-50, 1e50)
+#: A measured output varying (RMS about its mean) less than this fraction of
+#: its noise standard deviation sqrt(R_ii) is refused: data and R disagree on units.
+MIN_SIGNAL_TO_NOISE = 1e-6
 
 __all__ = [
     "MAX_MAGNITUDE",
+    "RECORD_RANGE",
+    "check_records",
     "check_input_record",
     "check_matrix",
     "check_vector",
@@ -77,6 +88,14 @@ def _float_array(x) -> NDArray[np.float64]:
     """
     if isinstance(x, (str, bytes)):
         raise ValueError(f"a string ({x!r}) is not a number")
+    if isinstance(x, np.ma.MaskedArray):
+        if np.ma.count_masked(x):
+            raise ValueError(f"a masked array with {np.ma.count_masked(x)} masked entries; "
+                             f"greybox does not skip masked values: fill or remove them")
+        x = np.ma.getdata(x)
+    if _is_frame(x):
+        raise ValueError("a pandas DataFrame, whose labels cannot be matched here; pass "
+                         "df[names].to_numpy() in the order expected")
     a = np.asarray(x)
     if a.dtype.kind == "c":
         if np.any(a.imag != 0):
@@ -220,6 +239,7 @@ def check_signal(
     ``nrows=None`` takes the number of rows from the data (a 1-D array or a
     scalar is one row).
     """
+    y = _unmasked(y, name, allow_nan)
     if nrows is None:
         a = as_signal(y, name)
         nrows = a.shape[0]
@@ -345,3 +365,137 @@ def check_input_record(u, ninputs: int, nsteps=None) -> np.ndarray:
         raise DimensionError(f"nsteps = {nsteps} but u has {N} samples; give u alone (its "
                              f"length sets nsteps) or u[:, :nsteps]")
     return u
+
+
+def _is_frame(x) -> bool:
+    """True for a pandas DataFrame (or anything with its labelled two axes), without pandas."""
+    return not isinstance(x, np.ndarray) and hasattr(x, "columns") and hasattr(x, "index") \
+        and hasattr(x, "to_numpy")
+
+
+def _unmasked(y, name: str, allow_nan: bool):
+    """A masked signal's data: masked samples as NaN (missing) where allowed, else refused."""
+    if not isinstance(y, np.ma.MaskedArray) or not np.ma.count_masked(y):
+        return np.ma.getdata(y) if isinstance(y, np.ma.MaskedArray) else y
+    if allow_nan:
+        return np.ma.filled(np.ma.asarray(y, dtype=float), np.nan)
+    mask = np.atleast_2d(np.ma.getmaskarray(y))
+    first = np.argwhere(mask)[0]
+    raise DataError(f"{name} is a masked array with {int(mask.sum())} masked sample(s) (first "
+                    f"at signal {first[0]}, sample {first[-1]}); greybox needs every sample "
+                    f"here and does not skip masked ones: cut the record or interpolate them")
+
+
+def _frame_rows(x, labels, name: str):
+    """A DataFrame's signals as rows in the order of ``labels`` (its labels honoured).
+
+    Signals may be its columns (samples as rows, as read from a CSV) or its
+    index (the transpose). Anything that is not a DataFrame is returned as is.
+    """
+    if not _is_frame(x):
+        return x
+    cols, idx = [str(c) for c in x.columns], [str(i) for i in x.index]
+    values = np.asarray(x.to_numpy())
+    if labels and set(labels) <= set(cols):
+        return values[:, [cols.index(c) for c in labels]].T
+    if labels and set(labels) <= set(idx):
+        return values[[idx.index(c) for c in labels], :]
+    raise DimensionError(f"{name} is a DataFrame labelled {cols[:6]} (columns) and "
+                         f"{idx[:3]}... (index); expected the model's signals {list(labels)} as "
+                         f"its column (or index) labels: rename them, or pass an array "
+                         f"with rows in that order")
+
+
+_RECORDS = {"y": "estimation output", "u": "estimation input", "y_val": "validation output",
+            "u_val": "validation input"}
+
+
+def _check_record_scale(a, labels, name: str) -> None:
+    """Refuse a measured signal whose peak magnitude lies outside RECORD_RANGE."""
+    lo, hi = RECORD_RANGE
+    what = f"the {_RECORDS[name]} {{!r}} ({name})"
+    peak = np.max(np.abs(a), axis=1) if a.size else np.zeros(a.shape[0])
+    for i, v in enumerate(peak):
+        if v > hi or 0 < v < lo:
+            raise DataError(f"{what.format(labels[i])} never exceeds {v:.3g} in magnitude; "
+                            f"below {lo:g} the squares of its cubic law terms underflow: "
+                            f"rescale it (change units)" if v < lo else
+                            f"{what.format(labels[i])} reaches {v:.3g} in magnitude; above "
+                            f"{hi:g} the cubic law terms and their sums of squares overflow: "
+                            f"rescale it (change units)")
+
+
+def _check_noise_scale(y, R, labels) -> None:
+    """Refuse outputs that vary far less than the noise R gives them (units disagree)."""
+    try:
+        Rd = np.asarray(R, dtype=float)
+        var = np.diag(Rd) if Rd.ndim == 2 else Rd.reshape(-1)
+    except (TypeError, ValueError, OverflowError):
+        return  # check_covariance refuses it
+    if var.size != y.shape[0] or not np.all(np.isfinite(var) & (var > 0)):
+        return  # check_covariance refuses it
+    sd = np.sqrt(var)
+    rms = np.sqrt(np.mean((y - y.mean(axis=1, keepdims=True)) ** 2, axis=1))
+    for i in range(y.shape[0]):
+        if 0 < rms[i] < MIN_SIGNAL_TO_NOISE * sd[i]:
+            raise DataError(f"R gives output {labels[i]!r} a noise of standard deviation "
+                            f"{sd[i]:.3g}, but its estimation record (y) varies by only "
+                            f"{rms[i]:.3g} (RMS about its "
+                            f"mean), {sd[i] / rms[i]:.2g} times less: the data and R are in "
+                            f"different units; rescale one of them")
+
+
+def check_records(sys, y, u, y_val, u_val, R, *, min_steps: int, min_val_steps: int):
+    """The estimation and validation records of a close-the-loop run, checked.
+
+    Converts and checks shapes (a DataFrame is matched to the model's signal
+    names by its labels; a masked sample is refused), refuses records whose
+    scale overflows the laws (:data:`RECORD_RANGE`) or disagrees with R
+    (:data:`MIN_SIGNAL_TO_NOISE`), and warns (:class:`GreyboxWarning`) when
+    the validation record is the estimation record, an input is zero
+    throughout, or a validation output is constant.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem or control.StateSpace
+        The model (its output and input labels name the signals).
+    y, u, y_val, u_val : array_like or DataFrame
+        Estimation and validation records, time along the last axis.
+    R : array_like
+        Measurement-noise covariance (checked later by :func:`check_covariance`).
+    min_steps, min_val_steps : int
+        Fewest samples of each record.
+
+    Returns
+    -------
+    y, u, y_val, u_val : ndarray
+    """
+    outs, ins = list(sys.output_labels), list(sys.input_labels)
+    same = y_val is y
+    y = check_signal(_frame_rows(y, outs, "y"), len(outs), "y", min_steps=min_steps)
+    u = check_signal(_frame_rows(u, ins, "u"), len(ins), "u")
+    check_same_length(("y", y), ("u", u))
+    y_val = check_signal(_frame_rows(y_val, outs, "y_val"), len(outs), "y_val",
+                         min_steps=min_val_steps)
+    u_val = check_signal(_frame_rows(u_val, ins, "u_val"), len(ins), "u_val")
+    check_same_length(("y_val", y_val), ("u_val", u_val))
+    for a, labels, name in ((y, outs, "y"), (u, ins, "u"), (y_val, outs, "y_val"),
+                            (u_val, ins, "u_val")):
+        _check_record_scale(a, labels, name)
+    _check_noise_scale(y, R, outs)
+    if same or (y.shape == y_val.shape and np.array_equal(y, y_val) and
+                np.array_equal(u, u_val)):
+        warnings.warn("the estimation and validation data are the same; the validation table "
+                      "then measures the fit, not the prediction of fresh data", GreyboxWarning,
+                      stacklevel=3)
+    zero = [ins[i] for i in range(len(ins)) if not np.any(u[i])]
+    if zero:
+        warnings.warn(f"input(s) {zero} are zero throughout the estimation record: they do not "
+                      f"excite the plant, so nothing can be learnt about their channels",
+                      GreyboxWarning, stacklevel=3)
+    flat = [outs[i] for i in range(len(outs)) if np.ptp(y_val[i]) == 0]
+    if flat:
+        warnings.warn(f"validation output(s) {flat} are constant: there is nothing to compare; "
+                      f"their validation SE only measures the distance to that constant",
+                      GreyboxWarning, stacklevel=3)
+    return y, u, y_val, u_val

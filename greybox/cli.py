@@ -3,10 +3,13 @@
 ``greybox demo tape-drive|motor-pump [--json] [--out DIR] [--force] [--no-plots] [--quiet]``
 ``greybox update MODEL.json ESTIMATION.csv --validate VALIDATION.csv [--out DIR] [--json]
 [--force] [--no-plots] [--quiet]``
+``greybox fleet MODEL.json UNITS_DIR --out DIR [--workers N] [--scheduler ADDRESS] [--force]
+[--timeout S] [--json] [--quiet]`` (exit code 3 when some units failed)
 
 The command line only parses arguments, calls public functions and prints or
 saves their records. Bad input ends with one line on stderr and exit code 2;
-Ctrl-C with one line and exit code 130. Every precondition (input files,
+Ctrl-C with one line and exit code 130 (while the package imports too,
+through the ``greybox_cli`` entry module). Every precondition (input files,
 output folder writable) is checked before computing. Under ``--json`` stdout
 holds the JSON document alone (strict: no NaN or Infinity); warnings,
 progress and anything a numerical library prints go to stderr. A report
@@ -74,11 +77,12 @@ class _Run:
     def __init__(self, args):
         self.args = args
         self.stage = None
+        self.inputs = ()  # input files: never moved or removed with an old output
         self.progress = None
-        if not args.quiet and sys.stderr.isatty():
-            from .progress import TerminalProgress
+        if not args.quiet:  # a rewritten line on a terminal, whole lines in a log (CI)
+            from .progress import LogProgress, TerminalProgress
 
-            self.progress = TerminalProgress()
+            self.progress = TerminalProgress() if sys.stderr.isatty() else LogProgress()
 
     @contextlib.contextmanager
     def computing(self):
@@ -114,7 +118,7 @@ class _Run:
         from .io import commit_output_dir
 
         out = commit_output_dir(self.stage, self.args.out, kind=kind, names=names,
-                                force=self.args.force)
+                                force=self.args.force, inputs=self.inputs)
         self.stage = None
         return out
 
@@ -250,23 +254,38 @@ def _fmt_update(rep) -> str:
 
 
 def _report_markdown(rep, figures) -> str:
-    out = ["# greybox update report", "", rep.message, "",
-           f"Selection criterion: {rep.criterion}.", "",
-           "## Residual of the nominal model (estimation data)", "",
-           "| output | Ljung-Box p |", "|---|---|"]
-    labels = list(rep.nominal.output_labels)
-    out += [f"| {labels[i]} | {p:.3g} |" for i, p in enumerate(rep.residual.pvalue)]
-    out += ["", "## Effect", "", f"- kind: {rep.effect.kind}, order {rep.effect.order}",
-            f"- channel: {rep.effect.channel or '-'}", f"- formula: `{rep.effect.formula}`"]
-    out += [f"- {s}" for s in rep.effect.parameter_notes]
-    out += [f"- note: {s}" for s in rep.notes]
-    out += ["", "## Validation data: before and after (eq. 42, relative RMS)", "",
+    """The report an engineer reads in ten seconds: the verdict, one line per effect, the
+    before/after table and the figures first; the evidence and the decision trail after."""
+    out = ["# greybox update report", "", f"**{rep.message.split('; ')[0]}**", "",
+           rep.message, ""]
+    effects = [st.effect for st in rep.steps] if len(rep.steps) > 1 else \
+        ([rep.effect] if rep.effect.kind != "none" else [])
+    if effects:
+        out += ["## Effects" + ("" if rep.recommended else " (proposed, not recommended)"), ""]
+        out += [f"{i + 1}. {e.kind} (order {e.order}) in {e.channel or '-'}: `{e.formula}`"
+                for i, e in enumerate(effects)]
+        out += [f"   - {s}" for e in effects for s in e.parameter_notes]
+        out.append("")
+    out += ["## Validation data: before and after (eq. 42, relative RMS)", "",
             "| model | order | SE [%] | PE [%] | residual white |", "|---|---|---|---|---|"]
     for name, v in rep.table.items():
         out.append(f"| {name} | {v.order} | {_pct(v.se.value, '.3g')} | "
                    f"{_pct(v.pe.value, '.3g')} | "
                    f"{'yes' if v.whiteness.all_white else 'no'} |")
     out += ["", "## Figures", ""] + [f"![{k}]({Path(v).name})" for k, v in figures.items()]
+    out += ["", "## Residual of the nominal model (estimation data)", "",
+            "| output | Ljung-Box p |", "|---|---|"]
+    labels = list(rep.nominal.output_labels)
+    out += [f"| {labels[i]} | {p:.3g} |" for i, p in enumerate(rep.residual.pvalue)]
+    out += ["", "## Decision trail", "", f"Selection criterion: {rep.criterion}.", ""]
+    if rep.candidates:
+        out += ["| candidate | kind | order | estimation SE [%] | parameters | status |",
+                "|---|---|---|---|---|---|"]
+        out += [f"| {c.channel} | {c.kind} | {c.order} | {_pct(c.se_estimation, '.3g')} | "
+                f"{c.npar} | {c.status}{': ' + c.reason if c.reason else ''} |"
+                for c in rep.candidates]
+        out.append("")
+    out += [f"- {s}" for s in rep.notes]
     return "\n".join(out) + "\n"
 
 
@@ -280,18 +299,13 @@ def _update(args, run: _Run) -> int:
     from .workflow import close_the_loop
 
     # every precondition first: the output folder, then all input files
-    check_output_dir(args.out, force=args.force, kind="report")
+    run.inputs = (args.model, args.estimation, args.validate)
+    check_output_dir(args.out, force=args.force, kind="report", inputs=run.inputs)
     spec = read_model(args.model)
     ins, outs = list(spec.sys.input_labels), list(spec.sys.output_labels)
     y, u = read_csv(args.estimation, inputs=ins, outputs=outs, Ts=spec.Ts)
     yv, uv = read_csv(args.validate, inputs=ins, outputs=outs, Ts=spec.Ts, min_steps=100)
-    try:
-        same = os.path.samefile(args.estimation, args.validate)
-    except OSError:
-        same = False
-    if same or (y.shape == yv.shape and np.array_equal(y, yv) and np.array_equal(u, uv)):
-        _warn("the estimation and validation data are the same; the validation table then "
-              "measures the fit, not the prediction of fresh data")
+    # close_the_loop warns when the validation data are the estimation data
     with run.computing():
         rep = close_the_loop(spec.sys, y, u, yv, uv, Q=spec.Q, R=spec.R, dt=spec.Ts,
                              channels=spec.channels, progress=run.progress,
@@ -325,18 +339,57 @@ def _update(args, run: _Run) -> int:
     else:
         print(_fmt_update(rep))
         print(f"report: {out / 'report.md'}")
-    return 0
+    return 0 if rep.recommended else NOT_RECOMMENDED
+
+
+#: Exit code of ``greybox update`` when the update found is worse on the validation data
+#: than the nominal model: the report is written, but no model is handed over as better.
+NOT_RECOMMENDED = 4
+
+
+def _fleet(args, run: _Run) -> int:
+    from .fleet import EXIT_FAILED, fleet
+    from .io import dumps_json
+
+    def show(p):
+        print(f"greybox: [{p.k}/{p.K}] {p.stage}", file=sys.stderr, flush=True)
+
+    with run.computing():
+        rep = fleet(args.model, args.units, out=args.out, client=args.scheduler,
+                    workers=args.workers, force=args.force, timeout=args.timeout,
+                    progress=None if args.quiet else show)
+    if args.json:
+        print(dumps_json(rep.as_dict()))
+    else:
+        print(rep.answer)
+        print(f"report: {Path(rep.out) / 'fleet.md'}")
+    return EXIT_FAILED if rep.failed else 0
+
+
+_FLEET_EPILOG = """\
+UNITS_DIR holds one sub-folder per unit (its name is the unit's name) with
+estimation.csv and validation.csv, or is a manifest CSV with the header
+unit,estimation,validation (paths relative to the manifest). Each unit's
+result is written to DIR/units/<unit>.json as it arrives; a rerun skips the
+units done before (same files, same model) unless --force, and tries failed
+units again; Ctrl-C keeps every unit finished. DIR/fleet.md opens with the
+answer. Needs Dask: pip install "greybox[fleet]".
+
+exit codes: 0 every unit done, 3 some units failed (each with its line in
+fleet.md), 2 bad input (nothing written), 130 interrupted.
+"""
 
 
 def _common(p: argparse.ArgumentParser, default_out: str, what: str) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON summary only")
     p.add_argument("--out", default=default_out, help=f"{what} (default: %(default)s)")
     p.add_argument("--force", action="store_true",
-                   help="replace an existing output, or write into a folder holding files "
-                        "greybox did not write (they are kept)")
+                   help="replace a previous greybox output in that folder (files you added "
+                        "to it are kept; a folder greybox did not write is never used)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.add_argument("--quiet", action="store_true",
-                   help="no progress on stderr (shown only when stderr is a terminal)")
+                   help="no progress on stderr (on a terminal one rewritten line, else a "
+                        "line at most every 10 s)")
 
 
 _UPDATE_EPILOG = """\
@@ -380,6 +433,27 @@ def _parser() -> argparse.ArgumentParser:
                           "its cost is bounded by the trace's time anyway)")
     _common(upd, "greybox-update-report", "report folder")
     upd.set_defaults(func=_update)
+    flt = sub.add_parser(
+        "fleet", help="close the loop on every unit of a fleet (Dask); report across units",
+        description="Close the loop on every unit of a fleet of one design, in parallel on "
+                    "Dask, and report which units deviate from the model and how.",
+        epilog=_FLEET_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    flt.add_argument("model", metavar="MODEL.json",
+                     help="the design's nominal model (MODEL.json, or MODEL.py)")
+    flt.add_argument("units", metavar="UNITS_DIR",
+                     help="folder with one sub-folder per unit, or a manifest CSV")
+    flt.add_argument("--out", default="greybox-fleet-report", metavar="DIR",
+                     help="report folder, reused by a rerun (default: %(default)s)")
+    flt.add_argument("--workers", type=int, metavar="N",
+                     help="worker processes of the local cluster (default: one per core)")
+    flt.add_argument("--scheduler", metavar="ADDRESS",
+                     help="use the Dask cluster at ADDRESS (tcp://host:8786) instead")
+    flt.add_argument("--force", action="store_true", help="compute every unit again")
+    flt.add_argument("--timeout", type=float, metavar="S",
+                     help="give up on a unit after S seconds (it is reported as failed)")
+    flt.add_argument("--json", action="store_true", help="print the JSON report only")
+    flt.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    flt.set_defaults(func=_fleet)
     return p
 
 
@@ -398,7 +472,11 @@ def main(argv: list[str] | None = None) -> int:
     Returns
     -------
     int
-        0 on success, 2 on bad input, 130 when interrupted (Ctrl-C).
+        0 on success, 2 on bad input, 3 when ``greybox fleet`` could not do some
+        units (the others are reported), 4 when ``greybox update`` found an update
+        that predicts the validation data worse than the nominal model ("not
+        recommended": the report is written, the nominal model kept), 130 when
+        interrupted (Ctrl-C).
     """
     parser = _parser()
     args = parser.parse_args(argv)

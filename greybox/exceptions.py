@@ -20,6 +20,7 @@ __all__ = [
     "CovarianceError",
     "IdentificationError",
     "OutputExistsError",
+    "MissingDependencyError",
     "GreyboxWarning",
 ]
 
@@ -54,6 +55,10 @@ class IdentificationError(GreyboxError, RuntimeError):
 
 class OutputExistsError(GreyboxError, FileExistsError):
     """An output would overwrite files that greybox did not write."""
+
+
+class MissingDependencyError(GreyboxError, ImportError):
+    """An optional dependency is not installed (the message names the pip command)."""
 
 
 class GreyboxWarning(UserWarning):

@@ -31,9 +31,10 @@ import numpy as np
 
 from .exceptions import OutputExistsError
 
-__all__ = ["OutputExistsError", "prepare_output_dir", "check_output_dir", "record_outputs",
-           "atomic_write_text", "atomic_write_json", "save_figure", "json_safe", "dumps_json",
-           "stage_output_dir", "commit_output_dir", "discard_output_dir", "deferred_interrupt"]
+__all__ = ["OutputExistsError", "prepare_output_dir", "check_output_dir", "output_target",
+           "record_outputs", "atomic_write_text", "atomic_write_json", "save_figure",
+           "json_safe", "dumps_json", "stage_output_dir", "commit_output_dir",
+           "discard_output_dir", "deferred_interrupt"]
 
 _MARKER = ".greybox-output"
 _STAGE = ".greybox-staging-"
@@ -66,8 +67,9 @@ def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
     A folder that greybox created carries a marker file (its first line the
     kind of output, then the files it wrote) and may be reused: the files of
     the previous run are removed so that no stale figure survives. An
-    existing non-empty folder without the marker is refused unless ``force``;
-    a previous report is replaced only with ``force``. Writing straight into
+    existing non-empty folder without the marker is refused, even with
+    ``force``; a previous report is replaced only with ``force`` (see
+    :func:`check_output_dir` for every rule). Writing straight into
     the folder is not atomic: the command line uses :func:`stage_output_dir`
     and :func:`commit_output_dir` instead.
 
@@ -76,8 +78,7 @@ def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
     path : str or path-like
         The output folder.
     force : bool
-        Write into a folder holding files greybox did not write, or replace
-        a previous report.
+        Replace a previous greybox output.
     kind : str
         Kind of output ("report", "demo"), recorded in the marker.
 
@@ -85,8 +86,8 @@ def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
     -------
     pathlib.Path
     """
-    p = Path(path)
-    previous = check_output_dir(p, force=force, kind=kind)
+    previous = check_output_dir(path, force=force, kind=kind)
+    p = output_target(path)
     p.mkdir(parents=True, exist_ok=True)
     for name in previous:  # only files greybox itself listed, inside this folder
         f = p / Path(name).name
@@ -99,62 +100,146 @@ def prepare_output_dir(path: str | os.PathLike, *, force: bool = False,
 def _nearest_existing(p: Path) -> Path:
     q = p.absolute()
     while not q.exists() and q != q.parent:
+        if os.path.lexists(q):  # a link to nothing: creating below it would fail late
+            raise OutputExistsError(f"cannot create {p}: {q} is a symbolic link to "
+                                    f"{os.readlink(q)}, which does not exist; choose another "
+                                    f"--out")
         q = q.parent
     return q
 
 
+def output_target(path: str | os.PathLike) -> Path:
+    """The output folder as an absolute path with every symbolic link resolved.
+
+    A link to a folder is followed (the folder it points to is written and
+    the link kept); an empty name, a link to nothing and a loop of links are
+    refused with :class:`OutputExistsError`.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The output folder as the user wrote it.
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    if not os.fspath(path).strip():
+        raise OutputExistsError("--out is empty; give the name of a new folder for the output")
+    p = Path(path).absolute()
+    try:
+        return p.resolve(strict=True)
+    except FileNotFoundError:
+        if os.path.lexists(p):
+            raise OutputExistsError(f"{path} is a symbolic link to {os.readlink(p)}, which "
+                                    f"does not exist; give a folder (new or greybox's) as "
+                                    f"--out") from None
+    except NotADirectoryError:
+        pass  # below a file: check_output_dir names it
+    except (RuntimeError, OSError) as e:  # ELOOP (RuntimeError before Python 3.13)
+        raise OutputExistsError(f"{path} is a symbolic link that leads back to itself (a "
+                                f"loop); give a folder as --out") from e
+    return Path(os.path.realpath(p))
+
+
+def _protected(p: Path, inputs) -> str:
+    """Why writing ``p`` would move the working folder or an input file ('' if it would not)."""
+    try:
+        here = Path.cwd().resolve()
+    except OSError:  # the working folder was removed: nothing of it to protect
+        here = None
+    if here is not None and (p == here or p in here.parents):
+        return "the current folder" if p == here else "a folder holding the current folder"
+    for f in inputs:
+        try:
+            real = Path(f).resolve()
+        except (OSError, RuntimeError):
+            continue
+        if p in real.parents:
+            return f"the folder of the input file {f}"
+    return ""
+
+
+def _marker_lines(p: Path) -> list[str]:
+    try:
+        return (p / _MARKER).read_text().splitlines() if (p / _MARKER).is_file() else []
+    except (OSError, UnicodeDecodeError):
+        return []
+
+
 def check_output_dir(path: str | os.PathLike, *, force: bool = False,
-                     kind: str = "report") -> list[str]:
+                     kind: str = "report", inputs=()) -> list[str]:
     """Raise :class:`OutputExistsError` if the output folder may not be written.
 
-    Creates nothing: call it before a long computation to fail fast. Checks
-    that the folder is not a file, that it holds no foreign files (unless
-    ``force``) and no previous report (unless ``force``), and that its parent
-    (or the nearest existing ancestor) is a writable folder.
+    Creates nothing: call it before a long computation to fail fast. The
+    folder (symbolic links resolved, see :func:`output_target`) must be new,
+    empty, or one greybox wrote (its marker file lists the files written):
+
+    * a folder holding files greybox did not write, and no marker, is
+      refused, even with ``force``;
+    * a previous report is replaced only with ``force`` (a demo replaces a
+      demo); another kind of greybox output (a demo over a report) only with
+      ``force``, and then only the files greybox listed are removed;
+    * files a user added to a greybox folder are kept (moved into the new
+      one), except in the current folder, a folder holding it, or a folder
+      holding an input file: those are replaced only if every file in them is
+      greybox's;
+    * the parent (or nearest existing ancestor) must be a writable folder.
 
     Parameters
     ----------
     path : str or path-like
         The output folder.
     force : bool
-        Allow foreign files and replacing a previous report.
+        Allow replacing a previous greybox output.
     kind : str
         Kind of output ("report", "demo").
+    inputs : sequence of str or path-like
+        The input files of the run (never moved or removed).
 
     Returns
     -------
     list of str
         The files a previous greybox run listed in the folder's marker.
     """
-    p = Path(path)
+    p = output_target(path)
     if p.exists() and not p.is_dir():
-        raise OutputExistsError(f"{p} exists and is not a folder; choose another --out")
-    marker = p / _MARKER
+        raise OutputExistsError(f"{path} exists and is not a folder; choose another --out")
     previous: list[str] = []
-    if p.exists() and any(p.iterdir()):
-        try:
-            lines = marker.read_text().splitlines() if marker.exists() else []
-        except (OSError, UnicodeDecodeError):
-            lines = []
-        own = bool(lines) and lines[0].strip() == kind
-        if not own and not force:
+    entries = sorted(f.name for f in p.iterdir()) if p.exists() else []
+    if entries:
+        lines = _marker_lines(p)
+        was = lines[0].strip() if lines else ""
+        listed = [ln.strip() for ln in lines[1:] if ln.strip()]
+        foreign = [f for f in entries if f != _MARKER and f not in listed]
+        if not was:
             raise OutputExistsError(
-                f"{p} already exists and holds files greybox did not write as a {kind}; "
-                f"choose another --out or pass --force to overwrite"
-            )
-        if own and kind == "report" and not force:
+                f"{path} already exists and holds files greybox did not write ("
+                f"{', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); choose a new "
+                f"or empty folder as --out (--force replaces only a folder greybox wrote)")
+        if was != kind and not force:
+            raise OutputExistsError(f"{path} holds a greybox {was}, not a {kind}: writing a "
+                                    f"{kind} there would mix the two; choose another --out or "
+                                    f"pass --force to replace the {was}")
+        if was == kind == "report" and not force:
             raise OutputExistsError(
-                f"{p} already holds a greybox report; pass --force to overwrite it"
+                f"{path} already holds a greybox report; pass --force to overwrite it"
             )
-        previous = [ln.strip() for ln in lines[1:] if ln.strip()] if own else []
+        why = _protected(p, inputs) if foreign else ""
+        if why:
+            raise OutputExistsError(f"{path} is {why} and holds files greybox did not write ("
+                                    f"{', '.join(foreign[:3])}); greybox replaces such a folder "
+                                    f"only when every file in it is greybox's: choose a new "
+                                    f"--out")
+        previous = listed
     parent = _nearest_existing(p.parent if not p.exists() else p)
     if not parent.is_dir():
-        raise OutputExistsError(f"cannot create {p}: {parent} is not a folder; choose "
+        raise OutputExistsError(f"cannot create {path}: {parent} is not a folder; choose "
                                 f"another --out")
     if not os.access(parent, os.W_OK | os.X_OK) or (
-            p.exists() and not os.access(p.absolute().parent, os.W_OK | os.X_OK)):
-        where = parent if not p.exists() else p.absolute().parent
-        raise OutputExistsError(f"cannot write {p}: no write permission in {where}; "
+            p.exists() and not os.access(p.parent, os.W_OK | os.X_OK)):
+        where = parent if not p.exists() else p.parent
+        raise OutputExistsError(f"cannot write {path}: no write permission in {where}; "
                                 f"choose another --out")
     return previous
 
@@ -173,7 +258,7 @@ def stage_output_dir(path: str | os.PathLike) -> Path:
         The temporary folder; pass it to :func:`commit_output_dir` or
         :func:`discard_output_dir`.
     """
-    p = Path(path).absolute()
+    p = output_target(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_STAGE}"))
     _normal_mode(stage, folder=True)
@@ -216,7 +301,7 @@ def deferred_interrupt():
 
 
 def commit_output_dir(stage: str | os.PathLike, path: str | os.PathLike, *, kind: str,
-                      names, force: bool = False) -> Path:
+                      names, force: bool = False, inputs=()) -> Path:
     """Put a staged report in place of ``path`` in one step.
 
     The marker (kind and the files written) is added to ``stage``; files of
@@ -237,28 +322,35 @@ def commit_output_dir(stage: str | os.PathLike, path: str | os.PathLike, *, kind
         The files greybox wrote (listed in the marker).
     force : bool
         As for :func:`check_output_dir`.
+    inputs : sequence of str or path-like
+        As for :func:`check_output_dir`.
 
     Returns
     -------
     pathlib.Path
         ``path``.
     """
-    stage, p = Path(stage), Path(path)
+    stage, p = Path(stage), output_target(path)
     atomic_write_text(stage / _MARKER, "\n".join([kind, *sorted(Path(n).name for n in names)])
                       + "\n")
     with deferred_interrupt():
-        previous = check_output_dir(p, force=force, kind=kind)
+        previous = check_output_dir(p, force=force, kind=kind, inputs=inputs)
         if not p.exists():
             os.rename(stage, p)
-            return p
+            return Path(path)
         ours = {Path(n).name for n in previous} | {_MARKER}
+        theirs = [f for f in p.iterdir() if f.name not in ours]
+        clash = [f.name for f in theirs if (stage / f.name).exists()]
+        if clash:
+            raise OutputExistsError(f"{path} holds a file greybox did not write, {clash[0]}, "
+                                    f"with the name of a new output file; move it away or "
+                                    f"choose another --out")
         moved, old = [], None
         try:
-            for f in p.iterdir():
-                if f.name not in ours and not (stage / f.name).exists():
-                    os.rename(f, stage / f.name)
-                    moved.append(f.name)
-            old = Path(tempfile.mkdtemp(dir=p.absolute().parent, prefix=f".{p.name}{_OLD}"))
+            for f in theirs:
+                os.rename(f, stage / f.name)
+                moved.append(f.name)
+            old = Path(tempfile.mkdtemp(dir=p.parent, prefix=f".{p.name}{_OLD}"))
             os.rename(p, old / "previous")
             os.rename(stage, p)
         except OSError:
@@ -271,7 +363,7 @@ def commit_output_dir(stage: str | os.PathLike, path: str | os.PathLike, *, kind
         finally:
             if old is not None and p.exists():  # never delete the only copy
                 shutil.rmtree(old, ignore_errors=True)
-    return p
+    return Path(path)
 
 
 def record_outputs(path: str | os.PathLike, kind: str, names) -> None:

@@ -50,6 +50,17 @@ class RelativeError:
         return float(self.value)
 
 
+def _row_norms(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """2-norm of each row, each scaled by a power of two near its peak first (exact).
+
+    Squares of 1e-300 do not underflow to a false "identically zero", nor
+    do those of 1e150 overflow.
+    """
+    peak = np.max(np.abs(a), axis=1, initial=0.0)
+    scale = np.ldexp(1.0, np.minimum(-np.frexp(peak)[1], 1000))
+    return np.sqrt(np.sum((a * scale[:, None]) ** 2, axis=1)) / scale
+
+
 def relative_error(y: ArrayLike, y_hat: ArrayLike, *, squared: bool = False,
                    skip: int = 0) -> RelativeError:
     """Relative error of eq. (42), per output and averaged over outputs.
@@ -80,12 +91,11 @@ def relative_error(y: ArrayLike, y_hat: ArrayLike, *, squared: bool = False,
     check_same_length(("y", y), ("y_hat", y_hat))
     skip = check_positive(skip, "skip", integer=True, allow_zero=True)
     y, y_hat = y[:, skip:], y_hat[:, skip:]
-    den = np.sum(y**2, axis=1)
-    if np.any(den == 0):
+    if np.any(np.max(np.abs(y), axis=1, initial=0.0) == 0):
         raise DataError("an output of y is identically zero; its relative error is undefined")
     with np.errstate(over="ignore", invalid="ignore"):
-        ratio = np.sum((y - y_hat) ** 2, axis=1) / den  # a diverged model gives inf
-    per = 100 * (ratio if squared else np.sqrt(ratio))
+        rel = _row_norms(y - y_hat) / _row_norms(y)  # a diverged model gives inf
+        per = 100 * (rel**2 if squared else rel)
     return RelativeError(value=float(per.mean()), per_output=per, squared=squared)
 
 

@@ -54,9 +54,15 @@ chunk that fails, to name the row and column at fault.
 from __future__ import annotations
 
 import codecs
+import contextlib
 import csv
 import difflib
+import io
 import json
+import os
+import stat
+import sys
+import unicodedata
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,12 +110,53 @@ class ModelSpec:
     channels: dict | None = None
 
 
+#: Largest MODEL.json or MODEL.py read [bytes] (a 1000-state model takes about 50 MB).
+_MAX_MODEL_BYTES = 1 << 28
+
+
+def _open_regular(path, what: str):
+    """A regular file opened for binary reading, or one clear DataError.
+
+    A folder, a device (``/dev/zero``), a named pipe (it would wait for a
+    writer) or a socket is refused before anything is read.
+    """
+    label = f"{what} {path}" if what else f"{path}"
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as e:
+        kind = _kind_of(path)
+        raise DataError(f"cannot read {label}: "
+                        f"{f'it is {kind}, not a file' if kind else e.strerror}") from e
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise DataError(f"cannot read {label}: it is {_kind_of(path) or 'not a file'}, not a "
+                        f"regular file; give a file")
+    return os.fdopen(fd, "rb")
+
+
+def _kind_of(path) -> str:
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return ""
+    for test, kind in ((stat.S_ISDIR, "a folder"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return ""
+
+
 def _read_text(path, what: str) -> str:
     """The UTF-8 text of a file (a UTF-8 byte-order mark is dropped), or one clear DataError."""
-    try:
-        raw = Path(path).read_bytes()
-    except OSError as e:
-        raise DataError(f"cannot read {what} {path}: {e.strerror}") from e
+    with _open_regular(path, what) as f:
+        try:
+            raw = f.read(_MAX_MODEL_BYTES + 1)
+        except OSError as e:
+            raise DataError(f"cannot read {what} {path}: {e.strerror}") from e
+    if len(raw) > _MAX_MODEL_BYTES:
+        raise DataError(f"{path}: a {what} larger than {_MAX_MODEL_BYTES >> 20} MB; is it the "
+                        f"right file?")
     enc = _foreign_encoding(raw)
     if enc:
         raise DataError(f"{path} is {enc} text; greybox reads UTF-8: save it as UTF-8")
@@ -150,9 +197,25 @@ def _names(d, key, path, *, allow_empty=False):
     if blank:
         raise ModelError(f"{path}: '{key}'[{blank[0]}] is an empty name; every signal needs "
                          f"a name")
+    _check_name_chars(v, f"{path}: '{key}'")
+    v = [_nfc(s) for s in v]
     if len(set(v)) != len(v):
-        raise ModelError(f"{path}: '{key}' has repeated names {v}")
+        how = "" if len(set(d[key])) != len(v) else (
+            " (written with different Unicode code points for the same letters, e.g. an "
+            "accent composed or not: they look the same)")
+        raise ModelError(f"{path}: '{key}' has repeated names {v}{how}")
     return v
+
+
+def _check_name_chars(names, where: str) -> None:
+    """Refuse names python-control cannot hold ('.') and names a CSV header cannot match."""
+    for i, s in enumerate(names):
+        if "." in s:
+            raise ModelError(f"{where}[{i}] {s!r} contains '.', which python-control reserves "
+                             f"for subsystem signals; use '_' instead ({s.replace('.', '_')!r})")
+        if s != s.strip():
+            raise ModelError(f"{where}[{i}] {s!r} begins or ends with a space; remove it (CSV "
+                             f"header cells are read without their spaces)")
 
 
 def _check_csv_names(us, ys, path) -> None:
@@ -235,6 +298,40 @@ def _check_time_scale(A, Ts, time, path):
                       f"units of A", GreyboxWarning, stacklevel=3)
 
 
+class _HugeNumber(ValueError):
+    """A JSON integer too long to be a float (raised inside json.loads)."""
+
+
+def _json_int(digits: str):
+    """A JSON integer: an int, or a clear error when it is beyond MAX_MAGNITUDE."""
+    if len(digits) > 18 and not abs(float(digits)) <= MAX_MAGNITUDE:  # float(): inf, no error
+        n = len(digits.lstrip("-"))
+        raise _HugeNumber(f"the integer {digits[:12]}... ({n} digits) is beyond "
+                          f"{MAX_MAGNITUDE:g} in magnitude and would overflow the computations; "
+                          f"rescale (change units)")
+    return int(digits)
+
+
+def _check_discrete_A(A, time, path) -> None:
+    """Refuse a model said to be discrete whose A is plainly a continuous-time matrix.
+
+    Sampling puts every eigenvalue of a physical model at exp(lambda Ts):
+    stable modes inside the unit circle, never beyond it with a negative
+    real part. A matrix whose eigenvalues all lie in the open left
+    half-plane, some of them outside the unit circle, is dx/dt = A x.
+    """
+    if time != "discrete" or A.size == 0:
+        return
+    lam = np.linalg.eigvals(A)
+    if np.all(lam.real < 0) and np.max(np.abs(lam)) > 1 + 1e-9:
+        big = lam[np.argmax(np.abs(lam))]
+        raise ModelError(f"{path}: 'time' is 'discrete' but A looks like a continuous-time "
+                         f"matrix: its eigenvalues all have negative real parts and one, "
+                         f"{big:.3g}, lies outside the unit circle (an unstable discrete "
+                         f"model, a stable continuous one); if A is dx/dt = A x + B u, set "
+                         f"\"time\": \"continuous\"")
+
+
 def read_model(path) -> ModelSpec:
     """Read and check MODEL.json or MODEL.py (schemas in the module docstring).
 
@@ -259,7 +356,7 @@ def read_model(path) -> ModelSpec:
         return read_model_py(path)
     text = _read_text(path, "model file")
     try:
-        d = json.loads(text, object_pairs_hook=_no_repeated_keys)
+        d = json.loads(text, object_pairs_hook=_no_repeated_keys, parse_int=_json_int)
     except json.JSONDecodeError as e:
         raise DataError(f"{path} is not valid JSON (line {e.lineno}, column {e.colno}: "
                         f"{e.msg})") from e
@@ -267,6 +364,8 @@ def read_model(path) -> ModelSpec:
         raise ModelError(f"{path}: {e}") from e
     except RecursionError as e:
         raise DataError(f"{path}: JSON nested too deeply") from e
+    except _HugeNumber as e:
+        raise ModelError(f"{path}: {e}") from None
     if not isinstance(d, dict):
         raise ModelError(f"{path}: expected a JSON object with A, B, C, ...; found "
                          f"{type(d).__name__}")
@@ -311,8 +410,12 @@ def read_model(path) -> ModelSpec:
                              f"units)")
     if "name" in d and not isinstance(d["name"], str):
         raise ModelError(f"{path}: 'name' must be a string; found {d['name']!r}")
+    if "." in d.get("name", ""):
+        raise ModelError(f"{path}: 'name' {d['name']!r} contains '.', which python-control "
+                         f"does not allow in a system name; use '_' instead")
     chans = _check_channels(d.get("channels"), xs, path)
     _check_time_scale(A, Ts, d["time"], path)
+    _check_discrete_A(A, d["time"], path)
     dt = Ts if d["time"] == "discrete" else 0
     sys = named_ss(A, B, C, D, dt, states=xs, inputs=us, outputs=ys,
                    name=str(d.get("name", "model")))
@@ -344,15 +447,8 @@ def read_model_py(path) -> ModelSpec:
         unnamed or clashing signals, a nonlinear output map, or a ``Ts``
         that disagrees with a discrete model's dt.
     """
-    import runpy
-
     _read_text(path, "model file")  # readable, UTF-8 (one clear error otherwise)
-    try:
-        ns = runpy.run_path(str(path), run_name="greybox_model")
-    except SyntaxError as e:
-        raise ModelError(f"{path}: Python syntax error at line {e.lineno}: {e.msg}") from e
-    except Exception as e:  # noqa: BLE001 - a user's file: report whatever it raised
-        raise ModelError(f"{path} raised {type(e).__name__} while being executed: {e}") from e
+    ns = _run_model_py(path)
     missing = [k for k in ("model", "Q", "R") if k not in ns]
     if missing:
         raise ModelError(f"{path}: defines no {missing}; a MODEL.py must define model (a "
@@ -366,6 +462,8 @@ def read_model_py(path) -> ModelSpec:
         raise ModelError(f"{path}: 'model' must declare its states, inputs and outputs")
     xs, us, ys = (list(v) for v in (sys.state_labels, sys.input_labels, sys.output_labels))
     n, m, p = len(xs), len(us), len(ys)
+    for key, v in (("states", xs), ("inputs", us), ("outputs", ys)):
+        _check_name_chars(v, f"{path}: model's {key}")
     _check_csv_names(us, ys, path)
     disc = sys.isdtime(strict=True)
     if disc and sys.dt is True:
@@ -388,6 +486,7 @@ def read_model_py(path) -> ModelSpec:
     except (DimensionError, DataError, CovarianceError) as e:
         raise ModelError(f"{path}: {e} (states {n}, inputs {m}, outputs {p})") from e
     if not isinstance(sys, ct.StateSpace):
+        _check_update_size(sys, xs, path)
         try:
             linear_output_map(sys)
         except (ModelError, DimensionError) as e:
@@ -396,6 +495,48 @@ def read_model_py(path) -> ModelSpec:
     if chans is not None:
         chans = _check_channels(dict(chans) if isinstance(chans, dict) else chans, xs, path)
     return ModelSpec(sys=sys, Ts=Ts, Q=Q, R=R, channels=chans)
+
+
+def _run_model_py(path) -> dict:
+    """Execute a MODEL.py; its module-level names, or one ModelError naming the file.
+
+    What the file prints goes to stderr (stdout may hold a JSON document);
+    ``sys.exit`` and any other exception (Ctrl-C excepted) become a
+    ModelError; the working folder is restored if the file changed it.
+    """
+    import runpy
+
+    cwd = os.getcwd()
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            return runpy.run_path(str(path), run_name="greybox_model")
+    except SyntaxError as e:
+        raise ModelError(f"{path}: Python syntax error at line {e.lineno}: {e.msg}") from e
+    except SystemExit as e:
+        raise ModelError(f"{path} called sys.exit({e.code!r}) while being executed; a MODEL.py "
+                         f"must only define model, Q, R (and Ts): remove the exit") from None
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # noqa: BLE001 - a user's file: report whatever it raised
+        raise ModelError(f"{path} raised {type(e).__name__} while being executed: "
+                         f"{' '.join(str(e).split())}") from e
+    finally:
+        if os.getcwd() != cwd:
+            os.chdir(cwd)
+
+
+def _check_update_size(sys, xs, path) -> None:
+    """Refuse an update function f that returns the wrong number of values (at x = 0, u = 0)."""
+    n = len(xs)
+    try:
+        dx = np.asarray(sys.updfcn(0.0, np.zeros(n), np.zeros(sys.ninputs), sys.params),
+                        dtype=float)
+    except Exception:  # noqa: BLE001 - f may be undefined at 0; the filters then report it
+        return
+    if dx.size != n:
+        raise ModelError(f"{path}: the model's update function f returns {dx.size} value(s) "
+                         f"(shape {dx.shape}) for {n} states {xs}; it must return one "
+                         f"derivative (or next value) per state, in that order")
 
 
 def model_to_dict(sys: ct.StateSpace, Q, R, *, Ts: float | None = None,
@@ -430,7 +571,9 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
     path : str or path-like
         The CSV file (UTF-8; a header row, then one row per sample).
     inputs, outputs : sequence of str
-        Column names of the model's inputs and outputs.
+        Column names of the model's inputs and outputs (compared with the
+        header in Unicode normal form NFC, so that an accented name typed
+        in two ways still matches).
     Ts : float
         The model's sampling period [s], checked against a time column.
     min_steps : int
@@ -444,16 +587,16 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
     Raises
     ------
     DataError
-        Missing or extra columns, non-numeric cells (row and column named),
-        NaN rows, values beyond 1e150 in magnitude, a time column that
-        disagrees with Ts, fewer than ``min_steps`` rows, a file that is not
-        UTF-8.
+        Missing or extra columns (a separator other than the comma, a
+        trailing comma, an unnamed index column named as such),
+        non-numeric cells (row and column named; a Unicode minus sign or a
+        ``1_000`` digit separator said so), NaN rows, values beyond 1e150 in
+        magnitude, a time column that goes backwards, misses samples, jitters
+        or disagrees with Ts (row and tolerance named), fewer than
+        ``min_steps`` rows, a file that is not UTF-8 or not a regular file.
     """
-    try:
-        f = open(path, "rb")
-    except OSError as e:
-        raise DataError(f"cannot read {path}: {e.strerror}") from e
-    with f:
+    inputs, outputs = [_nfc(c) for c in inputs], [_nfc(c) for c in outputs]
+    with _open_regular(path, "") as f:
         head = f.read(4)
         enc = _foreign_encoding(head)
         if enc:
@@ -462,12 +605,7 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
         header, line_no = _read_header(f, path)
         want = list(inputs) + list(outputs)
         tcol = [h for h in header if h in _TIME_COLUMNS]
-        missing = [c for c in want if c not in header]
-        extra = [h for h in header if h not in want and h not in _TIME_COLUMNS]
-        if missing or extra or len(set(header)) != len(header) or len(tcol) > 1:
-            raise DataError(f"{path}: columns {header}; expected {want} (+ optional 'time')"
-                            + (f"; missing {missing}" if missing else "")
-                            + (f"; unexpected {extra}" if extra else ""))
+        _check_header(header, want, path)
         ncol = len(header)
         parts = _read_numbers(f, line_no + 1, ncol, header, path)
     nrows = sum(a.shape[0] for a in parts)
@@ -495,14 +633,84 @@ def read_csv(path, *, inputs, outputs, Ts: float, min_steps: int = 200):
                             f"beyond {MAX_MAGNITUDE:g} in magnitude and would overflow the "
                             f"fit; rescale (change units)")
     if t is not None:
-        dtv = np.diff(t)
-        if dtv.size and np.max(np.abs(dtv - Ts)) > 1e-3 * Ts:
-            raise DataError(f"{path}: the time column steps by {np.median(dtv):g} s (range "
-                            f"{dtv.min():g}..{dtv.max():g}); the model's Ts is {Ts:g} s")
+        _check_time_column(t, Ts, path)
     return y, u
 
 
+def _nfc(name: str) -> str:
+    """A name in Unicode normal form NFC (an accent composed with its letter)."""
+    return unicodedata.normalize("NFC", name)
+
+
+#: Separators a spreadsheet may write instead of the comma, with their names.
+_SEPARATORS = ((";", "semicolons"), ("\t", "tabs"), ("|", "vertical bars"), (" ", "spaces"))
+
+
+def _check_header(header, want, path) -> None:
+    """One clear DataError if the header does not name the model's columns exactly."""
+    tcol = [h for h in header if h in _TIME_COLUMNS]
+    missing = [c for c in want if c not in header]
+    extra = [h for h in header if h not in want and h not in _TIME_COLUMNS]
+    if not (missing or extra or len(set(header)) != len(header) or len(tcol) > 1):
+        return
+    expected = f"expected {want} (+ optional 'time')"
+    for sep, what in _SEPARATORS:
+        cells = [c.strip() for h in header for c in h.split(sep)]
+        if missing and any(sep in h for h in header) and not [c for c in want
+                                                              if c not in cells]:
+            raise DataError(f"{path}: the header {','.join(header)!r} is separated by {what}; "
+                            f"the separator must be a comma (save as comma-separated values)")
+    blank = [j for j, h in enumerate(header) if not h or h.startswith("Unnamed: ")]
+    if blank and not missing:
+        j = blank[0]
+        if j == len(header) - 1 and not header[j]:
+            why = "a comma at the end of every line? remove it"
+        elif j == 0:
+            why = ("an index column, as pandas writes by default? save with index=False or "
+                   "remove that column")
+        else:
+            why = "remove that column or name it"
+        raise DataError(f"{path}: header column {j + 1} has no name ({why}); {expected}")
+    near = [(h, c) for h in extra for c in missing if h.strip().casefold() == c.casefold()]
+    raise DataError(f"{path}: columns {header}; {expected}"
+                    + (f"; missing {missing}" if missing else "")
+                    + (f"; unexpected {extra}" if extra else "")
+                    + (f" ({near[0][0]!r} differs from {near[0][1]!r} only in case)"
+                       if near else ""))
+
+
+def _check_time_column(t, Ts: float, path) -> None:
+    """One clear DataError if the time column is not one row every Ts (0.1 % tolerance)."""
+    dtv = np.diff(t)
+    tol = 1e-3 * Ts
+    off = np.flatnonzero(np.abs(dtv - Ts) > tol)
+    if not off.size:
+        return
+    k = int(off[0])
+    step, row = float(dtv[k]), k + 2  # t[k + 1] is on data row k + 2
+    at = f"data row {row} ({t[k]:.10g} s -> {t[k + 1]:.10g} s)"
+    need = f"one row every Ts = {Ts:g} s (tolerance 0.1 %, {tol:.3g} s)"
+    if step <= 0:
+        what = "goes backwards" if step < 0 else "repeats a time"
+        raise DataError(f"{path}: the time column {what} at {at}; greybox needs the rows in "
+                        f"time order, {need}")
+    med = float(np.median(dtv))
+    if abs(med - Ts) > tol:
+        raise DataError(f"{path}: the time column steps by {med:g} s (median); the model's Ts "
+                        f"is {Ts:g} s: check Ts in the model and the time unit (seconds)")
+    ratio = step / Ts
+    if ratio > 1.5 and abs(ratio - round(ratio)) < 0.1:
+        raise DataError(f"{path}: {round(ratio) - 1} sample(s) missing before {at}; greybox "
+                        f"needs {need}: fill the gap (interpolate) or cut the record there")
+    worst = float(np.max(np.abs(dtv - Ts)))
+    raise DataError(f"{path}: the time steps jitter by up to {100 * worst / Ts:.2g} % of Ts, "
+                    f"first beyond the tolerance at {at}; greybox needs {need}: resample the "
+                    f"data onto a regular time grid")
+
+
 _CHUNK_BYTES = 1 << 22
+#: Longest header line read [bytes]; a longer first line is not a CSV header.
+_MAX_HEADER_BYTES = 1 << 20
 
 
 def _read_numbers(f, first: int, ncol: int, header, path) -> list:
@@ -513,8 +721,6 @@ def _read_numbers(f, first: int, ncol: int, header, path) -> list:
     bytes that are not UTF-8) the file is re-read by :func:`_parse_chunk`,
     which accepts what greybox accepts and names the row and column at fault.
     """
-    import io
-
     start = f.tell()
     try:
         text = io.TextIOWrapper(f, encoding="utf-8", newline=None)
@@ -534,21 +740,32 @@ def _read_header(f, path):
     """Header cells and the header's line number (blank leading lines skipped)."""
     line_no = 0
     while True:
-        raw = f.readline()
+        raw = f.readline(_MAX_HEADER_BYTES)
         if not raw:
             raise DataError(f"{path} is empty; expected a header row and data")
         line_no += 1
+        if len(raw) == _MAX_HEADER_BYTES and not raw.endswith(b"\n"):
+            raise DataError(f"{path}: line {line_no} is longer than "
+                            f"{_MAX_HEADER_BYTES >> 20} MB; expected a header row naming the "
+                            f"columns: is it a CSV file?")
+        if b"\r" in raw.rstrip(b"\r\n"):
+            raise DataError(f"{path}: its lines end with a carriage return alone (CR, as old "
+                            f"Mac programs write); save it with LF or CRLF line endings")
+        if b"\0" in raw:
+            raise DataError(f"{path} holds NUL bytes (line {line_no}); it is not a CSV text file")
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError as e:
             raise DataError(f"{path} is not UTF-8 text (line {line_no}: {e.reason}); save it "
                             f"as UTF-8") from e
         if line.strip().strip(","):
+            line = line.lstrip("\ufeff")  # a second byte-order mark (before a quote too)
             try:
                 cells = next(csv.reader([line]))
             except csv.Error as e:
                 raise DataError(f"{path}: header is not readable CSV ({e})") from e
-            return [h.strip() for h in cells], line_no
+            cells = [_nfc(h.strip()) for h in cells]
+            return cells, line_no
 
 
 def _chunks(f, first):
@@ -576,8 +793,10 @@ def _parse_chunk(chunk: bytes, first: int, ncol: int, header, path):
         line_len = np.diff(nl, prepend=-1)
         if np.all(per_line == ncol - 1) and np.all(line_len > ncol):
             try:
-                a = np.fromstring(chunk.replace(b"\n", b","), sep=",")
-            except ValueError:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error")  # "could not be read to its end": a bad cell
+                    a = np.fromstring(chunk.replace(b"\n", b","), sep=",")
+            except (ValueError, DeprecationWarning):
                 a = None
             if a is not None and a.size == nlines * ncol:
                 return a.reshape(nlines, ncol)
@@ -590,6 +809,32 @@ def _parse_chunk(chunk: bytes, first: int, ncol: int, header, path):
     return _parse_lines_slowly(text.splitlines(keepends=True), first, ncol, header, path)
 
 
+#: Characters that look like a minus sign but are not the ASCII hyphen-minus.
+_MINUS_LOOKALIKES = {"\u2212": "minus sign U+2212", "\u2012": "figure dash U+2012",
+                     "\u2013": "en dash U+2013", "\u2014": "em dash U+2014",
+                     "\u2010": "hyphen U+2010", "\ufe63": "small hyphen-minus U+FE63",
+                     "\uff0d": "fullwidth hyphen-minus U+FF0D"}
+
+
+def _cell_value(c: str, where: str) -> float:
+    """The number in one CSV cell, or one DataError saying what is wrong with it."""
+    try:
+        v = float(c)
+    except ValueError:
+        hint = ""
+        odd = [name for ch, name in _MINUS_LOOKALIKES.items() if ch in c]
+        if odd:
+            hint = f": it holds a Unicode {odd[0]}; write the ASCII minus '-' instead"
+        elif any(sep in c for sep in ";\t|"):
+            hint = ": the separator must be a comma"
+        raise DataError(f"{where}: {c!r} is not a number{hint}") from None
+    if "_" in c:
+        raise DataError(f"{where}: {c!r} holds '_' as a digit separator; write plain numbers "
+                        f"({c.replace('_', '').strip()}), as other programs would not read it "
+                        f"as {v:g}")
+    return v
+
+
 def _parse_lines_slowly(lines, first, ncol, header, path):
     """Cell by cell: skips blank lines, names the row and column of a bad cell."""
     rows = []
@@ -599,14 +844,8 @@ def _parse_lines_slowly(lines, first, ncol, header, path):
                 continue
             if len(r) != ncol:
                 raise DataError(f"{path}, row {first + i}: {len(r)} cells; expected {ncol}")
-            row = []
-            for j, c in enumerate(r):
-                try:
-                    row.append(float(c))
-                except ValueError:
-                    raise DataError(f"{path}, row {first + i}, column '{header[j]}': {c!r} is "
-                                    f"not a number") from None
-            rows.append(row)
+            rows.append([_cell_value(c, f"{path}, row {first + i}, column '{header[j]}'")
+                         for j, c in enumerate(r)])
     except csv.Error as e:
         raise DataError(f"{path} is not a readable CSV file ({e})") from e
     return np.array(rows, dtype=float).reshape(-1, ncol)

@@ -8,7 +8,7 @@ that the compute modules never depend on it.
 from __future__ import annotations
 
 __all__: list[str] = ["plot_unknown_input", "plot_residual_autocorrelation", "plot_outputs", "plot_singular_values",
-                     "plot_pump_load"]
+                     "plot_pump_load", "plot_fleet_coefficients"]
 
 
 def _plt():
@@ -221,3 +221,58 @@ def plot_pump_load(table5, *, window=None, ax=None):
     ax.set_title("Fig. 3: true and estimated pump load")
     ax.legend(loc="best", fontsize="small")
     return {"figure": fig, "ax": ax, "estimate": line, "band": band, "truth": truth}
+
+
+def plot_fleet_coefficients(groups, *, max_panels: int = 12):
+    """Strip plot of each explanation group's coefficients across its units (``greybox fleet``).
+
+    One panel per (group, coefficient): every unit's value (jittered sideways),
+    the median (line), a band of +- 1.4826 MAD (a normal standard deviation's
+    robust estimate) and the robust outliers (red crosses, named).
+
+    Parameters
+    ----------
+    groups : sequence of greybox.fleet.ExplanationGroup
+        Groups of :func:`greybox.fleet.group_units`, largest first.
+    max_panels : int
+        Draw at most this many panels (the first groups' coefficients).
+
+    Returns
+    -------
+    dict
+        ``{"figure", "axes"}``: a standalone matplotlib Figure (not registered
+        with pyplot: save it; there is nothing to close).
+    """
+    import math
+
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    panels = [(i, g, c) for i, g in enumerate(groups, start=1) for c in g.coefficients]
+    panels = panels[:max_panels]
+    ncols = max(1, min(3, len(panels)))
+    nrows = max(1, math.ceil(len(panels) / ncols))
+    fig = Figure(figsize=(4.2 * ncols, 3.2 * nrows), layout="constrained")
+    axes = list(fig.subplots(nrows, ncols, squeeze=False).ravel())
+    jitter = np.random.default_rng(0)
+    for ax, (i, g, c) in zip(axes, panels):
+        names = [u for u, _ in c.values]
+        x = np.array([v for _, v in c.values], dtype=float)
+        side = jitter.uniform(-0.3, 0.3, x.size)
+        out = np.array([u in c.outliers for u in names], dtype=bool)
+        ax.axhspan(c.median - 1.4826 * c.mad, c.median + 1.4826 * c.mad, color="C0",
+                   alpha=0.15, lw=0)
+        ax.axhline(c.median, color="C0", lw=1)
+        ax.scatter(side[~out], x[~out], s=16, color="C0")
+        ax.scatter(side[out], x[out], s=30, color="C3", marker="x")
+        for j in np.flatnonzero(out):
+            ax.annotate(names[j], (side[j], x[j]), xytext=(4, 0), textcoords="offset points",
+                        fontsize=7, color="C3")
+        ax.set_xlim(-1, 1)
+        ax.set_xticks([])
+        key = g.key if len(g.key) <= 48 else g.key[:45] + "..."
+        ax.set_title(f"group {i} ({len(g.units)} units): {key}", fontsize=8)
+        ax.set_ylabel(f"coefficient of {c.name}")
+    for ax in axes[len(panels):]:
+        ax.set_visible(False)
+    return {"figure": fig, "axes": axes[:len(panels)]}

@@ -3,7 +3,9 @@
 Long functions (e.g. :func:`greybox.close_the_loop`) take an optional
 ``progress`` callable and call it with a :class:`Progress` record at stage
 boundaries. Nothing is printed unless the caller asks: the command line
-passes a :class:`TerminalProgress` when stderr is a terminal.
+passes a :class:`TerminalProgress` when stderr is a terminal, and a
+:class:`LogProgress` (whole lines, at most one every 10 s) when it is not
+(a log file, CI).
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import dataclass
 
 from .exceptions import DimensionError
 
-__all__ = ["Progress", "TerminalProgress", "ProgressClock"]
+__all__ = ["Progress", "TerminalProgress", "LogProgress", "ProgressClock"]
 
 
 @dataclass(frozen=True)
@@ -91,3 +93,37 @@ class TerminalProgress:
             self._stream.write("\r\x1b[K")
             self._stream.flush()
             self._shown = False
+
+
+class LogProgress:
+    """Progress as whole lines, for a stream that is not a terminal (a log file, CI).
+
+    A line is written when a stage starts or advances, at most one every
+    ``interval`` seconds and none in the first ``interval`` seconds: a short
+    run stays silent, a long one shows it is alive.
+
+    Parameters
+    ----------
+    stream : file-like, optional
+        Where to write (default ``sys.stderr``).
+    interval : float
+        Fewest seconds between two lines [s].
+    """
+
+    def __init__(self, stream=None, interval: float = 10.0):
+        self._stream = stream if stream is not None else sys.stderr
+        self._interval = float(interval)
+        self._last = 0.0
+        self._shown = None
+
+    def __call__(self, p: Progress) -> None:
+        """Write one :class:`Progress` record as a line, unless one was written lately."""
+        if p.elapsed - self._last < self._interval or (p.stage, p.k) == self._shown:
+            return
+        self._stream.write(f"greybox: progress: {p.elapsed:.0f} s, {p.stage} ({p.k} of "
+                           f"{p.K})\n")
+        self._stream.flush()
+        self._last, self._shown = p.elapsed, (p.stage, p.k)
+
+    def close(self) -> None:
+        """Nothing to end (each line is whole)."""

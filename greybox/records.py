@@ -23,7 +23,40 @@ if TYPE_CHECKING:  # annotations only
     from .trace.shared_order2 import SharedLaw2
     from .update import Subsystem
 
-__all__ = ["CRITERION", "CRITERION_PE", "CandidateScore", "Effect", "EffectStep", "LoopReport"]
+__all__ = ["CRITERION", "CRITERION_PE", "Candidate", "CandidateScore", "Effect", "EffectStep",
+           "LoopReport", "explain"]
+
+@dataclass(frozen=True)
+class Candidate:
+    """One scored candidate of a pass: a channel's law and its estimation error.
+
+    Attributes
+    ----------
+    se : float
+        Estimation SE (or PE, for an unstable nominal) of the model with this
+        candidate's law, on the search window [%]; inf when it cannot be simulated.
+    npar : int
+        Parameters the law adds.
+    trace : ChannelTrace
+        The channel's trace (filter, d^, laws, models).
+    kind : str
+        "static" (``trace.static``), "dynamic" (``trace.dynamic``) or "sparse"
+        (the sparse or shared dynamic law in ``law``).
+    law : DynamicLaw or SharedLaw or SharedLaw2 or None
+        The sparse or shared dynamic law of a "sparse" candidate.
+    """
+
+    se: float
+    npar: int
+    trace: ChannelTrace = field(repr=False)
+    kind: str
+    law: object = field(default=None, repr=False)
+
+    @property
+    def channel(self):
+        """The candidate's channel (``trace.channel``)."""
+        return self.trace.channel
+
 
 CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
              "among candidates within {pct:.0f}% of the lowest, the fewest parameters")
@@ -195,6 +228,12 @@ class LoopReport:
         row simulates and its linearization at a stated operating point. The
         row of a nonlinear law starts from
         ``estimate_initial_state(model.sys, y_val, u_val, slow_modes=False)``.
+    recommended : bool
+        False when the update the trace found predicts the validation data
+        worse than the nominal model (:func:`greybox.recommend.recommend`):
+        ``updated`` is then False too, ``model`` the nominal, the message
+        starts "not recommended", and ``table["not recommended"]`` holds the
+        refused model's row.
     """
 
     model_error_detected: bool
@@ -213,6 +252,7 @@ class LoopReport:
     notes: tuple[str, ...] = ()
     steps: tuple[EffectStep, ...] = ()
     nonlinear: object = field(default=None, repr=False)
+    recommended: bool = True
 
     def se_ratio(self) -> float:
         """Validation SE of the nominal model divided by that of the updated model.
@@ -224,11 +264,22 @@ class LoopReport:
             return float("nan")
         return a.se.value / b.se.value
 
+    def explanation(self) -> list[dict]:
+        """Each effect found as data (:func:`explain`), in the order added; empty when
+        no error was found or no candidate could explain it."""
+        if self.effect.kind == "none":
+            return []
+        if len(self.steps) > 1:
+            return [explain(st.effect, self.channel if i == 0 else None)
+                    for i, st in enumerate(self.steps)]
+        return [explain(self.effect, self.channel)]
+
     def as_dict(self) -> dict:
         """JSON-ready summary (the ``greybox update --json`` document)."""
         return {
             "model_error_detected": self.model_error_detected,
             "updated": self.updated,
+            "recommended": self.recommended,
             "message": self.message,
             "residual": {"pvalue": self.residual.pvalue.tolist(),
                          "statistic": self.residual.statistic.tolist(),
@@ -243,5 +294,59 @@ class LoopReport:
             "table": {k: v.as_dict() for k, v in self.table.items()},
             "notes": list(self.notes),
             "steps": [st.as_dict() for st in self.steps],
+            "explanation": self.explanation(),
             **({"nonlinear": self.nonlinear.as_dict()} if self.nonlinear is not None else {}),
         }
+
+
+def _num(v) -> float | None:
+    """A finite float, or None (strict JSON)."""
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def explain(effect: Effect, channel=None) -> dict:
+    """One effect as data: where it enters and which law, for programs (the JSON's
+    ``explanation``; the formula string says the same to a person).
+
+    Returns
+    -------
+    dict
+        ``{"channel": {"name", "kind", "equations", "input", "direction"},
+        "law": {"kind", "order", "formula", "terms": [{"expression", "variables",
+        "coefficient", "ci95", "determined"}], "poles", "time_constants"}}``.
+        ``kind`` of the channel: "equation", "input", "force", "output" (None when
+        unknown); ``direction``: the channel's column of G over its equations;
+        ``terms`` of a static law (a sensor law's too): each selected term with its
+        coefficient and 95 % half-width (None when not computed; ``determined``
+        False when the data do not determine it); ``poles`` [1/s] and
+        ``time_constants`` [s] of a dynamic law, where it states them.
+    """
+    ch = {"name": effect.channel, "kind": getattr(channel, "kind", None),
+          "equations": list(effect.equations), "input": getattr(channel, "input", "") or None,
+          "direction": None}
+    G = getattr(channel, "G", None)
+    if G is not None and np.asarray(G).ndim == 2 and np.asarray(G).shape[1] == 1:
+        g = np.asarray(G, dtype=float)[:, 0]  # over the state equations it enters, in order
+        ch["direction"] = [_num(v) for v in g[g != 0]]
+    law = {"kind": effect.kind, "order": effect.order, "formula": effect.formula,
+           "terms": [], "poles": None, "time_constants": None}
+    st = effect.law
+    if st is not None and getattr(st, "coef", None) is not None:
+        ci = st.ci if st.ci is not None else np.full_like(st.coef, np.nan)
+        for c, j in zip(*np.nonzero(st.coef)):
+            name, kind, idx = st.spec[j]
+            h = float(ci[c, j])
+            law["terms"].append({"component": int(c), "expression": name, "kind": kind,
+                                 "coefficient": _num(st.coef[c, j]),
+                                 "ci95": _num(h) if np.isfinite(h) else None,
+                                 "determined": bool(h != np.inf)})
+    dl = effect.dynamic_law
+    if dl is not None:
+        poles = getattr(dl, "poles", None)
+        poles = [getattr(dl, "pole", np.nan)] if poles is None else list(np.ravel(poles))
+        law["poles"] = [_num(np.real(p)) for p in poles]
+        taus = getattr(dl, "taus", None)
+        taus = [getattr(dl, "tau", np.nan)] if taus is None else list(np.ravel(taus))
+        law["time_constants"] = [_num(t) for t in taus]
+    return {"channel": ch, "law": law}

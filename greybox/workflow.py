@@ -22,6 +22,7 @@ an estimation record and a validation record, and returns a
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field, replace
 
@@ -35,12 +36,12 @@ from ._lti import lti_states
 from ._validation import (
     check_covariance,
     check_positive,
-    check_same_length,
-    check_signal,
+    check_records,
     check_statespace,
 )
 from .exceptions import DataError, GreyboxError, ModelError
 from .progress import ProgressClock
+from .recommend import recommend
 from .filters import feedthrough_uikf, kalman_filter, uikf
 from .metrics import (
     WhitenessTest,
@@ -133,6 +134,7 @@ SEARCH_WINDOW = 100_000
 
 from .records import (  # noqa: E402,F401  (re-exported: greybox.workflow.LoopReport)
     CRITERION,
+    Candidate,
     CRITERION_PE,
     CandidateScore,
     Effect,
@@ -148,9 +150,14 @@ def _flag(value, name):
 
 
 def _se(y, ysim, skip):
+    """SE (eq. 42) [%] of a simulated output; inf when the simulation diverged (a
+    candidate that cannot be simulated loses, it does not end the run)."""
     if not np.all(np.isfinite(ysim)):
         return np.inf
-    return float(relative_error(y, ysim, skip=skip).value)
+    try:
+        return float(relative_error(y, ysim, skip=skip).value)
+    except DataError:  # values beyond the magnitude check (1e252 from a diverged candidate)
+        return np.inf
 
 
 def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, skip, name):
@@ -340,8 +347,32 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             sys, y, u, y_val, u_val, Q=Q, R=R, dt=dt, channels=channels, nonlinear=nonlinear,
             alpha=alpha, lags=lags, parsimony=parsimony, min_se_drop=min_se_drop,
             bic_factor=bic_factor, progress=progress)
+    P = _prepare(sys, y, u, y_val, u_val, Q=Q, R=R, dt=dt, channels=channels,
+                 nonlinear=nonlinear, max_order=max_order, alpha=alpha, lags=lags, delta=delta,
+                 delta_max_order=delta_max_order, parsimony=parsimony, min_se_drop=min_se_drop,
+                 bic_factor=bic_factor, progress=progress, max_effects=max_effects)
+
+    def once(sys_, nominal_, Q_, chans_, delta_) -> LoopReport:
+        """One pass on the model ``sys_`` (the stages of :class:`_Pass`)."""
+        return _Pass(P, sys_, nominal_, Q_, chans_, delta_).run()
+
+    # one BLAS thread for the whole search: thousands of small-matrix products, solves and
+    # expm, for which a second thread only waits (a 6x6 expm: 7.8 ms with two threads on a
+    # busy machine, 0.05 ms with one; bench/workflow.py's 1e5-sample chain at load ~2.5:
+    # 41 s vs 54 s wall)
+    with single_thread_blas():
+        rep = _loop(once, P.sys, P.nominal, P.Q, channels, P.chans, P.settings.delta,
+                    P.settings.max_effects, P.dt, functools.partial(_joint, P))
+        rep = _with_record(rep, P.y, P.u, P.Q, P.R)
+        P.tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
+        return recommend(nonlinear_update_of_linear(rep), P.Q, P.R)
+
+
+def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_order, alpha,
+             lags, delta, delta_max_order, parsimony, min_se_drop, bic_factor, progress,
+             max_effects) -> Problem:
+    """Check every argument of :func:`close_the_loop` once; the Problem and its Settings."""
     check_statespace(sys, "sys")
-    tick = ProgressClock(progress)
     lags = check_positive(lags, "lags", integer=True)
     if ct.isdtime(sys, strict=True):
         nominal = sys
@@ -356,12 +387,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         nominal = discretize(sys, dt)
     n, m, p = nominal.nstates, nominal.ninputs, nominal.noutputs
     min_steps = max(200, 10 * (n + m) + 4 * lags)
-    y = check_signal(y, p, "y", min_steps=min_steps)
-    u = check_signal(u, m, "u")
-    check_same_length(("y", y), ("u", u))
-    y_val = check_signal(y_val, p, "y_val", min_steps=max(100, 2 * lags + 2))
-    u_val = check_signal(u_val, m, "u_val")
-    check_same_length(("y_val", y_val), ("u_val", u_val))
+    y, u, y_val, u_val = check_records(nominal, y, u, y_val, u_val, R, min_steps=min_steps,
+                                       min_val_steps=max(100, 2 * lags + 2))
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
     chans = resolve_channel_spec(sys, channels)
@@ -385,190 +412,344 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
                         f"{alpha}, {min_se_drop}, {bic_factor}")
     ys, us = _search_record(y, u)  # the search's window of the estimation record (views)
+    settings = Settings(alpha=alpha, lags=lags, parsimony=parsimony, min_se_drop=min_se_drop,
+                        bic_factor=bic_factor, max_order=max_order, nonlinear=nonlinear,
+                        delta=delta, delta_max_order=delta_max_order, max_effects=max_effects,
+                        channels=channels)
+    return Problem(sys=sys, nominal=nominal, y=y, u=u, y_val=y_val, u_val=u_val, ys=ys, us=us,
+                   Q=Q, R=R, dt=dt, chans=chans, settings=settings,
+                   tick=ProgressClock(progress))
 
-    def _screened_channels(sys, nominal, Q, chans, notes):
-        """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs."""
-        scr = screen_equations(sys, ys, us, Q=Q, R=R, dt=dt, skip=20)
-        if not scr.available:
-            notes.append(f"equation screen unavailable ({scr.reason}): every single "
-                         f"equation is traced (cost grows with n)")
-            return chans
-        top = scr.ranked(SCREEN_TOP)
-        best = max((scr.score[scr.states.index(t)] for t in top), default=0.0)
-        top = [t for t in top if scr.score[scr.states.index(t)] >= SCREEN_REL * best]
-        notes.append("equation screen (joint unknown-input filter): " + ", ".join(
-            f"eq({s}) z = {scr.score[scr.states.index(s)]:.3g}" for s in top) +
-            f"; {len(scr.states) - len(top)} other equations below")
-        keep = [c for c in chans if c.kind in ("input", "output") or
-                (c.md == 1 and c.equations and c.equations[0] in top)]
-        if nominal.noutputs >= 2:
-            idx = sorted(list(sys.state_labels).index(s) for s in top)
-            for a, i in enumerate(idx):
-                for j in idx[a + 1:]:
-                    pair = resolve_channel_spec(sys, [(sys.state_labels[i],
-                                                       sys.state_labels[j])])[0]
-                    # the pair, with the bodies' relative coordinates offered to its law
-                    # (a force between them); step 2a then traces one force along the
-                    # pair law's direction (the screen's own direction is too rough)
-                    keep.append(replace(pair, relative=relative_coordinates(sys, pair)))
-                    # and one force along the screen's direction, when it sees one (traced
-                    # after step 2a, and only when the pair law gives no force of its own)
-                    rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
-                    g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
-                    fch = force_channel(sys, pair, g) if g is not None and \
-                        not _kinematic_in(sys, pair) else None
-                    if fch is not None and not _along_an_input(sys, fch):
-                        keep.append(fch)
-        return tuple(keep)
 
-    def _once(sys, nominal, Q, chans, delta):
-        """One pass: residual, trace, choose, gate, before/after for the model ``sys``."""
+def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
+    """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs."""
+    scr = screen_equations(sys, P.ys, P.us, Q=Q, R=P.R, dt=P.dt, skip=20)
+    if not scr.available:
+        notes.append(f"equation screen unavailable ({scr.reason}): every single "
+                     f"equation is traced (cost grows with n)")
+        return chans
+    top = scr.ranked(SCREEN_TOP)
+    best = max((scr.score[scr.states.index(t)] for t in top), default=0.0)
+    top = [t for t in top if scr.score[scr.states.index(t)] >= SCREEN_REL * best]
+    notes.append("equation screen (joint unknown-input filter): " + ", ".join(
+        f"eq({s}) z = {scr.score[scr.states.index(s)]:.3g}" for s in top) +
+        f"; {len(scr.states) - len(top)} other equations below")
+    keep = [c for c in chans if c.kind in ("input", "output") or
+            (c.md == 1 and c.equations and c.equations[0] in top)]
+    if nominal.noutputs >= 2:
+        idx = sorted(list(sys.state_labels).index(s) for s in top)
+        for a, i in enumerate(idx):
+            for j in idx[a + 1:]:
+                pair = resolve_channel_spec(sys, [(sys.state_labels[i],
+                                                   sys.state_labels[j])])[0]
+                # the pair, with the bodies' relative coordinates offered to its law
+                # (a force between them); step 2a then traces one force along the
+                # pair law's direction (the screen's own direction is too rough)
+                keep.append(replace(pair, relative=relative_coordinates(sys, pair)))
+                # and one force along the screen's direction, when it sees one (traced
+                # after step 2a, and only when the pair law gives no force of its own)
+                rows = [scr.states.index(sys.state_labels[q]) for q in (i, j)]
+                g = direction(scr.coef[rows], np.ones(scr.coef.shape[1]))
+                fch = force_channel(sys, pair, g) if g is not None and \
+                    not _kinematic_in(sys, pair) else None
+                if fch is not None and not _along_an_input(sys, fch):
+                    keep.append(fch)
+    return tuple(keep)
+
+
+def _joint(P: Problem, passes, final, Qf):
+    """Refit all effects at once (greybox.trace.joint); None if some cannot be.
+
+    ``passes``: (base model, channel, effect) per effect; ``Qf`` the final Q.
+    """
+    effs = [joint_effect(base, ch, eff.dynamic_law or eff.law) for base, ch, eff in passes]
+    if any(e is None for e in effs) or ct.isdtime(final, strict=True):
+        return None
+    x0 = estimate_initial_state(discretize(final, P.dt), P.y, P.u)
+    jr = refine_jointly(effs, final, P.y, P.u, Q=Qf, R=P.R, dt=P.dt, x0=x0, k0=20)
+    if not (jr.se_after < jr.se_before or
+            (jr.npar_after < jr.npar_before and jr.se_after <= 1.01 * jr.se_before)):
+        return jr, None
+    S = P.settings
+    row = validate_model(jr.model.sys, P.y_val, P.u_val, Q=jr.model.Q, R=jr.model.R,
+                         x0="estimate", name="updated", lags=S.lags, alpha=S.alpha, skip=20)
+    return jr, row
+
+
+# --------------------------------------------------------------------------- the stages
+@dataclass(frozen=True)
+class Settings:
+    """The options of :func:`close_the_loop`, checked once at the boundary (see there)."""
+
+    alpha: float
+    lags: int
+    parsimony: float
+    min_se_drop: float
+    bic_factor: float
+    max_order: int
+    nonlinear: bool
+    delta: bool
+    delta_max_order: int | None
+    max_effects: int
+    channels: object = None  # the user's channel spec; None: every channel
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One call's checked data: the model as given and discretized, the records, noise.
+
+    ``y, u`` (noutputs/ninputs, nsteps) are the estimation record, ``ys, us`` its
+    search window (views of the first ``SEARCH_WINDOW`` samples), ``y_val, u_val``
+    the validation record; ``chans`` the candidate channels of the first pass.
+    """
+
+    sys: ct.StateSpace = field(repr=False)
+    nominal: ct.StateSpace = field(repr=False)
+    y: np.ndarray = field(repr=False)
+    u: np.ndarray = field(repr=False)
+    y_val: np.ndarray = field(repr=False)
+    u_val: np.ndarray = field(repr=False)
+    ys: np.ndarray = field(repr=False)
+    us: np.ndarray = field(repr=False)
+    Q: np.ndarray = field(repr=False)
+    R: np.ndarray = field(repr=False)
+    dt: float
+    chans: tuple = field(repr=False)
+    settings: Settings
+    tick: object = field(repr=False)
+
+
+@dataclass(frozen=True)
+class Residual:
+    """Stage 1 of a pass: the nominal model's residual on the estimation record.
+
+    ``white`` the Ljung-Box test of its one-step innovations (from sample ``k0``),
+    ``x0n`` its initial state, ``se_nom`` its SE (PE when ``unstable``) on the
+    search window [%], ``val_nom`` its validation row, ``crit`` the stated
+    criterion, ``t_pass`` when the pass started (:func:`time.monotonic`).
+    """
+
+    white: WhitenessTest
+    k0: int
+    x0n: np.ndarray = field(repr=False)
+    se_nom: float
+    val_nom: ModelValidation = field(repr=False)
+    unstable: str | None
+    crit: str
+    nominal_model: UpdatedModel = field(repr=False)
+    t_pass: float
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Stage 3 of a pass: the chosen candidate as an effect, its model and the gate's call."""
+
+    effect: Effect
+    model: UpdatedModel = field(repr=False)
+    kind: str
+    passed: bool
+
+
+class _Pass:
+    """One pass of close the loop on the model ``sys``: residual, trace, choose, gate,
+    before/after. Stages are methods; what they decide is kept in ``cands`` (every
+    candidate's score, for the report), ``scored`` (the Candidates in play) and
+    ``notes`` (the decision trail)."""
+
+    SKIP = 20  # leading samples left out of SE, PE and whiteness (the filters' transient)
+
+    def __init__(self, P: Problem, sys, nominal, Q, chans, delta: bool):
+        self.P, self.S = P, P.settings
+        self.sys, self.nominal, self.Q, self.chans, self.delta = sys, nominal, Q, chans, delta
+        self.cands: list[CandidateScore] = []
+        self.scored: list[Candidate] = []
+        self.notes: list[str] = []
+        self.gate: dict = {}
+        self.unstable = unstable_reason(nominal, P.y.shape[1])
+        self.big = P.settings.channels is None and nominal.nstates > SCREEN_ABOVE
+
+    def run(self) -> LoopReport:
+        """The stages in order."""
+        r = self.residual()
+        if r.white.all_white:
+            self.gate["passed"] = {"whiteness": False}
+            return self._no_update(r, "no significant model error: the nominal one-step "
+                                      f"residuals are white on every output (Ljung-Box, "
+                                      f"{self.S.lags} lags, all p >= {self.S.alpha:g})", False)
+        self.trace_channels()
+        self.forces()
+        self.higher_orders()
+        self.sparse_laws(r)
+        chosen = self.choose()
+        if chosen is None:
+            self.gate["passed"] = {"whiteness": True, "trace": False}
+            return self._no_update(r, "model error detected, but no candidate channel could "
+                                      "explain it (see candidates)", True,
+                                   cands=self.cands, notes=self.notes)
+        v = self.judge(r, chosen)
+        if not v.passed:
+            failed = [k for k, ok in self.gate["passed"].items() if not ok]
+            return self._no_update(r, f"model error detected (residual not white), but the best "
+                                      f"candidate ({chosen.trace.channel.name}, {v.kind}) failed "
+                                      f"the gate: {', '.join(failed)}; model unchanged", True,
+                                   cands=self.cands, notes=self.notes, tr=chosen.trace)
+        table = self.validate(r, chosen.trace, v)
+        return self.report(r, chosen.trace, v, table)
+
+    # ------------------------------------------------------------------ helpers
+    def fit_error(self, sys_, Q_, R_, ysim=None, ypred=None) -> float:
+        """SE (or PE, for an unstable nominal) of a model on the search window [%]."""
+        ys, us = self.P.ys, self.P.us
+        if not self.unstable:
+            return _se(ys, ysim() if ysim is not None else
+                       simulate_output(sys_, us, estimate_initial_state(sys_, ys, us)), self.SKIP)
+        yp = ypred() if ypred is not None else kalman_filter(sys_, ys, us, Q=Q_, R=R_).y_pred
+        return _se(ys, yp, self.SKIP)
+
+    def _trace(self, ch, **kw):
+        P = self.P
+        return trace_channel(self.sys, ch, P.ys, P.us, Q=self.Q, R=P.R, dt=P.dt, **kw)
+
+    def _no_update(self, r: Residual, msg, detected, cands=(), notes=(), effect=None, tr=None,
+                   ch=None) -> LoopReport:
+        table = {"nominal": r.val_nom, "updated": r.val_nom}
+        return LoopReport(model_error_detected=detected, updated=False, message=msg,
+                          residual=r.white, effect=effect or Effect(kind="none"), channel=ch,
+                          candidates=tuple(cands), gate=self.gate, criterion=r.crit,
+                          nominal=self.nominal, model=r.nominal_model, table=table, trace=tr,
+                          notes=tuple(notes))
+
+    # ------------------------------------------------------------------ 1. residual
+    def residual(self) -> Residual:
+        """1. The nominal model's one-step residual, its SE and its validation row."""
+        P, S, nominal, skip = self.P, self.S, self.nominal, self.SKIP
         t_pass = time.monotonic()  # the delta baseline's budget: this pass's time
-        n, m = nominal.nstates, nominal.ninputs
-        unstable = unstable_reason(nominal, y.shape[1])
-        crit = (CRITERION_PE if unstable else CRITERION).format(pct=100 * (parsimony - 1))
-        skip = 20
-
-        def _fit_error(sys_, Q_, R_, ysim=None, ypred=None):
-            """SE (or PE, for an unstable nominal) of a model on the search window [%]."""
-            if not unstable:
-                return _se(ys, ysim() if ysim is not None else
-                           simulate_output(sys_, us, estimate_initial_state(sys_, ys, us)), skip)
-            yp = ypred() if ypred is not None else kalman_filter(sys_, ys, us, Q=Q_, R=R_).y_pred
-            return _se(ys, yp, skip)
-
-        # 1. residual of the nominal model
-        tick("residual of the nominal model", 0, 1)
-        kf = kalman_filter(nominal, y, u, Q=Q, R=R)
+        crit = (CRITERION_PE if self.unstable else CRITERION).format(
+            pct=100 * (S.parsimony - 1))
+        P.tick("residual of the nominal model", 0, 1)
+        kf = kalman_filter(nominal, P.y, P.u, Q=self.Q, R=P.R)
         k0 = kf.settled(skip)
-        white = whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha)
-        x0n = estimate_initial_state(nominal, y, u)
-        se_nom = _se(ys, kf.y_pred[:, :ys.shape[1]], skip) if unstable else \
-            _se(ys, simulate_output(nominal, us, x0n), skip)  # on the search window
+        white = whiteness_test(kf.innovations[:, k0:], S.lags, alpha=S.alpha)
+        x0n = estimate_initial_state(nominal, P.y, P.u)
+        se_nom = _se(P.ys, kf.y_pred[:, :P.ys.shape[1]], skip) if self.unstable else \
+            _se(P.ys, simulate_output(nominal, P.us, x0n), skip)  # on the search window
         kf = None  # its histories (~60 MB at 1e6 samples) would stay alive through the pass
-        nominal_model = UpdatedModel(sys=nominal, Q=Q, R=R, order=n, kind="nominal")
-        val_nom = validate_model(nominal, y_val, u_val, Q=Q, R=R, x0="estimate", name="nominal",
-                                 lags=lags, alpha=alpha, skip=skip)
-        gate = {"whiteness_pvalue": white.pvalue, "alpha": alpha, "se_estimation_nominal": se_nom,
-                "measure": "PE" if unstable else "SE"}
-        if unstable:
-            gate["measure_reason"] = f"nominal: {unstable}"
-        tick("residual of the nominal model", 1, 1)
+        nominal_model = UpdatedModel(sys=nominal, Q=self.Q, R=P.R, order=nominal.nstates,
+                                     kind="nominal")
+        val_nom = validate_model(nominal, P.y_val, P.u_val, Q=self.Q, R=P.R, x0="estimate",
+                                 name="nominal", lags=S.lags, alpha=S.alpha, skip=skip)
+        self.gate.update({"whiteness_pvalue": white.pvalue, "alpha": S.alpha,
+                          "se_estimation_nominal": se_nom,
+                          "measure": "PE" if self.unstable else "SE"})
+        if self.unstable:
+            self.gate["measure_reason"] = f"nominal: {self.unstable}"
+        P.tick("residual of the nominal model", 1, 1)
+        return Residual(white=white, k0=k0, x0n=x0n, se_nom=se_nom, val_nom=val_nom,
+                        unstable=self.unstable, crit=crit, nominal_model=nominal_model,
+                        t_pass=t_pass)
 
-        def _no_update(msg, detected, cands=(), notes=(), effect=None, tr=None, ch=None):
-            table = {"nominal": val_nom, "updated": val_nom}
-            return LoopReport(model_error_detected=detected, updated=False, message=msg,
-                              residual=white, effect=effect or Effect(kind="none"), channel=ch,
-                              candidates=tuple(cands), gate=gate, criterion=crit, nominal=nominal,
-                              model=nominal_model, table=table, trace=tr, notes=tuple(notes))
-
-        if white.all_white:
-            gate["passed"] = {"whiteness": False}
-            return _no_update("no significant model error: the nominal one-step residuals are "
-                              f"white on every output (Ljung-Box, {lags} lags, all p >= {alpha:g})",
-                              False)
-
-        # 2. trace every channel: static laws and order-1 dynamics for all channels, then
-        #    higher orders for the two channels that explain the data best (cost control)
-        cands, notes = [], []
-        scored = []  # (se, npar, trace, kind)
-        sparse = {}  # id(trace) -> DynamicLaw or SharedLaw
-
-        def _score(tr):
-            tr = _light(tr)  # every candidate's full filter record would be kept to the end
-            ch = tr.channel
-            notes.extend(f"{ch.name}: {s}" for s in tr.notes)
-            dead = tr.static is not None and ch.md > 1 and bool(
-                np.any(np.all(tr.static.coef == 0, axis=1)))
-            if dead:  # a component explains nothing: the same as a smaller channel
-                cands.append(CandidateScore(ch.name, "static", 0, np.inf, tr.static.npar,
-                                            "redundant", "a component of d has no term"))
-            elif tr.static_model is not None and tr.static.npar > 0:
-                sm = tr.static_model
-                if tr.static.nonlinear:
-                    res = tr.filter_result
-                    x0 = estimate_initial_state(sm.sys, ys, us, slow_modes=False)
-                    se = _fit_error(sm.sys, sm.Q, sm.R,
+    # ------------------------------------------------------------------ 2. candidates
+    def score(self, tr) -> None:
+        """Score a trace's static and dynamic laws by their estimation SE (candidates)."""
+        tr = _light(tr)  # every candidate's full filter record would be kept to the end
+        ch, ys, us = tr.channel, self.P.ys, self.P.us
+        self.notes.extend(f"{ch.name}: {s}" for s in tr.notes)
+        dead = tr.static is not None and ch.md > 1 and bool(
+            np.any(np.all(tr.static.coef == 0, axis=1)))
+        if dead:  # a component explains nothing: the same as a smaller channel
+            self.cands.append(CandidateScore(ch.name, "static", 0, np.inf, tr.static.npar,
+                                             "redundant", "a component of d has no term"))
+        elif tr.static_model is not None and tr.static.npar > 0:
+            sm = tr.static_model
+            if tr.static.nonlinear:
+                res = tr.filter_result
+                x0 = estimate_initial_state(sm.sys, ys, us, slow_modes=False)
+                se = self.fit_error(sm.sys, sm.Q, sm.R,
                                     ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us, x0),
                                     ypred=lambda: ekf_predict_with_law(
                                         res.sys, res.G, tr.static, ys, us, x0, Q=sm.Q, R=sm.R))
-                else:
-                    se = _fit_error(sm.sys, sm.Q, sm.R)
-                cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
-                scored.append((se, tr.static.npar, tr, "static"))
-            if tr.dynamic_model is not None:
-                dm, sub = tr.dynamic_model, tr.dynamic
-                se = _fit_error(dm.sys, dm.Q, dm.R)
-                nw, md = n + m, ch.md
-                npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
-                cands.append(CandidateScore(ch.name, "dynamic", sub.order, se, npar, "ok"))
-                scored.append((se, npar, tr, "dynamic"))
+            else:
+                se = self.fit_error(sm.sys, sm.Q, sm.R)
+            self.cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
+            self.scored.append(Candidate(se, tr.static.npar, tr, "static"))
+        if tr.dynamic_model is not None:
+            dm, sub = tr.dynamic_model, tr.dynamic
+            se = self.fit_error(dm.sys, dm.Q, dm.R)
+            nw, md = self.nominal.nstates + self.nominal.ninputs, ch.md
+            npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
+            self.cands.append(CandidateScore(ch.name, "dynamic", sub.order, se, npar, "ok"))
+            self.scored.append(Candidate(se, npar, tr, "dynamic"))
 
-        first_max = min(max_order, 1)
-        big = channels is None and n > SCREEN_ABOVE
-        if big:
-            chans = _screened_channels(sys, nominal, Q, chans, notes)
+    def trace_channels(self) -> None:
+        """2. Trace every candidate channel: static laws and order-1 dynamics."""
+        P, S = self.P, self.S
+        first_max = min(S.max_order, 1)
+        if self.big:
+            self.chans = _screened_channels(P, self.sys, self.Q, self.chans, self.notes)
             # unstructured subsystems (driven by all n + m signals) cost O(n) each and read
             # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
             first_max = 0
-        screen_forces = [c for c in chans if c.kind == "force"] if big else []
-        for kc, ch in enumerate(chans):
-            tick("trace candidate channels", kc, len(chans))
-            if ch in screen_forces:
+        self.screen_forces = [c for c in self.chans if c.kind == "force"] if self.big else []
+        for kc, ch in enumerate(self.chans):
+            P.tick("trace candidate channels", kc, len(self.chans))
+            if ch in self.screen_forces:
                 continue
             try:
-                tr = trace_channel(sys, ch, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
-                                   max_order=first_max)
+                tr = self._trace(ch, nonlinear=S.nonlinear, max_order=first_max)
             except (GreyboxError, np.linalg.LinAlgError) as e:
-                cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
+                self.cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed", str(e)))
                 continue
             if tr.status != "ok":
-                cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", tr.reason))
+                self.cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped",
+                                                 tr.reason))
                 continue
-            _score(tr)
-        tick("trace candidate channels", len(chans), len(chans))
-        # 2a. one force inside a pair of equations: md = 1 along the law's direction, with
-        #     the bodies' relative coordinates offered to the law (PAPER_NOTES §9.6)
-        def _static_trace(ch_):
-            """The static trace of one channel (a force, a group), scored; or None."""
+            self.score(tr)
+        P.tick("trace candidate channels", len(self.chans), len(self.chans))
+
+    def static_trace(self, ch_):
+        """The static trace of one channel (a force, a group), scored; or None."""
+        try:
+            tr_ = self._trace(ch_, nonlinear=self.S.nonlinear, max_order=0)
+        except (GreyboxError, np.linalg.LinAlgError) as e:
+            self.notes.append(f"{ch_.name}: {e}")
+            return None
+        if tr_.status != "ok":
+            return None
+        self.score(tr_)
+        return next((t.trace for t in self.scored[::-1] if t.trace.channel == ch_), None)
+
+    def retraced(self, pick: Candidate) -> Candidate:
+        """The Candidate ``pick``, or the force traced again along its refitted direction
+        if that fits better (or as well with fewer terms), up to _MAX_RETRACE."""
+        se_c, npar, tr, kind = pick.se, pick.npar, pick.trace, pick.kind
+        for _ in range(_MAX_RETRACE):
+            if not (kind == "static" and tr.refined_G is not None):
+                break
+            # the force's law contradicts its direction (taken from a noisy pair law):
+            # trace it again along the refitted one (law, filter and model then agree);
+            # the new law can refit the direction again (a wrong first law moves it part
+            # way)
+            n_before = len(self.scored)
             try:
-                tr_ = trace_channel(sys, ch_, ys, us, Q=Q, R=R, dt=dt, nonlinear=nonlinear,
-                                    max_order=0)
+                rtr = self._trace(replace(tr.channel, G=tr.refined_G),
+                                  nonlinear=self.S.nonlinear, max_order=0)
+                if rtr.status == "ok":
+                    self.score(rtr)
             except (GreyboxError, np.linalg.LinAlgError) as e:
-                notes.append(f"{ch_.name}: {e}")
-                return None
-            if tr_.status != "ok":
-                return None
-            _score(tr_)
-            return next((t[2] for t in scored[::-1] if t[2].channel == ch_), None)
+                self.notes.append(f"{tr.channel.name} along its refitted direction: {e}")
+            better = [s for s in self.scored[n_before:] if s.kind == "static" and (
+                s.se < se_c or (s.se <= self.S.parsimony * se_c and s.npar < npar))]
+            if not better:
+                break
+            pick = better[0]
+            se_c, npar, tr, kind = pick.se, pick.npar, pick.trace, pick.kind
+        return pick
 
-        def _retraced(pick):
-            """``pick`` = (se, npar, trace, kind), or the force traced again along its refitted
-            direction if that fits better (or as well with fewer terms), up to _MAX_RETRACE."""
-            se_c, npar, tr, kind = pick
-            for _ in range(_MAX_RETRACE):
-                if not (kind == "static" and tr.refined_G is not None):
-                    break
-                # the force's law contradicts its direction (taken from a noisy pair law):
-                # trace it again along the refitted one (law, filter and model then agree);
-                # the new law can refit the direction again (a wrong first law moves it part
-                # way)
-                n_before = len(scored)
-                try:
-                    rtr = trace_channel(sys, replace(tr.channel, G=tr.refined_G), ys, us, Q=Q,
-                                        R=R, dt=dt, nonlinear=nonlinear, max_order=0)
-                    if rtr.status == "ok":
-                        _score(rtr)
-                except (GreyboxError, np.linalg.LinAlgError) as e:
-                    notes.append(f"{tr.channel.name} along its refitted direction: {e}")
-                better = [s for s in scored[n_before:] if s[3] == "static" and (
-                    s[0] < se_c or (s[0] <= parsimony * se_c and s[1] < npar))]
-                if not better:
-                    break
-                se_c, npar, tr, kind = better[0]
-            return se_c, npar, tr, kind
-
-        for se_, _, tr_, kind_ in list(scored):
+    def forces(self) -> None:
+        """2a. One force inside a pair of equations: md = 1 along the law's direction, with
+        the bodies' relative coordinates offered to the law (PAPER_NOTES §9.6)."""
+        sys, u = self.sys, self.P.u
+        for se_, tr_, kind_ in [(c.se, c.trace, c.kind) for c in self.scored]:
             if kind_ != "static" or tr_.channel.md != 2 or tr_.channel.kind != "equation":
                 continue
             res_ = tr_.filter_result
@@ -581,358 +762,367 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
             fch = force_channel(sys, tr_.channel, g)
             if _along_an_input(sys, fch):
                 continue  # the input's own channel says the same, and names the input
-            _static_trace(fch)
+            self.static_trace(fch)
         # ... and along the screen's direction (rougher) where the pair law gave no force
-        for fch in screen_forces:
-            if not any(t[2].channel.kind == "force" and
-                       set(t[2].channel.equations) == set(fch.equations) for t in scored):
-                _static_trace(fch)
+        for fch in self.screen_forces:
+            if not any(t.trace.channel.kind == "force" and
+                       set(t.trace.channel.equations) == set(fch.equations)
+                       for t in self.scored):
+                self.static_trace(fch)
         # ... and the best force along its refitted direction already here (not only once
         # chosen, below): above SCREEN_ABOVE states the evidence for dynamics in 2b is that
         # the best static law leaves coloured innovations, and a force along its first,
         # noisy direction leaves them coloured where the refitted one leaves them white (the
         # 32-state chain, positions measured: a 30 s sparse dynamic fit for nothing)
-        forces = [t for t in scored if big and t[3] == "static" and
-                  t[2].channel.kind == "force" and np.isfinite(t[0])]
+        forces = [t for t in self.scored if self.big and t.kind == "static" and
+                  t.trace.channel.kind == "force" and np.isfinite(t.se)]
         if forces:
-            _retraced(min(forces, key=lambda t: t[0]))
-        if max_order >= 2 and scored and not big:
-            ranked = []
-            for se_, _, tr_, _ in sorted(scored, key=lambda s: s[0]):
-                if tr_.channel not in ranked and np.isfinite(se_):
-                    ranked.append(tr_.channel)
-            for kc, ch in enumerate(ranked[:2]):
-                tick("higher-order subsystems", kc, min(2, len(ranked)))
-                if ch.md > 1 or ch.kind == "output":
-                    continue  # md = 2 already gives 2 states at order 1; a sensor law has no
-                    # subsystem (traced again, its notes would be listed twice)
-                try:
-                    tr = trace_channel(sys, ch, ys, us, Q=Q, R=R, dt=dt, nonlinear=False,
-                                       max_order=max_order, min_order=2)
-                except (GreyboxError, np.linalg.LinAlgError) as e:
-                    notes.append(f"{ch.name}: dynamic order >= 2 failed: {e}")
-                    continue
-                tr = replace(tr, static=None, static_model=None)
-                _score(tr)
-        # 2b. sparse first-order laws in continuous time for the best one-component channels
-        if max_order >= 1 and scored and not ct.isdtime(sys, strict=True) and not unstable \
-                and not (big and _static_is_enough(scored, y, u, Q, R, k0, lags, alpha)):
-            done = set()
-            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
-                ch = tr_.channel
-                if len(done) >= (1 if big else 2) or ch in done or ch.md != 1 or \
-                        not np.isfinite(se_) or ch.kind == "output":
-                    continue
-                done.add(ch)
-                se_static = min((c[0] for c in scored
-                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
-                se_dyn = min((c[0] for c in scored
-                              if c[2].channel == ch and c[3] == "dynamic"), default=np.inf)
-                if not big and not se_dyn < SPARSE_IF * se_static:
-                    continue  # no evidence of dynamics in this channel: the static law stands
-                res_, k0s, Ns, pole0 = _sparse_start(tr_)
-                try:
-                    dl = fit_sparse_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
-                                            y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                            pole=pole0, d_noise=_d_noise(res_))
-                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-                    notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
-                    continue
-                if dl is None:
-                    continue
-                se = _fit_error(dl.model.sys, dl.model.Q, dl.model.R)
-                cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
-                sparse[id(tr_)] = dl
-                scored.append((se, dl.npar, tr_, "sparse"))
-            # one state shared by a pair of equations along no fixed direction (a thermal
-            # mass between two bodies): the best pair with evidence of dynamics
-            white_shared = []  # the groups whose first-order shared law leaves white innovations
+            self.retraced(min(forces, key=lambda t: t.se))
 
-            def _shared(tr_):
-                """Fit one shared state for the channel of ``tr_``; False if the fit failed."""
-                ch = tr_.channel
-                res_, k0s, Ns, pole0 = _sparse_start(tr_)
-                try:
-                    dl = fit_shared_dynamic(sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
-                                            y, u, Q=Q, R=R, dt=dt, x0=res_.x_filt[:, 0], k0=k0s,
-                                            pole=pole0)
-                    se = np.inf if dl is None else _fit_error(dl.model.sys, dl.model.Q,
-                                                              dl.model.R)
-                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-                    notes.append(f"{ch.name}: shared-state law failed: {e}")
-                    return False
-                if dl is not None and dl.one_direction and any(
-                        t[2].channel.kind == "force" and
-                        set(t[2].channel.equations) == set(ch.equations) for t in scored):
-                    cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
-                                                "redundant", "one state along one direction: "
-                                                "the force channel's law says the same"))
-                    _force_along(dl, se, ch)
-                elif dl is not None:
-                    cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
-                                                "ok"))
-                    sparse[id(tr_)] = dl
-                    scored.append((se, dl.npar, tr_, "sparse"))
-                    # a second order only where the first leaves coloured innovations, and no
-                    # earlier group's shared law left white ones (on a first-order hidden
-                    # mass, the order-2 fits cost 18 s of 41 s)
-                    others = [t[0] for t in scored[:-1] if np.isfinite(t[0])]
-                    if others and not se <= ORDER2_WITHIN * min(others):
-                        notes.append(f"{ch.name}: no second-order shared law tried: the "
-                                     f"first-order one ({se:.3g} %) is not within "
-                                     f"{ORDER2_WITHIN:g}x of the best candidate's SE "
-                                     f"({min(others):.3g} %)")
-                    elif white_shared:
-                        notes.append(f"{ch.name}: no second-order shared law tried: "
-                                     f"{white_shared[0]}'s leaves white innovations")
-                    elif _leaves_white(dl.model, y, u, Q, R, k0, lags, alpha):
-                        white_shared.append(ch.name)
-                        notes.append(f"{ch.name}: no second-order shared law tried: the "
-                                     f"first-order one leaves white innovations")
-                    else:
-                        _shared_higher(tr_, dl, res_, k0s, se)
-                return True
+    def higher_orders(self) -> None:
+        """2. Higher-order subsystems for the two channels that explain the data best."""
+        S = self.S
+        if not (S.max_order >= 2 and self.scored and not self.big):
+            return
+        ranked = []
+        for se_, tr_ in [(c.se, c.trace) for c in sorted(self.scored, key=lambda c: c.se)]:
+            if tr_.channel not in ranked and np.isfinite(se_):
+                ranked.append(tr_.channel)
+        for kc, ch in enumerate(ranked[:2]):
+            self.P.tick("higher-order subsystems", kc, min(2, len(ranked)))
+            if ch.md > 1 or ch.kind == "output":
+                continue  # md = 2 already gives 2 states at order 1; a sensor law has no
+                # subsystem (traced again, its notes would be listed twice)
+            try:
+                tr = self._trace(ch, nonlinear=False, max_order=S.max_order, min_order=2)
+            except (GreyboxError, np.linalg.LinAlgError) as e:
+                self.notes.append(f"{ch.name}: dynamic order >= 2 failed: {e}")
+                continue
+            tr = replace(tr, static=None, static_model=None)
+            self.score(tr)
 
-            def _shared_higher(tr_, dl, res_, k0s, se):
-                """A subsystem one order above the shared law ``dl`` (SE ``se``), scored; then
-                order 3 where order 2 fits better than order 1, leads every other candidate
-                and still leaves coloured innovations (a chain of three hidden parts; a
-                second-order law that another channel beats is not where the error is: on
-                the lag + spring chain, seed 4, its order-3 fit cost 32 s of 77 s and
-                failed)."""
-                ch = tr_.channel
-                word = "third" if isinstance(dl, SharedLaw2) else "second"
-                try:
-                    dl2 = fit_shared_order2(sys, ch, dl, y, u, Q=Q, R=R, dt=dt,
-                                            x0=res_.x_filt[:, 0], k0=k0s)
-                    se2 = np.inf if dl2 is None else _fit_error(dl2.model.sys, dl2.model.Q,
-                                                                dl2.model.R)
-                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-                    notes.append(f"{ch.name}: {word}-order shared law failed: {e}")
-                    return
-                if dl2 is None:
-                    notes.append(f"{ch.name}: no {word}-order shared law (unstable, or a gain or "
-                                 f"an interval the data do not determine)")
-                    return
-                cands.append(CandidateScore(ch.name, "dynamic (sparse)", dl2.order, se2,
-                                            dl2.npar, "ok"))
-                tr2 = replace(tr_)  # its own key in ``sparse`` (the lower order keeps tr_)
-                sparse[id(tr2)] = dl2
-                scored.append((se2, dl2.npar, tr2, "sparse"))
-                if dl2.order >= MAX_SHARED_ORDER:
-                    return
-                others = [t[0] for t in scored[:-1] if np.isfinite(t[0])]
-                if not se2 < se:
-                    notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
-                                 f"one ({se2:.3g} %) fits no better than the first ({se:.3g} %)")
-                elif not se2 <= min(others, default=np.inf):
-                    notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
-                                 f"one ({se2:.3g} %) does not lead the candidates (best "
-                                 f"{min(others):.3g} %)")
-                elif _leaves_white(dl2.model, y, u, Q, R, k0, lags, alpha):
-                    notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
-                                 f"one leaves white innovations")
-                else:
-                    _shared_higher(tr2, dl2, res_, k0s, se2)
-
-            def _force_along(dl, se, ch):
-                """The force traced again along a one-direction shared law's k, if that fits better.
-
-                The force channel's direction comes from the static pair law (a few % off
-                for a dynamic effect: its law then adds compensating terms); the shared
-                law's k is refitted by output error with the dynamics.
-                """
-                fse = min((t[0] for t in scored if t[2].channel.kind == "force" and
-                           set(t[2].channel.equations) == set(ch.equations)), default=np.inf)
-                if not se < fse:
-                    return
-                fch = force_channel(sys, ch, dl.k)
-                n_before = len(scored)
-                _static_trace(fch)
-                ftr = next((t[2] for t in scored[n_before:] if t[3] == "static"), None)
-                if ftr is None:
-                    return
-                res_, k0s, Ns, _ = _sparse_start(ftr)
-                try:
-                    fl = fit_sparse_dynamic(sys, fch, res_.x_filt[:, k0s:Ns],
-                                            res_.d_est[:, k0s:Ns], y, u, Q=Q, R=R, dt=dt,
-                                            x0=res_.x_filt[:, 0], k0=k0s,
-                                            pole=float(np.exp(dl.pole * dt)))
-                except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-                    notes.append(f"{fch.name} along the shared law's direction: {e}")
-                    return
-                if fl is None:
-                    return
-                fse = _fit_error(fl.model.sys, fl.model.Q, fl.model.R)
-                cands.append(CandidateScore(fch.name, "dynamic (sparse)", 1, fse, fl.npar, "ok",
-                                            "along the shared-state law's direction "
-                                            f"{np.array2string(dl.k, precision=3)}"))
-                sparse[id(ftr)] = fl
-                scored.append((fse, fl.npar, ftr, "sparse"))
-
-            for se_, _, tr_, kind_ in sorted(scored, key=lambda s: s[0]):
-                ch = tr_.channel
-                if big or ch.md != 2 or ch.kind != "equation" or not np.isfinite(se_) or \
-                        kind_ != "dynamic":
-                    continue
-                se_static = min((c[0] for c in scored
-                                 if c[2].channel == ch and c[3] == "static"), default=np.inf)
-                if not se_ < se_static:
-                    continue
-                # the evidence rule of the screened groups below: a static law that already
-                # leaves white innovations needs no hidden state (on a 2-state model missing
-                # a spring, the shared fit cost 4.6 s of 10 s and returned nothing)
-                if not _static_is_enough(scored, y, u, Q, R, k0, lags, alpha):
-                    _shared(tr_)
+    # ------------------------------------------------------------------ 2b, 2c. sparse laws
+    def sparse_laws(self, r: Residual) -> None:
+        """2b. Sparse first-order laws in continuous time for the best one-component
+        channels; 2c. one state shared by a pair of equations or a screened group."""
+        P, S, sys = self.P, self.S, self.sys
+        if not (S.max_order >= 1 and self.scored and not ct.isdtime(sys, strict=True)
+                and not self.unstable and not (self.big and _static_is_enough(
+                    self.scored, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha))):
+            return
+        done = set()
+        for cand in sorted(self.scored, key=lambda c: c.se):
+            se_, tr_ = cand.se, cand.trace
+            ch = tr_.channel
+            if len(done) >= (1 if self.big else 2) or ch in done or ch.md != 1 or \
+                    not np.isfinite(se_) or ch.kind == "output":
+                continue
+            done.add(ch)
+            se_static = min((c.se for c in self.scored
+                             if c.trace.channel == ch and c.kind == "static"), default=np.inf)
+            se_dyn = min((c.se for c in self.scored
+                          if c.trace.channel == ch and c.kind == "dynamic"), default=np.inf)
+            if not self.big and not se_dyn < SPARSE_IF * se_static:
+                continue  # no evidence of dynamics in this channel: the static law stands
+            self._sparse(tr_)
+        # one state shared by a pair of equations along no fixed direction (a thermal
+        # mass between two bodies): the best pair with evidence of dynamics
+        self.white_shared = []  # the groups whose first-order shared law leaves white innovations
+        for cand in sorted(self.scored, key=lambda c: c.se):
+            se_, tr_, kind_ = cand.se, cand.trace, cand.kind
+            ch = tr_.channel
+            if self.big or ch.md != 2 or ch.kind != "equation" or not np.isfinite(se_) or \
+                    kind_ != "dynamic":
+                continue
+            se_static = min((c.se for c in self.scored
+                             if c.trace.channel == ch and c.kind == "static"), default=np.inf)
+            if not se_ < se_static:
+                continue
+            # the evidence rule of the screened groups below: a static law that already
+            # leaves white innovations needs no hidden state (on a 2-state model missing
+            # a spring, the shared fit cost 4.6 s of 10 s and returned nothing)
+            if not _static_is_enough(self.scored, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
+                self._shared(tr_, r)
+            break
+        # above SCREEN_ABOVE states there is no unstructured fit to show dynamics (the
+        # best static law left the innovations coloured, see _static_is_enough): the
+        # screen's group of equations (a hidden body touching 2-4 bodies) and the best
+        # pair's static trace
+        for gtr in (_shared_groups(sys, self.chans, self.scored, self.static_trace)
+                    if self.big else ()):
+            if not self._shared(gtr, r):
                 break
-            # above SCREEN_ABOVE states there is no unstructured fit to show dynamics (the
-            # best static law left the innovations coloured, see _static_is_enough): the
-            # screen's group of equations (a hidden body touching 2-4 bodies) and the best
-            # pair's static trace
-            for gtr in (_shared_groups(sys, chans, scored, _static_trace) if big else ()):
-                if not _shared(gtr):
-                    break
-        finite = [s for s in scored if np.isfinite(s[0])]
+
+    def _sparse(self, tr_) -> None:
+        """2b for one channel: its sparse first-order law, scored."""
+        P, ch = self.P, tr_.channel
+        res_, k0s, Ns, pole0 = _sparse_start(tr_)
+        try:
+            dl = fit_sparse_dynamic(self.sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
+                                    P.y, P.u, Q=self.Q, R=P.R, dt=P.dt, x0=res_.x_filt[:, 0],
+                                    k0=k0s, pole=pole0, d_noise=_d_noise(res_))
+        except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+            self.notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
+            return
+        if dl is None:
+            return
+        se = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+        self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
+        self.scored.append(Candidate(se, dl.npar, tr_, "sparse", dl))
+
+    def _shared(self, tr_, r: Residual) -> bool:
+        """2c. Fit one shared state for the channel of ``tr_``; False if the fit failed."""
+        P, S, ch = self.P, self.S, tr_.channel
+        res_, k0s, Ns, pole0 = _sparse_start(tr_)
+        try:
+            dl = fit_shared_dynamic(self.sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
+                                    P.y, P.u, Q=self.Q, R=P.R, dt=P.dt, x0=res_.x_filt[:, 0],
+                                    k0=k0s, pole=pole0)
+            se = np.inf if dl is None else self.fit_error(dl.model.sys, dl.model.Q,
+                                                          dl.model.R)
+        except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+            self.notes.append(f"{ch.name}: shared-state law failed: {e}")
+            return False
+        if dl is not None and dl.one_direction and any(
+                t.trace.channel.kind == "force" and
+                set(t.trace.channel.equations) == set(ch.equations) for t in self.scored):
+            self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar,
+                                             "redundant", "one state along one direction: "
+                                             "the force channel's law says the same"))
+            self._force_along(dl, se, ch)
+        elif dl is not None:
+            self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
+            self.scored.append(Candidate(se, dl.npar, tr_, "sparse", dl))
+            # a second order only where the first leaves coloured innovations, and no
+            # earlier group's shared law left white ones (on a first-order hidden
+            # mass, the order-2 fits cost 18 s of 41 s)
+            others = [t.se for t in self.scored[:-1] if np.isfinite(t.se)]
+            if others and not se <= ORDER2_WITHIN * min(others):
+                self.notes.append(f"{ch.name}: no second-order shared law tried: the "
+                                  f"first-order one ({se:.3g} %) is not within "
+                                  f"{ORDER2_WITHIN:g}x of the best candidate's SE "
+                                  f"({min(others):.3g} %)")
+            elif self.white_shared:
+                self.notes.append(f"{ch.name}: no second-order shared law tried: "
+                                  f"{self.white_shared[0]}'s leaves white innovations")
+            elif _leaves_white(dl.model, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
+                self.white_shared.append(ch.name)
+                self.notes.append(f"{ch.name}: no second-order shared law tried: the "
+                                  f"first-order one leaves white innovations")
+            else:
+                self._shared_higher(tr_, dl, res_, k0s, se, r)
+        return True
+
+    def _shared_higher(self, tr_, dl, res_, k0s, se, r: Residual) -> None:
+        """A subsystem one order above the shared law ``dl`` (SE ``se``), scored; then
+        order 3 where order 2 fits better than order 1, leads every other candidate
+        and still leaves coloured innovations (a chain of three hidden parts; a
+        second-order law that another channel beats is not where the error is: on
+        the lag + spring chain, seed 4, its order-3 fit cost 32 s of 77 s and
+        failed)."""
+        P, S, ch = self.P, self.S, tr_.channel
+        word = "third" if isinstance(dl, SharedLaw2) else "second"
+        try:
+            dl2 = fit_shared_order2(self.sys, ch, dl, P.y, P.u, Q=self.Q, R=P.R, dt=P.dt,
+                                    x0=res_.x_filt[:, 0], k0=k0s)
+            se2 = np.inf if dl2 is None else self.fit_error(dl2.model.sys, dl2.model.Q,
+                                                            dl2.model.R)
+        except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+            self.notes.append(f"{ch.name}: {word}-order shared law failed: {e}")
+            return
+        if dl2 is None:
+            self.notes.append(f"{ch.name}: no {word}-order shared law (unstable, or a gain or "
+                              f"an interval the data do not determine)")
+            return
+        self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", dl2.order, se2,
+                                         dl2.npar, "ok"))
+        tr2 = replace(tr_)  # its own trace (the lower order keeps tr_)
+        self.scored.append(Candidate(se2, dl2.npar, tr2, "sparse", dl2))
+        if dl2.order >= MAX_SHARED_ORDER:
+            return
+        others = [t.se for t in self.scored[:-1] if np.isfinite(t.se)]
+        if not se2 < se:
+            self.notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
+                              f"one ({se2:.3g} %) fits no better than the first ({se:.3g} %)")
+        elif not se2 <= min(others, default=np.inf):
+            self.notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
+                              f"one ({se2:.3g} %) does not lead the candidates (best "
+                              f"{min(others):.3g} %)")
+        elif _leaves_white(dl2.model, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
+            self.notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
+                              f"one leaves white innovations")
+        else:
+            self._shared_higher(tr2, dl2, res_, k0s, se2, r)
+
+    def _force_along(self, dl, se, ch) -> None:
+        """The force traced again along a one-direction shared law's k, if that fits better.
+
+        The force channel's direction comes from the static pair law (a few % off
+        for a dynamic effect: its law then adds compensating terms); the shared
+        law's k is refitted by output error with the dynamics.
+        """
+        P = self.P
+        fse = min((t.se for t in self.scored if t.trace.channel.kind == "force" and
+                   set(t.trace.channel.equations) == set(ch.equations)), default=np.inf)
+        if not se < fse:
+            return
+        fch = force_channel(self.sys, ch, dl.k)
+        n_before = len(self.scored)
+        self.static_trace(fch)
+        ftr = next((t.trace for t in self.scored[n_before:] if t.kind == "static"), None)
+        if ftr is None:
+            return
+        res_, k0s, Ns, _ = _sparse_start(ftr)
+        try:
+            fl = fit_sparse_dynamic(self.sys, fch, res_.x_filt[:, k0s:Ns],
+                                    res_.d_est[:, k0s:Ns], P.y, P.u, Q=self.Q, R=P.R, dt=P.dt,
+                                    x0=res_.x_filt[:, 0], k0=k0s,
+                                    pole=float(np.exp(dl.pole * P.dt)))
+        except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+            self.notes.append(f"{fch.name} along the shared law's direction: {e}")
+            return
+        if fl is None:
+            return
+        fse = self.fit_error(fl.model.sys, fl.model.Q, fl.model.R)
+        self.cands.append(CandidateScore(fch.name, "dynamic (sparse)", 1, fse, fl.npar, "ok",
+                                         "along the shared-state law's direction "
+                                         f"{np.array2string(dl.k, precision=3)}"))
+        self.scored.append(Candidate(fse, fl.npar, ftr, "sparse", fl))
+
+    # ------------------------------------------------------------------ choose
+    def choose(self) -> Candidate | None:
+        """The lowest estimation SE, and within ``parsimony`` of it the fewest parameters
+        (then the fewest components, then the SE); a force re-traced if it fits better."""
+        finite = [s for s in self.scored if np.isfinite(s.se)]
         if not finite:
-            gate["passed"] = {"whiteness": True, "trace": False}
-            return _no_update("model error detected, but no candidate channel could explain it "
-                              "(see candidates)", True, cands, notes)
-        best_se = min(s[0] for s in finite)
-        near = [s for s in finite if s[0] <= parsimony * best_se]
-        se_c, npar, tr, kind = _retraced(min(near, key=lambda s: (s[1], s[2].channel.md, s[0])))
-        dl_chosen = sparse.get(id(tr))
+            return None
+        best_se = min(s.se for s in finite)
+        near = [s for s in finite if s.se <= self.S.parsimony * best_se]
+        return self.retraced(min(near, key=lambda s: (s.npar, s.trace.channel.md, s.se)))
+
+    # ------------------------------------------------------------------ 3. gate
+    def judge(self, r: Residual, chosen: Candidate) -> Verdict:
+        """3. The chosen candidate as an effect, gated on its BIC gain on d^ and its SE drop."""
+        P, S, sys = self.P, self.S, self.sys
+        se_c, npar, tr, kind = chosen.se, chosen.npar, chosen.trace, chosen.kind
         res = tr.filter_result  # the gate's d^ and x^: the search window's, as the law's
         ch = tr.channel  # (the report's trace gets its whole record at the end: _with_record)
-
-        # 3. gate on the law's BIC gain and the SE drop
         Nf = res.d_est.shape[1] - 1
         k0f = res.settled(20)
         d = res.d_est[:, k0f:Nf]
         x = res.x_filt[:, k0f:Nf]
-        uu = u[:, k0f:Nf]
+        uu = P.u[:, k0f:Nf]
         Nd = d.shape[1]
         if kind == "static":
             law = tr.static
             gain = float(law.bic_gain + law.npar * np.log(Nd))  # raw gain (before penalty)
             model = tr.static_model
-            formula = law.formula
-            pnotes = parameter_notes(sys, ch, law)
             nsens = sensor_states(law)  # a lag or a drift: sensor states, not a static law
             effect = Effect(kind="sensor" if nsens else "static", order=nsens,
-                            formula=formula, channel=ch.name,
+                            formula=law.formula, channel=ch.name,
                             equations=ch.equations, nonlinear=law.nonlinear,
-                            linearized=law.nonlinear, parameter_notes=pnotes, law=law)
+                            linearized=law.nonlinear,
+                            parameter_notes=parameter_notes(sys, ch, law), law=law)
         elif kind == "sparse":
-            dl = dl_chosen
-            r = d - dl.evaluate(x, uu)
-            _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
-            _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
-            gain = float(Nd * (ld0 - ld1))
+            dl = chosen.law
+            gain = _logdet_gain(d, d - dl.evaluate(x, uu))
             model = dl.model
             kind = "dynamic"
             effect = Effect(kind="dynamic", order=getattr(dl, "order", 1), formula=dl.formula,
                             channel=ch.name, equations=ch.equations, dynamic_law=dl)
         else:
             sub = tr.dynamic
-            r = d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d
-            _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
-            _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
-            gain = float(Nd * (ld0 - ld1))
+            gain = _logdet_gain(d, d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d)
             model = tr.dynamic_model
             effect = Effect(kind="dynamic", order=sub.order,
-                            formula=_dynamic_formula(sub, ch, dt, x, uu), channel=ch.name,
+                            formula=_dynamic_formula(sub, ch, P.dt, x, uu), channel=ch.name,
                             equations=ch.equations, subsystem=sub)
         penalty = float(npar * np.log(Nd))
-        passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
-                  "se_drop": se_c < min_se_drop * se_nom}
-        gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
-                     "se_estimation_updated": se_c, "min_se_drop": min_se_drop, "passed": passed})
-        if not (passed["bic"] and passed["se_drop"]):
-            failed = [k for k, v in passed.items() if not v]
-            return _no_update(f"model error detected (residual not white), but the best candidate "
-                              f"({ch.name}, {kind}) failed the gate: {', '.join(failed)}; "
-                              f"model unchanged", True, cands, notes, None, tr, None)
+        passed = {"whiteness": True, "bic": gain > S.bic_factor * penalty,
+                  "se_drop": se_c < S.min_se_drop * r.se_nom}
+        self.gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": S.bic_factor,
+                          "se_estimation_updated": se_c, "min_se_drop": S.min_se_drop,
+                          "passed": passed})
+        ok = passed["bic"] and passed["se_drop"]
+        if ok and kind == "static" and not effect.nonlinear:
+            model = _noise_by_likelihood(model, self.Q, P.ys, P.us, self.SKIP, self.notes)
+        return Verdict(effect=effect, model=model, kind=kind, passed=ok)
 
-        if kind == "static" and not effect.nonlinear:
-            model = _noise_by_likelihood(model, Q, ys, us, skip, notes)
-
-        # 4. before/after on validation data
-        tick("validation", 0, 2 if delta else 1)
-        table = {"nominal": val_nom}
-        if effect.nonlinear:
-            table["updated"] = _nl_validation(tr, model, y_val, u_val, lags=lags, alpha=alpha,
-                                              skip=skip, name="updated")
+    # ------------------------------------------------------------------ 4. validate
+    def validate(self, r: Residual, tr, v: Verdict) -> dict:
+        """4. Before/after on the validation record (and the parallel delta baseline)."""
+        P, S, skip, model = self.P, self.S, self.SKIP, v.model
+        P.tick("validation", 0, 2 if self.delta else 1)
+        table = {"nominal": r.val_nom}
+        if v.effect.nonlinear:
+            table["updated"] = _nl_validation(tr, model, P.y_val, P.u_val, lags=S.lags,
+                                              alpha=S.alpha, skip=skip, name="updated")
             table["updated (linearized)"] = validate_model(
-                model.sys, y_val, u_val, Q=model.Q, R=model.R, x0="estimate",
-                name="updated (linearized)", lags=lags, alpha=alpha, skip=skip)
-            notes.append("the law is nonlinear: the updated StateSpace holds its best linear "
-                         "part; the 'updated' row simulates the full law")
+                model.sys, P.y_val, P.u_val, Q=model.Q, R=model.R, x0="estimate",
+                name="updated (linearized)", lags=S.lags, alpha=S.alpha, skip=skip)
+            self.notes.append("the law is nonlinear: the updated StateSpace holds its best "
+                              "linear part; the 'updated' row simulates the full law")
         else:
-            table["updated"] = validate_model(model.sys, y_val, u_val, Q=model.Q, R=model.R,
-                                              x0="estimate", name="updated", lags=lags,
-                                              alpha=alpha, skip=skip)
-        if delta:
-            tick("validation", 1, 2)
-            try:
-                dm, bound = _delta_baseline(nominal, y, u, Q, R, delta_max_order, x0n,
-                                            max(time.monotonic() - t_pass, DELTA_MIN_BUDGET_S))
-                notes.append(dm.message)
-                if bound:
-                    notes.append(bound)
-                table["delta"] = validate_model(dm.updated.sys, y_val, u_val, Q=dm.updated.Q,
-                                                R=dm.updated.R, name="delta",
-                                                x0=dm.initial_state(y_val, u_val),
-                                                lags=lags, alpha=alpha, skip=skip)
-            except (GreyboxError, np.linalg.LinAlgError) as e:
-                notes.append(f"parallel delta baseline failed: {e}")
-        tick("validation", 2 if delta else 1, 2 if delta else 1)
+            table["updated"] = validate_model(model.sys, P.y_val, P.u_val, Q=model.Q,
+                                              R=model.R, x0="estimate", name="updated",
+                                              lags=S.lags, alpha=S.alpha, skip=skip)
+        if self.delta:
+            P.tick("validation", 1, 2)
+            self._baseline(r, table)
+        P.tick("validation", 2 if self.delta else 1, 2 if self.delta else 1)
         for name, row in table.items():
             if not row.se_defined:
-                notes.append(f"{name}: SE n/a: {row.se_reason}")
+                self.notes.append(f"{name}: SE n/a: {row.se_reason}")
+        return table
+
+    def _baseline(self, r: Residual, table: dict) -> None:
+        """The parallel delta baseline's row, its cost bounded by this pass's time."""
+        P, S = self.P, self.S
+        try:
+            dm, bound = _delta_baseline(self.nominal, P.y, P.u, self.Q, P.R, S.delta_max_order,
+                                        r.x0n, max(time.monotonic() - r.t_pass,
+                                                   DELTA_MIN_BUDGET_S))
+            self.notes.append(dm.message)
+            if bound:
+                self.notes.append(bound)
+            table["delta"] = validate_model(dm.updated.sys, P.y_val, P.u_val, Q=dm.updated.Q,
+                                            R=dm.updated.R, name="delta",
+                                            x0=dm.initial_state(P.y_val, P.u_val),
+                                            lags=S.lags, alpha=S.alpha, skip=self.SKIP)
+        except (GreyboxError, np.linalg.LinAlgError) as e:
+            self.notes.append(f"parallel delta baseline failed: {e}")
+
+    # ------------------------------------------------------------------ 5. report
+    def report(self, r: Residual, tr, v: Verdict, table: dict) -> LoopReport:
+        """5. The pass's report: where, what, before/after."""
+        ch, effect = tr.channel, v.effect
         where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
         if ch.kind == "input":
             where = f"input {ch.input} (it enters {where})"
         elif ch.kind == "force":
-            g = np.asarray(ch.G)[[list(nominal.state_labels).index(e) for e in ch.equations], 0]
+            g = np.asarray(ch.G)[[list(self.nominal.state_labels).index(e)
+                                  for e in ch.equations], 0]
             where = (f"one force between {' and '.join(ch.equations)} (it enters {where} as "
                      f"{np.array2string(g, precision=3)})")
-        what = f"{kind} effect{'' if kind == 'static' else f' of order {effect.order}'}"
+        what = f"{v.kind} effect{'' if v.kind == 'static' else f' of order {effect.order}'}"
         if effect.kind == "sensor":
             what = ("sensor dynamics, a first-order lag (one sensor state)"
                     if any(sp[1] == "yhat_lag" for sp in effect.law.spec) else
                     "a drifting sensor (offset and drift rate: two sensor states)")
         msg = f"model error found in {where}: {what}; {describe_before_after(table)}"
-        return LoopReport(model_error_detected=True, updated=True, message=msg, residual=white,
-                          effect=effect, channel=ch, candidates=tuple(cands), gate=gate,
-                          criterion=crit, nominal=nominal, model=model, table=table, trace=tr,
-                          notes=tuple(notes))
+        return LoopReport(model_error_detected=True, updated=True, message=msg,
+                          residual=r.white, effect=effect, channel=ch,
+                          candidates=tuple(self.cands), gate=self.gate, criterion=r.crit,
+                          nominal=self.nominal, model=v.model, table=table, trace=tr,
+                          notes=tuple(self.notes))
 
-    def _joint(passes, final, Qf):
-        """Refit all effects at once (greybox.trace.joint); None if some cannot be.
 
-        ``passes``: (base model, channel, effect) per effect; ``Qf`` the final Q.
-        """
-        effs = [joint_effect(base, ch, eff.dynamic_law or eff.law) for base, ch, eff in passes]
-        if any(e is None for e in effs) or ct.isdtime(final, strict=True):
-            return None
-        x0 = estimate_initial_state(discretize(final, dt), y, u)
-        jr = refine_jointly(effs, final, y, u, Q=Qf, R=R, dt=dt, x0=x0, k0=20)
-        if not (jr.se_after < jr.se_before or
-                (jr.npar_after < jr.npar_before and jr.se_after <= 1.01 * jr.se_before)):
-            return jr, None
-        row = validate_model(jr.model.sys, y_val, u_val, Q=jr.model.Q, R=jr.model.R,
-                             x0="estimate", name="updated", lags=lags, alpha=alpha, skip=20)
-        return jr, row
+def _logdet_gain(d, r) -> float:
+    """``N (log det cov d - log det cov r)``: the BIC gain of a law leaving residual r."""
+    _, ld0 = np.linalg.slogdet(np.atleast_2d(np.cov(d, bias=True)))
+    _, ld1 = np.linalg.slogdet(np.atleast_2d(np.cov(r, bias=True)))
+    return float(d.shape[1] * (ld0 - ld1))
 
-    # one BLAS thread for the whole search: thousands of small-matrix products, solves and
-    # expm, for which a second thread only waits (a 6x6 expm: 7.8 ms with two threads on a
-    # busy machine, 0.05 ms with one; bench/workflow.py's 1e5-sample chain at load ~2.5:
-    # 41 s vs 54 s wall)
-    with single_thread_blas():
-        rep = _loop(_once, sys, nominal, Q, channels, chans, delta, max_effects, dt, _joint)
-        rep = _with_record(rep, y, u, Q, R)
-        tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
-        return nonlinear_update_of_linear(rep)
 
 
 def _noise_by_likelihood(model: UpdatedModel, Q, y, u, skip, notes) -> UpdatedModel:
@@ -976,10 +1166,10 @@ def _static_is_enough(scored, y, u, Q, R, k0, lags, alpha) -> bool:
     noise model (Q, R) -- the law is deterministic (the sparse dynamic law
     costs hundreds of simulations of the full model).
     """
-    stat = [s for s in scored if s[3] == "static" and np.isfinite(s[0])]
+    stat = [s for s in scored if s.kind == "static" and np.isfinite(s.se)]
     if not stat:
         return False
-    return _leaves_white(min(stat, key=lambda s: s[0])[2].static_model, y, u, Q, R, k0, lags,
+    return _leaves_white(min(stat, key=lambda s: s.se).trace.static_model, y, u, Q, R, k0, lags,
                          alpha)
 
 
@@ -1139,24 +1329,26 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
     16-state chain with positions only).
     """
     def static(t):
-        return t[3] == "static" and t[2].channel.kind == "equation" and np.isfinite(t[0])
+        return t.kind == "static" and t.trace.channel.kind == "equation" and np.isfinite(t.se)
 
     def forced(eqs):
-        return len(eqs) == 2 and any(t[2].channel.kind == "force" and
-                                     set(t[2].channel.equations) == eqs for t in scored)
+        return len(eqs) == 2 and any(t.trace.channel.kind == "force" and
+                                     set(t.trace.channel.equations) == eqs for t in scored)
 
     top = [c.equations[0] for c in chans if c.md == 1 and c.kind == "equation" and c.equations]
     group = set(top) if 2 <= len(top) <= SCREEN_TOP else None
     if group is not None and not forced(group):
-        tr = next((t[2] for t in scored if static(t) and set(t[2].channel.equations) == group
-                   and t[2].channel.md == len(group)), None)
+        tr = next((t.trace for t in scored if static(t) and
+                   set(t.trace.channel.equations) == group and t.trace.channel.md == len(group)),
+                  None)
         tr = tr if tr is not None else trace(resolve_channel_spec(sys, [tuple(top)])[0])
         if tr is not None:
             yield tr
-    pairs = sorted((t for t in scored if static(t) and t[2].channel.md == 2), key=lambda t: t[0])
-    if pairs and set(pairs[0][2].channel.equations) != group and \
-            not forced(set(pairs[0][2].channel.equations)):
-        yield pairs[0][2]
+    pairs = sorted((t for t in scored if static(t) and t.trace.channel.md == 2),
+                   key=lambda t: t.se)
+    if pairs and set(pairs[0].trace.channel.equations) != group and \
+            not forced(set(pairs[0].trace.channel.equations)):
+        yield pairs[0].trace
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:

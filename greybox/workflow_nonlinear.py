@@ -98,8 +98,7 @@ from ._validation import (
     MAX_MAGNITUDE,
     check_covariance,
     check_positive,
-    check_same_length,
-    check_signal,
+    check_records,
 )
 from .exceptions import DataError, GreyboxError, ModelError, RankConditionError
 from .filters import (
@@ -130,7 +129,7 @@ from .nonlinear import (
 )
 from .progress import ProgressClock
 from .trace import ChannelTrace, resolve_channel_spec
-from .trace.intervals import hac_covariance
+from .trace.intervals import hac_covariance, undetermined
 from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
                          hinge_name, linear_part)
 from .trace.oe import _noise_floor, forward_select_oe
@@ -639,7 +638,9 @@ class _LawOutputError:
             if np.all(np.isfinite(xs)):
                 cov = _oe_covariance(cov, jac, fun, self.model, xs, self.uu, self.C,
                                      self.scale, *self.noise)
-        return 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+        h = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+        h[undetermined(jac)] = np.inf  # "not determined", never a half-width of a singular fit
+        return h
 
     def line_search(self, sel, theta, cands, steps):
         """Each candidate's best coefficient on a grid, the current law held: (RSS, start).
@@ -1442,12 +1443,9 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
                          "so that it can be discretized (RK4 with the inputs held per sample)")
     dt = check_positive(dt, "dt")
     lags = check_positive(lags, "lags", integer=True)
-    y = check_signal(y, p, "y", min_steps=max(200, 10 * (n + m) + 4 * lags))
-    u = check_signal(u, m, "u")
-    check_same_length(("y", y), ("u", u))
-    y_val = check_signal(y_val, p, "y_val", min_steps=max(100, 2 * lags + 2 + SKIP))
-    u_val = check_signal(u_val, m, "u_val")
-    check_same_length(("y_val", y_val), ("u_val", u_val))
+    y, u, y_val, u_val = check_records(base, y, u, y_val, u_val, R,
+                                       min_steps=max(200, 10 * (n + m) + 4 * lags),
+                                       min_val_steps=max(100, 2 * lags + 2 + SKIP))
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
     nonlinear = _flag(nonlinear, "nonlinear")

@@ -414,3 +414,45 @@ def tanks_spill(seed: int, *, xmax: float = 8.0, gamma: float = 0.6, r_std: floa
     u, y = record()
     uv, yv = record()
     return u, y, uv, yv
+
+
+# --------------------------------------------------------------------- a fleet of chains
+
+FLEET_EFFECTS = {
+    "spring": ("v2", 2, "a wall spring on mass 2 the model lacks: d_v2 = -size * p2 [N/m]"),
+    "damping": ("v1", 1, "a damper on mass 1 the model lacks: d_v1 = -size * v1 [N s/m]"),
+    "right": (None, None, "the nominal model is right"),
+}
+
+
+def chain_unit(effect: str = "spring", size: float = 0.0, seed: int = 0, *, n_est: int = 2000,
+               n_val: int = 1000) -> Case:
+    """One unit of a fleet of two-mass chains whose nominal model is ``chain(2)``.
+
+    ``effect`` (:data:`FLEET_EFFECTS`): "spring" adds a wall spring of ``size`` N/m on
+    mass 2, "damping" a damper of ``size`` N s/m on mass 1, "right" nothing. Estimation
+    data (``n_est`` samples at dt = 0.01 s) carry process noise 1e-4 on the velocities and
+    1e-3 measurement noise; validation data (``n_val``) measurement noise only.
+    """
+    nom = chain(2)
+    A, B = np.asarray(nom.A, float).copy(), np.asarray(nom.B, float)
+    row, col, _ = FLEET_EFFECTS[effect]
+    if row is not None:
+        i = ["p1", "v1", "p2", "v2"].index(row)
+        A[i, col] -= size
+    return draw(nom, lambda x, u: A @ x + B @ u, n_true=4, dt=0.01,
+                rng=np.random.default_rng(seed), n_est=n_est, n_val=n_val,
+                q_std=np.array([0.0, 1e-4, 0.0, 1e-4]), r_std=1e-3)
+
+
+def write_unit(folder, case: Case) -> None:
+    """Write a unit's ``estimation.csv`` and ``validation.csv`` (header F, outputs) into
+    ``folder`` (created)."""
+    from pathlib import Path
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    head = ",".join(list(case.nominal.input_labels) + list(case.nominal.output_labels))
+    for name, y, u in (("estimation", case.y, case.u), ("validation", case.y_val, case.u_val)):
+        np.savetxt(folder / f"{name}.csv", np.vstack([u, y]).T, delimiter=",", header=head,
+                   comments="", fmt="%.10g")

@@ -28,8 +28,9 @@ LAYER = {
     "ident": 4,
     "update": 5, "validate": 5,
     "trace": 6,
-    "records": 7, "workflow": 7, "workflow_nonlinear": 7, "nominal_refit": 7,
+    "records": 7, "recommend": 7, "workflow": 7, "workflow_nonlinear": 7, "nominal_refit": 7,
     "reproduce": 8, "plotting": 8, "io": 8, "model_io": 8, "cli": 8, "__main__": 8,
+    "fleet": 8,
     "__init__": 9,
 }
 
@@ -183,8 +184,6 @@ MAX_LINES = 120
 # the last line of the body, the docstring left out). The pipeline rebuild (one path for linear and nonlinear
 # models, named stages) removes them; an entry may only shrink or go.
 LONG_FUNCTIONS = {
-    "workflow.py:close_the_loop": 605,
-    "workflow.py:close_the_loop._once": 484,
     "workflow_nonlinear.py:close_the_loop_nonlinear": 454,
     "update.py:delta_update": 237,
     "filters/ukf.py:_run_ukf": 205,

@@ -298,3 +298,14 @@ def test_close_the_loop_bounds_the_baseline_and_says_so(monkeypatch):
     skip = close_the_loop(_osc(), y, u, yv, uv, Q=Q, R=R, dt=DT, max_effects=1, delta=False)
     assert "delta" in rep.table and "delta" not in skip.table
     assert skip.message == rep.message  # the verdict never depends on the baseline
+
+
+def test_a_diverged_candidate_scores_inf_and_does_not_end_the_run():
+    """A candidate's simulation at 1e252 (finite, beyond the magnitude check) is an
+    infinite SE, not a DataError out of close_the_loop (found on a fleet unit)."""
+    from greybox.workflow import _se
+
+    y = np.ones((1, 100))
+    assert _se(y, 1e252 * np.ones((1, 100)), 20) == np.inf
+    assert _se(y, np.full((1, 100), np.nan), 20) == np.inf
+    assert _se(y, y, 20) == 0.0

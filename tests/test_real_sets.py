@@ -6,7 +6,7 @@ channel named, the law's terms and their 95 % intervals, the before/after errors
 test split, and that ``greybox update`` on the written MODEL.json / MODEL.py
 and CSV files reaches the one call's verdict. The goals the current code does
 not reach are strict xfails (they fail, as XPASS, the day they are reached,
-so that the README table is updated). Skipped when ``../shared/data`` is
+so that the table of docs/results/real-data.md is updated). Skipped when ``../shared/data`` is
 absent. The bilinear ``x*u`` law term the heat exchanger needs is tested on
 a simulated plant first.
 """

@@ -202,6 +202,7 @@ def test_static_is_enough_accepts_a_sensor_law_with_its_own_states():
     "Q has shape (7, 7); expected (8, 8)" and ended the several-effects loop. Its Q is now
     the pass's Q beside the law's own block for the sensor state."""
     from types import SimpleNamespace
+    from greybox.records import Candidate
     from greybox.workflow import _static_is_enough
 
     # a first-order plant read through a 0.2 s sensor lag: states (x, y_lag), one output
@@ -212,7 +213,7 @@ def test_static_is_enough_accepts_a_sensor_law_with_its_own_states():
     y = gb.simulate(lagged, u, R=np.array([[1e-6]]), rng=1).y
     Q = np.array([[1e-8]])  # the pass's Q: one state
     law_model = SimpleNamespace(sys=lagged, Q=np.diag([1e-8, 1e-8]))
-    scored = [(1.0, 1, SimpleNamespace(static_model=law_model), "static")]
+    scored = [Candidate(1.0, 1, SimpleNamespace(static_model=law_model), "static")]
     # the lagged model is the true one: its innovations are white
     assert _static_is_enough(scored, y, u, Q, np.array([[1e-6]]), 20, 10, 0.01)
     # and a sensor law with the wrong lag (2 s) leaves coloured innovations
@@ -220,5 +221,6 @@ def test_static_is_enough_accepts_a_sensor_law_with_its_own_states():
                                      [[0.0, 1.0]], [[0.0]], 0, states=["x", "y_lag"],
                                      inputs=["u"], outputs=["y"]), 0.1)
     wrong = SimpleNamespace(sys=slow, Q=np.diag([1e-8, 1e-8]))
-    assert not _static_is_enough([(1.0, 1, SimpleNamespace(static_model=wrong), "static")],
+    assert not _static_is_enough([Candidate(1.0, 1, SimpleNamespace(static_model=wrong),
+                                            "static")],
                                  y, u, Q, np.array([[1e-6]]), 20, 10, 0.01)

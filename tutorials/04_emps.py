@@ -39,7 +39,7 @@ samples give the same law. On the whole file (24841 samples) the verdict
 names the kinematic equation eq(q) with a 9-term law (test SE 7.6 %): the
 law selection whitens the delayed d^ with an AR(4) filter and its residual
 has long memory, so slow terms gain evidence with the record's length
-(``python bench/emps_record_length.py``; README, "Real data": open).
+(``python bench/emps_record_length.py``; ``docs/results/real-data.md``: open).
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ to its law. MODEL.py declares k1, k2, k3 and the offset as ``params``
 refits them jointly with the law, its hinge level and its spill into
 eq(x2) (the data README: the overflow falls partly into the lower tank).
 What it finds and why the gate still refuses it is printed below and in
-the README ("Real data"); where the test error goes (not the initial
+``docs/results/real-data.md``; where the test error goes (not the initial
 state: the README's same state for both records is checked) is measured
 by ``bench/tanks_floors.py``.
 """
@@ -204,6 +204,6 @@ if best is not None and best["channel"] == "eq(x1)":
     print("   -> the trace names the upper tank's equation eq(x1), a saturation of its level "
           "spilling into the lower tank, and the sensor offset as the parameter that moves; "
           "against the parameters refitted alone its evidence stays below the gate's "
-          "(README, Real data)")
+          "(docs/results/real-data.md)")
 
 save_summary(OUT, "tanks", summary)

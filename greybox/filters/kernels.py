@@ -340,7 +340,7 @@ def _signal(a, nrows, name, min_steps=1):
     temporary is made. Anything else, and every error, goes through
     :func:`check_signal` (same conversions and messages).
     """
-    if (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.ndim == 2
+    if (type(a) is np.ndarray and a.dtype == np.float64 and a.ndim == 2  # not a masked array
             and a.shape[0] == nrows and a.shape[1] >= min_steps):
         step = max(1, (1 << 18) // max(1, nrows))
         for c0 in range(0, a.shape[1], step):

@@ -218,6 +218,11 @@ def resolve_channel_spec(sys: ct.StateSpace, spec) -> tuple[Channel, ...]:
                                  f"({n},) or ({n}, md)")
         if not np.all(np.isfinite(G)):
             raise DimensionError(f"channels[{key!r}] contains NaN or inf")
+        zero = np.flatnonzero(np.all(G == 0, axis=0))
+        if zero.size:
+            raise DimensionError(f"channels[{key!r}] is all zero"
+                                 f"{f' in column {zero[0]}' if G.shape[1] > 1 else ''}: it "
+                                 f"enters no state equation; remove it or give its G entries")
         name = str(key) if key is not None else f"G{len(out)}"
         md = G.shape[1]
         eqs = tuple(labels[i] for i in range(n) if np.any(G[i] != 0))

@@ -311,7 +311,8 @@ def _fmt_sum(coefs, names, half=None) -> str:
     parts = []
     half = np.full(len(coefs), np.nan) if half is None else half
     for c, nm, h in zip(coefs, names, half):
-        s = f"{abs(c):.3g}" if not np.isfinite(h) else f"({abs(c):.3g} ± {h:.2g})"
+        s = (f"({abs(c):.3g}, interval not determined)" if h == np.inf else
+             f"{abs(c):.3g}" if not np.isfinite(h) else f"({abs(c):.3g} ± {h:.2g})")
         s = s if nm == "1" else f"{s}*{nm}"
         parts.append(("- " if c < 0 else "+ ") + s)
     if not parts:

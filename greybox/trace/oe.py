@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
 from .._lti import lti_states
-from .intervals import hac_covariance
+from .intervals import hac_covariance, undetermined
 from .laws import LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction, linear_part
 
 # Output-error refinements of static laws run on at most this many samples
@@ -197,7 +197,7 @@ class _OutputErrorLaw:
                                  max_nfev=max_nfev)
 
     def halfwidths(self, sol, sel) -> NDArray[np.float64]:
-        """95 % half-widths of the coefficients of the last fit.
+        """95 % half-widths of the coefficients of the last fit (inf: not determined).
 
         The larger of two variances per coefficient: the sandwich covariance
         under the given noise model (Q, R) of the discrete model
@@ -209,8 +209,12 @@ class _OutputErrorLaw:
             return np.full(sol.x.size, np.nan)
         Q, R = self.noise if self.noise is not None else (None, None)
         with single_thread_blas():
-            return robust_halfwidths(sol, self.y.shape[0], self.matrices(sel, sol.x)[0],
-                                     self.C, self.scale, self.k0, Q, R)
+            h = robust_halfwidths(sol, self.y.shape[0], self.matrices(sel, sol.x)[0],
+                                  self.C, self.scale, self.k0, Q, R)
+        # a coefficient the data do not determine (collinear terms): "not determined" (inf),
+        # never the half-width of a singular covariance; the prune drops it first
+        h[undetermined(np.asarray(sol.jac))[:h.size]] = np.inf
+        return h
 
     def law_with(self, sel, theta, labels, units, tscale=None, ci=None, **changes) -> StaticLaw:
         """The law with the terms ``sel`` at ``theta`` (all others zero), 95 % half-widths ``ci``."""
