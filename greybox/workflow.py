@@ -685,7 +685,8 @@ class _Pass:
         P, S = self.P, self.S
         first_max = min(S.max_order, 1)
         if self.big:
-            self.chans = _screened_channels(P, self.sys, self.Q, self.chans, self.notes)
+            self.chans = _screened_channels(P, self.sys, self.nominal, self.Q, self.chans,
+                                            self.notes)
             # unstructured subsystems (driven by all n + m signals) cost O(n) each and read
             # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
             first_max = 0

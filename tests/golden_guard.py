@@ -49,6 +49,8 @@ def _clean(obj):
         return repr(obj)
     if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):  # numpy scalars
         return _clean(obj.item())
+    if isinstance(obj, str):  # python-control's generated names count every system made
+        return re.sub(r"sys\[\d+\]", "sys[#]", obj)
     return obj
 
 
