@@ -1,0 +1,834 @@
+"""A randomized plant zoo (issue 27 item 1): plants nobody tuned to, with their truth recorded.
+
+Each plant class is a function ``draw(rng) -> ZooDraw`` that draws random
+physical parameters, a size (2-24 states where it applies), a measured subset
+(all states, positions only, a random observable subset), an excitation
+(low-pass noise, multisine or random binary) and a signal-to-noise ratio of
+40-60 dB per output; it simulates an estimation record (process noise on the
+nominal states plus measurement noise) and a validation record (measurement
+noise only, PAPER_NOTES §8.6), and records what the nominal model lacks as a
+:class:`Truth`: the effects, each with its channel kind ("state", "input",
+"sensor"), the equations / inputs / outputs concerned, the law's kind
+("static", "dynamic"), its order, drivers and terms with coefficients. A
+correct model has an empty list of effects. ``CLASSES`` maps each class name
+to its draw function.
+
+:func:`score` compares a :class:`greybox.workflow.LoopReport` with the truth
+(right channel, kind, order, terms and drivers; coefficients within 10 %;
+interval coverage; false flags of right parameters; validation SE against the
+true model's; false updates of correct models). How greybox's report states
+an effect is read in ONE function, :func:`found_effects`, so that the scorer
+follows the report when it gains structured terms.
+
+Conventions. Time is the last axis of every signal. Continuous-time truth:
+a term's coefficient is in the units of its target: d(state)/dt for a state
+equation (e.g. [m/s^2] in a velocity equation), the input's units for an
+input channel (``u_plant = u + d``), the output's units for a sensor
+(``y = C x + d``). Linear terms are stated one variable at a time (a spring
+between two bodies is ``-k/m1 p1 + k/m1 p2`` in eq(v1)); a nonlinear term of
+a relative coordinate keeps it (``(p2-p1)^3``). A dynamic law is a
+continuous state-space subsystem from its drivers to ``d``
+(:class:`HiddenDynamics`); its "coefficients" are its poles and its DC gains.
+
+This module is a test helper: it imports only the bottom layers (numpy,
+scipy, python-control, greybox.signals / system / metrics), never the trace,
+update or workflow code it measures.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+import zlib
+from dataclasses import dataclass, field
+from typing import Callable
+
+import control as ct
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import expm, solve_discrete_are
+
+from .metrics import relative_error
+from .signals import lowpass_noise, multisine, random_binary
+from .system import named_ss
+
+__all__ = [
+    "Term", "HiddenDynamics", "TrueEffect", "Truth", "ZooDraw", "FoundEffect", "ZooScore",
+    "CLASSES", "CORRECT_CLASSES", "draw_class", "class_rng", "score", "found_effects",
+    "model_with_truth", "simulate_true", "SNR_DB",
+]
+
+#: Range of the signal-to-noise ratio of each measured output [dB].
+SNR_DB = (40.0, 60.0)
+#: Relative tolerance of a "right" coefficient (issue 27: within 10 %).
+COEF_RTOL = 0.10
+#: Leading samples left out of the validation SE (as the report's table does).
+SKIP = 20
+
+_FORMS = ("x", "x^3", "sign(x)", "|x|", "x*u", "rel^3", "1", "t", "sat", "deadzone")
+
+
+# ----------------------------------------------------------------------------- the truth
+@dataclass(frozen=True)
+class Term:
+    """One term of a static law: ``d_target += coefficient * form(variables)``.
+
+    Attributes
+    ----------
+    target : str
+        The state whose equation, the input, or the output the term adds to.
+    form : str
+        One of "x" (the variable itself), "x^3", "sign(x)", "|x|", "x*u" (a
+        product of two variables), "rel^3" (``(b - a)^3`` of variables
+        ``(a, b)``), "1" (a constant), "t" (time [s] from the record's first
+        sample), "sat" (``clip(v, -c, c) - v``: the coefficient is the level
+        c) and "deadzone" (``-clip(v, -c, c)``: the coefficient is the
+        half-width c).
+    variables : tuple of str
+        States or inputs the form reads (none for "1" and "t").
+    coefficient : float
+        In the target's units per the form's units (see the module notes);
+        the level or half-width for "sat" and "deadzone".
+    unit : str
+        The coefficient's unit, for reading.
+    """
+
+    target: str
+    form: str
+    variables: tuple[str, ...]
+    coefficient: float
+    unit: str = ""
+
+    @property
+    def expression(self) -> str:
+        """Canonical text of the form, e.g. ``"sign(v1)"``, ``"(p2-p1)^3"``, ``"sat(F)"``."""
+        v = self.variables
+        return {"x": lambda: v[0], "x^3": lambda: f"{v[0]}^3", "sign(x)": lambda: f"sign({v[0]})",
+                "|x|": lambda: f"|{v[0]}|", "x*u": lambda: f"{v[0]}*{v[1]}",
+                "rel^3": lambda: f"({v[1]}-{v[0]})^3", "1": lambda: "1", "t": lambda: "t",
+                "sat": lambda: f"sat({v[0]})", "deadzone": lambda: f"deadzone({v[0]})"}[self.form]()
+
+    def basis(self, values: dict[str, NDArray], t: NDArray | float = 0.0) -> NDArray:
+        """The form's value (without the coefficient, except "sat" and "deadzone").
+
+        ``values`` maps each variable to an array (any shape, the same for
+        all); ``t`` is time [s].
+        """
+        v = [np.asarray(values[s], dtype=float) for s in self.variables]
+        c = self.coefficient
+        if self.form == "x":
+            return v[0]
+        if self.form == "x^3":
+            return v[0] ** 3
+        if self.form == "sign(x)":
+            return np.sign(v[0])
+        if self.form == "|x|":
+            return np.abs(v[0])
+        if self.form == "x*u":
+            return v[0] * v[1]
+        if self.form == "rel^3":
+            return (v[1] - v[0]) ** 3
+        if self.form == "1":
+            return np.ones_like(np.asarray(t, dtype=float))
+        if self.form == "t":
+            return np.asarray(t, dtype=float)
+        if self.form == "sat":
+            return np.clip(v[0], -c, c) - v[0]
+        if self.form == "deadzone":
+            return -np.clip(v[0], -c, c)
+        raise ValueError(f"unknown form {self.form!r}; one of {_FORMS}")
+
+    def value(self, values: dict[str, NDArray], t: NDArray | float = 0.0) -> NDArray:
+        """The term's contribution to ``d_target``."""
+        b = self.basis(values, t)
+        return b if self.form in ("sat", "deadzone") else self.coefficient * b
+
+
+@dataclass(frozen=True, eq=False)
+class HiddenDynamics:
+    """A continuous subsystem ``dz/dt = A z + B w``, ``d = C z + D w`` (a dynamic law).
+
+    Attributes
+    ----------
+    A : ndarray, shape (order, order)
+        [1/s].
+    B : ndarray, shape (order, ndrivers)
+    C : ndarray, shape (ntargets, order)
+    D : ndarray, shape (ntargets, ndrivers)
+    drivers : tuple of str
+        The states or inputs ``w`` (in that order).
+    targets : tuple of str
+        The components of ``d`` (equations, inputs or outputs, by the channel).
+    """
+
+    A: NDArray[np.float64]
+    B: NDArray[np.float64]
+    C: NDArray[np.float64]
+    D: NDArray[np.float64]
+    drivers: tuple[str, ...]
+    targets: tuple[str, ...]
+
+    @property
+    def order(self) -> int:
+        return int(self.A.shape[0])
+
+    @property
+    def poles(self) -> NDArray[np.complex128]:
+        """Continuous poles [1/s], sorted by modulus."""
+        p = np.linalg.eigvals(self.A)
+        return p[np.argsort(np.abs(p))]
+
+    @property
+    def dc_gain(self) -> NDArray[np.float64]:
+        """DC gain from each driver to each target, shape (ntargets, ndrivers)."""
+        return self.D - self.C @ np.linalg.solve(self.A, self.B)
+
+
+@dataclass(frozen=True)
+class TrueEffect:
+    """One effect the nominal model lacks.
+
+    Attributes
+    ----------
+    channel : str
+        "state" (it enters state equations), "input" (it adds to a known
+        input: ``u_plant = u + d``) or "sensor" (it adds to a measured output).
+    equations : tuple of str
+        States whose equations it enters (for an input: those the input enters).
+    inputs : tuple of str
+        The input(s) it adds to ("input" channel), else ().
+    outputs : tuple of str
+        The output(s) it adds to ("sensor" channel), else ().
+    law : str
+        "static" (a function of the present states, inputs or time) or "dynamic".
+    order : int
+        States of the law (0 for static).
+    drivers : tuple of str
+        The signals the law reads (sorted).
+    terms : tuple of Term
+        A static law's terms (empty for a dynamic law).
+    dynamics : HiddenDynamics or None
+        A dynamic law.
+    description : str
+        One line, in physical words.
+    """
+
+    channel: str
+    equations: tuple[str, ...]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    law: str
+    order: int
+    drivers: tuple[str, ...]
+    terms: tuple[Term, ...] = ()
+    dynamics: HiddenDynamics | None = field(default=None, compare=False)
+    description: str = ""
+
+    @property
+    def targets(self) -> tuple[str, ...]:
+        """What d adds to: the equations, inputs or outputs by the channel."""
+        return {"state": self.equations, "input": self.inputs, "sensor": self.outputs}[
+            self.channel]
+
+
+@dataclass(frozen=True)
+class Truth:
+    """What the nominal model lacks: a list of effects (empty for a correct model)."""
+
+    effects: tuple[TrueEffect, ...] = ()
+
+    @property
+    def correct(self) -> bool:
+        return not self.effects
+
+
+@dataclass(frozen=True, eq=False)
+class ZooDraw:
+    """One drawn plant: nominal model, true plant, data, covariances and the truth.
+
+    Attributes
+    ----------
+    cls : str
+        The class name (a key of ``CLASSES``).
+    nominal : control.StateSpace or control.NonlinearIOSystem
+        The engineer's model, continuous time, named signals. The data are
+        ZOH-sampled (inputs held over each sample), so the ZOH
+        discretization (``greybox.discretize(nominal, dt)``) is exact for it.
+    true : control.StateSpace or control.NonlinearIOSystem
+        The true plant, continuous time; its first states are the nominal's
+        (the same names), then hidden states; outputs as the nominal's.
+    true_x0 : ndarray, shape (true.nstates,)
+        The true plant's initial state of both records.
+    dt : float
+        Sampling period [s].
+    y, u : ndarray, shapes (p, N), (m, N)
+        Estimation record (process noise on the nominal states + measurement noise).
+    y_val, u_val : ndarray, shapes (p, Nv), (m, Nv)
+        Validation record (measurement noise only).
+    y_val_clean : ndarray, shape (p, Nv)
+        The true plant's validation output without noise (the true model's
+        simulation): the validation SE of the true model is that of it.
+    Q : ndarray, shape (n, n)
+        Suggested discrete process-noise covariance of the nominal model (the
+        one the estimation record was drawn with, + 1e-12 jitter).
+    R : ndarray, shape (p, p)
+        Measurement-noise covariance (the true one).
+    truth : Truth
+    snr_db : ndarray, shape (p,)
+        Drawn SNR of each output [dB] (rms of the clean output over the noise std).
+    closed_loop : bool
+        The records were measured in closed loop (u depends on the noisy y).
+    description : str
+        The draw in a few words (sizes, measured subset, excitation).
+    """
+
+    cls: str
+    nominal: object
+    true: object
+    true_x0: NDArray[np.float64]
+    dt: float
+    y: NDArray[np.float64]
+    u: NDArray[np.float64]
+    y_val: NDArray[np.float64]
+    u_val: NDArray[np.float64]
+    y_val_clean: NDArray[np.float64]
+    Q: NDArray[np.float64]
+    R: NDArray[np.float64]
+    truth: Truth
+    snr_db: NDArray[np.float64]
+    closed_loop: bool = False
+    description: str = ""
+
+    @property
+    def nonlinear_model(self) -> bool:
+        """The nominal model is a NonlinearIOSystem."""
+        return not isinstance(self.nominal, ct.StateSpace)
+
+    def se_true(self) -> float:
+        """Validation SE [%] of the true model: its noise-free simulation against y_val."""
+        return relative_error(self.y_val, self.y_val_clean, skip=SKIP).value
+
+
+# ---------------------------------------------------------------------- the simulator
+@dataclass(frozen=True, eq=False)
+class _Plant:
+    """The true plant as the generator simulates it (continuous time, inputs held).
+
+    ``A, B`` (linear dynamics, simulated exactly by ZOH) or ``f(x, u) -> dx/dt``
+    (RK4, ``sub`` steps per sample, ``f`` reads states (n,) or (n, npts));
+    ``inmap(u)`` a static elementwise map of the held input (dead zone,
+    saturation); the clean output is ``C x`` (a sensor offset or drift is a
+    state of the plant: ``true_x0`` holds it).
+    """
+
+    n: int
+    C: NDArray
+    A: NDArray | None = None
+    B: NDArray | None = None
+    f: Callable | None = None
+    inmap: Callable | None = None
+    x0: NDArray | None = None
+    sub: int = 4
+
+    def out(self, X: NDArray, U: NDArray | None = None) -> NDArray:
+        """Clean output (p, N) of states (n, N)."""
+        return self.C @ X
+
+    def stepper(self, dt: float) -> Callable:
+        """x[k+1] from (x[k], u[k]) over one sample."""
+        if self.f is None:
+            n, m = self.B.shape
+            M = np.zeros((n + m, n + m))
+            M[:n, :n], M[:n, n:] = self.A, self.B
+            E = expm(M * dt)
+            Ad, Bd = E[:n, :n], E[:n, n:]
+            return lambda x, u: Ad @ x + Bd @ u
+        f, h = self.f, dt / self.sub
+
+        def step(x, u):
+            for _ in range(self.sub):
+                a = f(x, u)
+                b = f(x + h / 2 * a, u)
+                c = f(x + h / 2 * b, u)
+                d = f(x + h * c, u)
+                x = x + h / 6 * (a + 2 * b + 2 * c + d)
+            return x
+        return step
+
+
+def _simulate(plant: _Plant, dt: float, u: NDArray, *, q_std: NDArray | None = None,
+              r_std: NDArray | None = None, rng=None, controller=None):
+    """Simulate the plant; returns (x (n, N), u (m, N), y_clean (p, N), y (p, N)).
+
+    Open loop: ``u`` (m, N) is the input. Closed loop (``controller = K``):
+    ``u`` is the reference r and the plant's input is ``r[k] - K y[k]`` with
+    the noisy measurement y[k]. ``q_std`` (n0,): discrete process noise on
+    the first n0 states; ``r_std`` (p,): measurement noise.
+    """
+    step = plant.stepper(dt)
+    N = u.shape[1]
+    xk = np.zeros(plant.n) if plant.x0 is None else np.array(plant.x0, dtype=float)
+    X = np.empty((plant.n, N))
+    U = np.array(u, dtype=float)
+    inmap = plant.inmap if plant.inmap is not None else (lambda v: v)
+    if controller is None:
+        for k in range(N):
+            X[:, k] = xk
+            xk = step(xk, inmap(U[:, k]))
+            if q_std is not None:
+                xk[:q_std.size] += q_std * rng.standard_normal(q_std.size)
+        yc = plant.out(X, U)
+        y = yc + (r_std[:, None] * rng.standard_normal(yc.shape) if r_std is not None else 0)
+        return X, U, yc, y
+    K = controller
+    p = K.shape[1]
+    yc, y = np.empty((p, N)), np.empty((p, N))
+    for k in range(N):
+        X[:, k] = xk
+        yc[:, k] = plant.out(xk[:, None], np.zeros((U.shape[0], 1)))[:, 0]
+        y[:, k] = yc[:, k] + (r_std * rng.standard_normal(p) if r_std is not None else 0)
+        U[:, k] = u[:, k] - K @ y[:, k]
+        xk = step(xk, inmap(U[:, k]))
+        if q_std is not None:
+            xk[:q_std.size] += q_std * rng.standard_normal(q_std.size)
+    return X, U, yc, y
+
+
+def _excitation(rng, kind: str, m: int, N: int, dt: float, bandwidth: float,
+                amplitude: float) -> NDArray:
+    """(m, N) input of ``kind`` ("lowpass", "multisine", "binary") and std ``amplitude``.
+
+    ``bandwidth`` [Hz] is the low-pass cut-off, the multisine's highest line
+    and about the binary signal's bandwidth (hold = 1 / (2 bandwidth dt)).
+    """
+    bw = min(bandwidth, 0.4 / dt)
+    if kind == "multisine":
+        return multisine(N, dt=dt, nsignals=m, amplitude=amplitude, fmin=min(0.02, bw / 20),
+                         fmax=bw, nfreq=30, rng=rng)
+    if kind == "binary":
+        hold = max(1, int(round(1.0 / (2.0 * bw * dt))))
+        return random_binary(N, nsignals=m, amplitude=amplitude, hold=hold, rng=rng)
+    return lowpass_noise(N, dt=dt, bandwidth=bw, nsignals=m, amplitude=amplitude, rng=rng)
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What a class hands to :func:`_make_draw` besides the nominal and the truth."""
+
+    plant: _Plant
+    dt: float
+    bandwidth: float           # excitation bandwidth [Hz]
+    amplitude: float           # excitation std [input units]
+    q_states: tuple[int, ...]  # nominal states that receive process noise
+    n_est: int = 4000
+    n_val: int = 2000
+    controller: NDArray | None = None
+    excitation: str | None = None   # None: drawn
+    q_level: float = 0.03      # process-noise std per sample, relative to the noise level x rms
+
+
+def _make_draw(cls: str, rng: np.random.Generator, nominal, true, truth: Truth, s: _Setup,
+               description: str, n_est: int | None = None) -> ZooDraw:
+    """Draw the noise levels and excitation, simulate both records, assemble the draw."""
+    N = n_est if n_est is not None else s.n_est
+    Nv = max(300, N // 2) if n_est is not None else s.n_val
+    n0 = len(nominal.state_labels)
+    m = len(nominal.input_labels)
+    p = len(nominal.output_labels)
+    exc = s.excitation or str(rng.choice(["lowpass", "multisine", "binary"]))
+    snr = rng.uniform(*SNR_DB, size=p)
+    u = _excitation(rng, exc, m, N, s.dt, s.bandwidth, s.amplitude)
+    uv = _excitation(rng, exc, m, Nv, s.dt, s.bandwidth, s.amplitude)
+    # a clean pilot run of the estimation input sets the noise levels
+    Xp, _, ycp, _ = _simulate(s.plant, s.dt, u, controller=s.controller)
+    if not (np.all(np.isfinite(Xp)) and np.all(np.abs(Xp) < 1e8)):
+        raise _Redraw("the true plant diverged on the estimation input")
+    r_std = np.sqrt(np.mean(ycp ** 2, axis=1)) * 10 ** (-snr / 20)
+    level = 10 ** (-snr.mean() / 20)
+    q_std = np.zeros(n0)
+    rms_x = np.sqrt(np.mean(Xp[:n0] ** 2, axis=1))
+    for i in s.q_states:
+        q_std[i] = s.q_level * level * rms_x[i]
+    _, U, _, y = _simulate(s.plant, s.dt, u, q_std=q_std, r_std=r_std, rng=rng,
+                           controller=s.controller)
+    _, Uv, ycv, yv = _simulate(s.plant, s.dt, uv, r_std=r_std, rng=rng, controller=s.controller)
+    if not np.all(np.isfinite(y)) or not np.all(np.isfinite(yv)):
+        raise _Redraw("the simulation diverged")
+    x0 = np.zeros(s.plant.n) if s.plant.x0 is None else np.asarray(s.plant.x0, float)
+    return ZooDraw(cls=cls, nominal=nominal, true=true, true_x0=x0, dt=s.dt, y=y, u=U,
+                   y_val=yv, u_val=Uv, y_val_clean=ycv, Q=np.diag(q_std ** 2) + 1e-12 * np.eye(n0),
+                   R=np.diag(r_std ** 2), truth=truth, snr_db=snr,
+                   closed_loop=s.controller is not None,
+                   description=f"{description}; {exc} input, {s.dt:.3g} s, N = {N}")
+
+
+class _Redraw(Exception):
+    """A drawn plant is unusable (unobservable, diverging): draw again."""
+
+
+# ------------------------------------------------------------------- building blocks
+def _loguniform_int(rng, lo: int, hi: int) -> int:
+    """An integer in [lo, hi], log-uniform (small sizes as likely as large decades)."""
+    return int(min(hi, max(lo, math.floor(math.exp(rng.uniform(math.log(lo),
+                                                                math.log(hi + 1)))))))
+
+
+def _observable(A: NDArray, C: NDArray) -> bool:
+    """PBH test: no eigenvector of A is invisible in C (relative tolerance 1e-7)."""
+    n = A.shape[0]
+    scale = max(1.0, np.linalg.norm(A, 2))
+    for lam in np.linalg.eigvals(A):
+        M = np.vstack([(lam * np.eye(n) - A) / scale, C])
+        if np.linalg.svd(M, compute_uv=False)[-1] < 1e-7:
+            return False
+    return True
+
+
+def _measured(rng, states: list[str], A: NDArray, options=("all", "positions", "subset"),
+              must=()) -> tuple[str, list[int]]:
+    """(kind, indices) of a measured subset: all states, the positions, or a random subset.
+
+    Positions are the states named p*, th* (a mechanical model); a subset
+    keeps between a quarter and all but one of the states, always the
+    indices ``must``; every choice is checked for observability (PBH), else
+    drawn again (all states as the last resort).
+    """
+    n = len(states)
+    pos = [i for i, s in enumerate(states) if s.startswith(("p", "th"))]
+    opts = [o for o in options if o != "positions" or pos]
+    kind = str(rng.choice(opts))
+    for _ in range(30):
+        if kind == "all" or n == 1:
+            return "all", list(range(n))
+        if kind == "positions":
+            idx = pos
+        else:
+            k = int(rng.integers(max(1, n // 4), n))
+            idx = sorted(set(rng.choice(n, size=k, replace=False).tolist()) | set(must))
+        if _observable(A, np.eye(n)[idx]):
+            return kind, list(idx)
+        kind = str(rng.choice(opts))
+    return "all", list(range(n))
+
+
+def _named(A, B, states, inputs, measured: list[int], name: str) -> ct.StateSpace:
+    """Continuous named StateSpace measuring the states ``measured`` (outputs named as them)."""
+    outs = [states[i] for i in measured]
+    C = np.eye(len(states))[measured]
+    return named_ss(A, B, C, np.zeros((len(measured), len(inputs))), 0, states=states,
+                    inputs=inputs, outputs=outs, name=name)
+
+
+def _mech(m, springs, dampers, forces):
+    """Continuous (A, B, states) of masses on a line.
+
+    ``m`` (N,) masses [kg]; ``springs`` / ``dampers``: (i, j, k) with k [N/m]
+    or [N s/m] between masses i and j (j = -1: to the ground); ``forces``:
+    one list of (mass, gain) per input (a force F [N] on mass i times gain).
+    States p1, v1, ..., pN, vN [m, m/s].
+    """
+    N = len(m)
+    A = np.zeros((2 * N, 2 * N))
+    for i in range(N):
+        A[2 * i, 2 * i + 1] = 1.0
+    for elems, off in ((springs, 0), (dampers, 1)):
+        for i, j, k in elems:
+            A[2 * i + 1, 2 * i + off] -= k / m[i]
+            if j >= 0:
+                A[2 * i + 1, 2 * j + off] += k / m[i]
+                A[2 * j + 1, 2 * j + off] -= k / m[j]
+                A[2 * j + 1, 2 * i + off] += k / m[j]
+    B = np.zeros((2 * N, len(forces)))
+    for q, f in enumerate(forces):
+        for i, g in f:
+            B[2 * i + 1, q] += g / m[i]
+    states = [f"{s}{i + 1}" for i in range(N) for s in ("p", "v")]
+    return A, B, states
+
+
+@dataclass
+class _Chain:
+    """Drawn parameters of a chain of masses (mutable while a class edits them)."""
+
+    m: NDArray
+    springs: list
+    dampers: list
+    forces: list
+
+    def matrices(self):
+        return _mech(self.m, self.springs, self.dampers, self.forces)
+
+
+def _chain(rng, n_masses: int | None = None, lo: int = 1, hi: int = 12) -> _Chain:
+    """A wall-spring-mass chain of random size: masses 0.5-2 kg, springs 5-40 N/m to the
+    wall and between neighbours (and to a second wall half of the time), a damper of
+    0.2-1 N s/m from every mass to the ground, one force F on a random mass."""
+    N = n_masses if n_masses is not None else _loguniform_int(rng, lo, hi)
+    m = rng.uniform(0.5, 2.0, N)
+    springs = [(0, -1, rng.uniform(5, 40))] + [(i, i + 1, rng.uniform(5, 40))
+                                               for i in range(N - 1)]
+    if N > 1 and rng.random() < 0.5:
+        springs.append((N - 1, -1, rng.uniform(5, 40)))
+    dampers = [(i, -1, rng.uniform(0.2, 1.0)) for i in range(N)]
+    forces = [[(int(rng.integers(N)), 1.0)]]
+    return _Chain(m, springs, dampers, forces)
+
+
+def _mech_timing(rng, A) -> tuple[float, float]:
+    """(dt, excitation bandwidth [Hz]) of a mechanical model: 20-40 samples per period of
+    its fastest mode; the excitation reaches 0.4-1 of that mode's frequency."""
+    wmax = max(np.abs(np.linalg.eigvals(A)).max(), 1e-3)
+    dt = 2 * np.pi / (wmax * rng.uniform(20, 40))
+    return dt, wmax / (2 * np.pi) * rng.uniform(0.4, 1.0)
+
+
+def _linear_terms(A_nom, A_true, B_nom, B_true, states, inputs, rows=None) -> tuple[Term, ...]:
+    """The linear terms the model lacks: each nonzero entry of the truth minus the model.
+
+    Rows are the nominal states (or ``rows``); columns states then inputs. Unit
+    "1/s" per column unit.
+    """
+    n = len(states)
+    dA = np.asarray(A_true)[:n, :n] - np.asarray(A_nom)
+    dB = np.asarray(B_true)[:n] - np.asarray(B_nom)
+    out = []
+    for i in (range(n) if rows is None else rows):
+        for j in range(n):
+            if abs(dA[i, j]) > 1e-12 * max(1.0, np.abs(A_nom).max()):
+                out.append(Term(states[i], "x", (states[j],), float(dA[i, j])))
+        for j in range(len(inputs)):
+            if abs(dB[i, j]) > 1e-12 * max(1.0, np.abs(B_nom).max()):
+                out.append(Term(states[i], "x", (inputs[j],), float(dB[i, j])))
+    return tuple(out)
+
+
+def _state_effect(terms: tuple[Term, ...], description: str) -> TrueEffect:
+    """A static effect in the state equations its terms name."""
+    eqs = tuple(dict.fromkeys(t.target for t in terms))
+    drivers = tuple(sorted({v for t in terms for v in t.variables}))
+    return TrueEffect("state", eqs, (), (), "static", 0, drivers, terms,
+                      description=description)
+
+
+def _true_system(plant: _Plant, nominal, hidden: list[str], name: str):
+    """The true plant as a continuous python-control system (StateSpace when linear)."""
+    states = list(nominal.state_labels) + list(hidden)
+    ins, outs = list(nominal.input_labels), list(nominal.output_labels)
+    if plant.f is None and plant.inmap is None:
+        return named_ss(plant.A, plant.B, plant.C, np.zeros((len(outs), len(ins))), 0,
+                        states=states, inputs=ins, outputs=outs, name=name)
+    inmap = plant.inmap if plant.inmap is not None else (lambda v: v)
+    if plant.f is not None:
+        fx = plant.f
+    else:
+        A, B = plant.A, plant.B
+        fx = lambda x, u: A @ x + B @ u  # noqa: E731
+    C = plant.C
+    return ct.nlsys(lambda t, x, u, p: fx(x, inmap(u)), lambda t, x, u, p: C @ x,
+                    states=states, inputs=ins, outputs=outs, dt=0, name=name)
+
+
+def _pilot_rms(A, B, dt, bandwidth, amplitude, rng, N: int = 2000) -> NDArray:
+    """RMS of the states (n,) of the linear plant (A, B) under low-pass noise (a pilot run)."""
+    u = _excitation(rng, "lowpass", B.shape[1], N, dt, bandwidth, amplitude)
+    X, _, _, _ = _simulate(_Plant(A.shape[0], np.eye(A.shape[0]), A, B), dt, u)
+    return np.sqrt(np.mean(X[:, N // 10:] ** 2, axis=1))
+
+
+def _vel(states) -> tuple[int, ...]:
+    """Indices of the velocity (momentum) states v*, om*: they receive process noise."""
+    return tuple(i for i, s in enumerate(states) if s.startswith(("v", "om", "i")))
+
+
+def _sign_smooth(v, eps):
+    """sign(v) as the truth simulates it: tanh(v / eps) with eps 1 % of the velocity's rms."""
+    return np.tanh(v / eps)
+
+
+def _retry(fn: Callable) -> Callable:
+    """``draw(rng, *, n_est=None)`` from ``fn(rng, n_est)``: draws again (up to 30 times) while
+    the drawn plant is unusable (unobservable, diverging, a closed loop the truth destabilizes).
+
+    ``rng``: a numpy Generator or an integer seed. ``n_est``: estimation samples
+    (the validation record has half as many, at least 300); None for the
+    class's own length (4000 and 2000).
+    """
+    def draw(rng, *, n_est: int | None = None) -> ZooDraw:
+        g = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        for _ in range(30):
+            try:
+                return fn(g, n_est)
+            except _Redraw:
+                continue
+        raise RuntimeError(f"{fn.__name__}: no usable plant in 30 draws")
+    draw.__name__ = fn.__name__
+    draw.__doc__ = fn.__doc__
+    return draw
+
+
+def _factor(rng) -> float:
+    """The model's value over the true one: 0 (missing, 40 %), 0.3-0.6 or 1.6-2.5 (wrong)."""
+    r = rng.random()
+    return 0.0 if r < 0.4 else rng.uniform(0.3, 0.6) if r < 0.7 else rng.uniform(1.6, 2.5)
+
+
+def _linear_case(cls, rng, n_est, nom_AB, true_AB, states, inputs, effects, text, *,
+                 options=("all", "positions", "subset"), hidden=(), must=(), timing=None,
+                 amplitude=None, x0=None, C_extra=None, excitation=None, inmap=None):
+    """A draw whose truth is linear in the states (inputs through ``inmap``).
+
+    ``nom_AB``, ``true_AB``: continuous (A, B) of the nominal model and of the
+    true plant (its states: the nominal's, then ``hidden``); ``C_extra(C)``
+    edits the true output matrix (a sensor effect); ``timing``: (dt,
+    bandwidth [Hz]), default from the true A (mechanical rule).
+    """
+    (A, B), (At, Bt) = nom_AB, true_AB
+    kind, meas = _measured(rng, states, A, options, must)
+    nom = _named(A, B, states, inputs, meas, cls)
+    dt, bw = timing if timing is not None else _mech_timing(rng, At)
+    Ct = np.hstack([np.eye(len(states))[meas], np.zeros((len(meas), len(hidden)))])
+    if C_extra is not None:
+        Ct = C_extra(Ct, [states[i] for i in meas])
+    plant = _Plant(At.shape[0], Ct, At, Bt, inmap=inmap, x0=x0)
+    true = _true_system(plant, nom, list(hidden), f"{cls}_true")
+    amp = amplitude if amplitude is not None else rng.uniform(1.0, 3.0)
+    setup = _Setup(plant, dt, bw, amp, tuple(i for i in _vel(states)), excitation=excitation)
+    return _make_draw(cls, rng, nom, true, Truth(tuple(effects)), setup,
+                      f"{text}; {len(states)} states, measured: {kind} ({len(meas)})", n_est)
+
+
+def _element(rng, ch: _Chain, what: str, i: int, j: int = -1):
+    """(true element, model's element or None, text) of an element the model lacks or has
+    wrong (factor from :func:`_factor`): "damping" (a damper i-j, 0.5-2 N s/m per kg of
+    mass i) or "stiffness" (a spring i-j, 5-40 N/m); j = -1: to the ground."""
+    val = rng.uniform(0.5, 2.0) * ch.m[i] if what == "damping" else rng.uniform(5, 40)
+    fac = _factor(rng)
+    where = f"m{i + 1}-ground" if j < 0 else f"m{i + 1}-m{j + 1}"
+    state = "missing" if fac == 0 else f"x{fac:.2f} in the model"
+    return (what, (i, j, val)), ((what, (i, j, fac * val)) if fac > 0 else None), \
+        f"{what} {val:.3g} at {where} ({state})"
+
+
+def _with(ch: _Chain, *elements) -> _Chain:
+    """The chain with extra elements ``(what, (i, j, value))`` (None entries skipped)."""
+    out = _Chain(ch.m, list(ch.springs), list(ch.dampers), ch.forces)
+    for e in elements:
+        if e is not None:
+            (out.dampers if e[0] == "damping" else out.springs).append(e[1])
+    return out
+
+
+def _elements_case(rng, n_est, cls, ch: _Chain, picks, *, options=("all", "positions",
+                                                                    "subset")):
+    """A chain whose elements ``picks`` ((what, i, j) each) the model lacks or has wrong: one
+    static state effect per element."""
+    drawn = [_element(rng, ch, w, i, j) for w, i, j in picks]
+    nom = _with(ch, *[d[1] for d in drawn])
+    A, B, states = nom.matrices()
+    At, Bt, _ = _with(ch, *[d[0] for d in drawn]).matrices()
+    effects = []
+    for k, (tr, md, text) in enumerate(drawn):
+        one = _with(ch, *[d[1] if q != k else d[0] for q, d in enumerate(drawn)])
+        A1, B1, _ = one.matrices()
+        effects.append(_state_effect(_linear_terms(A, A1, B, B1, states, ["F"]), text))
+    text = "; ".join(d[2] for d in drawn)
+    return _linear_case(cls, rng, n_est, (A, B), (At, Bt), states, ["F"], effects,
+                        f"chain of {len(ch.m)}: {text}", options=options)
+
+
+def _chain_static(rng, n_est, cls, pair=False):
+    """A chain of random size with one static element wrong (see :func:`_element`)."""
+    ch = _chain(rng, lo=2 if pair else 1)
+    N = len(ch.m)
+    what = str(rng.choice(["damping", "stiffness"]))
+    i = int(rng.integers(N - 1 if pair else N))
+    return _elements_case(rng, n_est, cls, ch, [(what, i, i + 1 if pair else -1)])
+
+
+def _thermal_params(rng, lo=2, hi=12):
+    """(capacities [J/K], losses [W/K], links [W/K], heated bodies) of a row of bodies."""
+    n = _loguniform_int(rng, lo, hi)
+    heaters = sorted(rng.choice(n, size=int(rng.integers(1, max(1, n // 2) + 1)),
+                                replace=False).tolist())
+    return (rng.uniform(0.5, 3.0, n), rng.uniform(0.1, 0.5, n), rng.uniform(0.3, 1.5, n - 1),
+            heaters)
+
+
+def _thermal(cap, loss, link, heaters):
+    """Continuous (A, B, states, inputs) of bodies in a row: temperatures T1..Tn [K above
+    ambient], heaters Q<i> [W] on the heated bodies."""
+    n = len(cap)
+    A = np.diag(-np.asarray(loss, dtype=float))
+    for i, g in enumerate(link):
+        A[i, i] -= g
+        A[i + 1, i + 1] -= g
+        A[i, i + 1] += g
+        A[i + 1, i] += g
+    A = A / np.asarray(cap)[:, None]
+    B = np.zeros((n, len(heaters)))
+    for q, i in enumerate(heaters):
+        B[i, q] = 1.0 / cap[i]
+    return A, B, [f"T{i + 1}" for i in range(n)], [f"Q{i + 1}" for i in heaters]
+
+
+def _thermal_timing(rng, A) -> tuple[float, float]:
+    """(dt, bandwidth [Hz]): dt 0.2-0.5 of the fastest time constant; the excitation's band
+    0.5-2 times the geometric mean of the slowest and fastest rates."""
+    lam = np.abs(np.linalg.eigvals(A))
+    dt = rng.uniform(0.2, 0.5) / lam.max()
+    return dt, min(np.sqrt(lam.min() * lam.max()) / (2 * np.pi) * rng.uniform(0.5, 2.0),
+                   0.3 / dt)
+
+
+def _thermal_static(rng, n_est, cls, count=1):
+    """A row of bodies with ``count`` losses to ambient wrong in the model (separate effects)."""
+    cap, loss, link, heat = _thermal_params(rng, lo=max(2, count))
+    n = len(cap)
+    bodies = rng.choice(n, size=count, replace=False)
+    nom_loss = np.array(loss)
+    effects, texts = [], []
+    At, Bt, states, inputs = _thermal(cap, loss, link, heat)
+    for i in bodies:
+        f = _factor(rng)
+        nom_loss[i] = f * loss[i]
+        one = np.array(loss)
+        one[i] = nom_loss[i]
+        A1, B1, _, _ = _thermal(cap, one, link, heat)
+        text = f"loss of T{i + 1} {loss[i]:.3g} W/K (x{f:.2f} in the model)"
+        effects.append(_state_effect(_linear_terms(A1, At, B1, Bt, states, inputs), text))
+        texts.append(text)
+    A, B, _, _ = _thermal(cap, nom_loss, link, heat)
+    return _linear_case(cls, rng, n_est, (A, B), (At, Bt), states, inputs, effects,
+                        f"row of {n} bodies: " + "; ".join(texts), options=("all", "subset"),
+                        timing=_thermal_timing(rng, At))
+
+
+# ------------------------------------------------------------------------ the classes
+@_retry
+def static_state(rng, n_est):
+    """A static state law: a damper or a spring to the ground on one mass of a chain of 1-12
+    masses (missing, or wrong by 0.3-0.6x / 1.6-2.5x), or a body's loss coefficient in a row
+    of 2-12 bodies. Truth: linear terms in that equation."""
+    if rng.random() < 1 / 3:
+        return _thermal_static(rng, n_est, "static_state")
+    return _chain_static(rng, n_est, "static_state")
+
+
+@_retry
+def linear_force(rng, n_est):
+    """A linear force between two neighbouring bodies of a chain of 2-12 masses (a spring or
+    a damper, missing or wrong in the model): terms in both bodies' equations."""
+    return _chain_static(rng, n_est, "linear_force", pair=True)
+
+
+@_retry
+def two_static(rng, n_est):
+    """Two effects of the same kind: two static state laws in different equations (a damper
+    and a spring to the ground on two masses of a chain of 2-12, or two bodies' losses)."""
+    if rng.random() < 1 / 3:
+        return _thermal_static(rng, n_est, "two_static", count=2)
+    ch = _chain(rng, lo=2)
+    i, j = (int(v) for v in rng.choice(len(ch.m), size=2, replace=False))
+    return _elements_case(rng, n_est, "two_static", ch, [("damping", i, -1),
+                                                         ("stiffness", j, -1)])
