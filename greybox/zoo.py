@@ -100,6 +100,10 @@ class Term:
     coefficient: float
     unit: str = ""
 
+    def __post_init__(self):
+        object.__setattr__(self, "coefficient", float(self.coefficient))
+        object.__setattr__(self, "variables", tuple(str(v) for v in self.variables))
+
     @property
     def expression(self) -> str:
         """Canonical text of the form, e.g. ``"sign(v1)"``, ``"(p2-p1)^3"``, ``"sat(F)"``."""
@@ -555,6 +559,7 @@ class _Chain:
     springs: list
     dampers: list
     forces: list
+    amplitude: float = 2.0   # excitation std [N]
 
     def matrices(self):
         return _mech(self.m, self.springs, self.dampers, self.forces)
@@ -629,13 +634,6 @@ def _true_system(plant: _Plant, nominal, hidden: list[str], name: str):
                     states=states, inputs=ins, outputs=outs, dt=0, name=name)
 
 
-def _pilot_rms(A, B, dt, bandwidth, amplitude, rng, N: int = 2000) -> NDArray:
-    """RMS of the states (n,) of the linear plant (A, B) under low-pass noise (a pilot run)."""
-    u = _excitation(rng, "lowpass", B.shape[1], N, dt, bandwidth, amplitude)
-    X, _, _, _ = _simulate(_Plant(A.shape[0], np.eye(A.shape[0]), A, B), dt, u)
-    return np.sqrt(np.mean(X[:, N // 10:] ** 2, axis=1))
-
-
 def _vel(states) -> tuple[int, ...]:
     """Indices of the velocity (momentum) states v*, om*: they receive process noise."""
     return tuple(i for i, s in enumerate(states) if s.startswith(("v", "om", "i")))
@@ -675,21 +673,23 @@ def _factor(rng) -> float:
 
 def _linear_case(cls, rng, n_est, nom_AB, true_AB, states, inputs, effects, text, *,
                  options=("all", "positions", "subset"), hidden=(), must=(), timing=None,
-                 amplitude=None, x0=None, C_extra=None, excitation=None, inmap=None):
+                 amplitude=None, x0=None, C_true=None, excitation=None, inmap=None,
+                 measured=None):
     """A draw whose truth is linear in the states (inputs through ``inmap``).
 
     ``nom_AB``, ``true_AB``: continuous (A, B) of the nominal model and of the
-    true plant (its states: the nominal's, then ``hidden``); ``C_extra(C)``
-    edits the true output matrix (a sensor effect); ``timing``: (dt,
-    bandwidth [Hz]), default from the true A (mechanical rule).
+    true plant (its states: the nominal's, then ``hidden``); ``timing``: (dt,
+    bandwidth [Hz]), default from the true A (mechanical rule). ``C_true``: the true
+    output matrix (a sensor effect), default the measured states; ``measured``: (kind,
+    indices) already drawn.
     """
     (A, B), (At, Bt) = nom_AB, true_AB
-    kind, meas = _measured(rng, states, A, options, must)
+    kind, meas = measured if measured is not None else _measured(rng, states, A, options,
+                                                                   must)
     nom = _named(A, B, states, inputs, meas, cls)
     dt, bw = timing if timing is not None else _mech_timing(rng, At)
-    Ct = np.hstack([np.eye(len(states))[meas], np.zeros((len(meas), len(hidden)))])
-    if C_extra is not None:
-        Ct = C_extra(Ct, [states[i] for i in meas])
+    Ct = C_true if C_true is not None else np.hstack([np.eye(len(states))[meas],
+                                                       np.zeros((len(meas), len(hidden)))])
     plant = _Plant(At.shape[0], Ct, At, Bt, inmap=inmap, x0=x0)
     true = _true_system(plant, nom, list(hidden), f"{cls}_true")
     amp = amplitude if amplitude is not None else rng.uniform(1.0, 3.0)
@@ -832,3 +832,641 @@ def two_static(rng, n_est):
     i, j = (int(v) for v in rng.choice(len(ch.m), size=2, replace=False))
     return _elements_case(rng, n_est, "two_static", ch, [("damping", i, -1),
                                                          ("stiffness", j, -1)])
+
+
+def _nonlinear_chain_case(cls, rng, n_est, ch: _Chain, extra: Callable, effects, text, *,
+                          options, stiffness: float, sub: int = 4):
+    """A chain whose truth adds ``extra(x) -> dx`` (nonlinear forces) to the nominal's
+    linear dynamics; ``stiffness`` [1/s] is the largest rate the extra force adds (it sets
+    the RK4 sub-steps: rate x step <= 0.5)."""
+    A, B, states = ch.matrices()
+    kind, meas = _measured(rng, states, A, options)
+    nom = _named(A, B, states, ["F"], meas, cls)
+    dt, bw = _mech_timing(rng, A)
+    sub = max(sub, int(math.ceil(dt * stiffness / 0.5)))
+    plant = _Plant(A.shape[0], np.eye(len(states))[meas],
+                   f=lambda x, u: A @ x + B @ u + extra(x), sub=sub)
+    true = _true_system(plant, nom, [], f"{cls}_true")
+    setup = _Setup(plant, dt, bw, ch.amplitude, _vel(states))
+    return _make_draw(cls, rng, nom, true, Truth(tuple(effects)), setup,
+                      f"chain of {len(ch.m)}: {text}; {len(states)} states, measured: {kind} "
+                      f"({len(meas)})", n_est)
+
+
+@_retry
+def cubic_force(rng, n_est):
+    """A hardening (cubic) spring between two neighbouring masses of a chain of 2-12, beside
+    the linear spring the model has: k3 (p_j - p_i)^3 with k3 such that at the pair's rms
+    deflection the cubic force is 0.3-1x the linear one. Positions only or a random subset
+    measured (partial measurement)."""
+    ch = _chain(rng, lo=2)
+    ch.amplitude = rng.uniform(1.0, 3.0)
+    A, B, states = ch.matrices()
+    i = int(rng.integers(len(ch.m) - 1))
+    j = i + 1
+    k = next(kk for a, b, kk in ch.springs if (a, b) == (i, j))
+    dt, bw = _mech_timing(np.random.default_rng(rng.integers(2**32)), A)
+    X = _pilot_states(A, B, dt, bw, ch.amplitude, rng)
+    defl = np.sqrt(np.mean((X[2 * j] - X[2 * i]) ** 2))
+    if not defl > 0:
+        raise _Redraw("no deflection")
+    k3 = rng.uniform(0.3, 1.0) * k / defl ** 2
+    mi, mj = ch.m[i], ch.m[j]
+    pi_, pj = f"p{i + 1}", f"p{j + 1}"
+
+    def extra(x):
+        dx = np.zeros_like(x)
+        f = k3 * (x[2 * j] - x[2 * i]) ** 3
+        dx[2 * i + 1] = f / mi
+        dx[2 * j + 1] = -f / mj
+        return dx
+    terms = (Term(f"v{i + 1}", "rel^3", (pi_, pj), k3 / mi, "1/(m^2 s^2)"),
+             Term(f"v{j + 1}", "rel^3", (pi_, pj), -k3 / mj, "1/(m^2 s^2)"))
+    text = f"cubic spring {k3:.3g} N/m^3 between m{i + 1} and m{j + 1} (linear {k:.3g} N/m)"
+    stiff = 3 * k3 * (3 * defl) ** 2 / min(mi, mj)
+    return _nonlinear_chain_case("cubic_force", rng, n_est, ch, extra,
+                                 [_state_effect(terms, text)], text,
+                                 options=("positions", "subset"), stiffness=np.sqrt(stiff))
+
+
+def _pilot_states(A, B, dt, bandwidth, amplitude, rng, N: int = 2000) -> NDArray:
+    """States (n, N) of the linear plant (A, B) under low-pass noise (a pilot run)."""
+    u = _excitation(rng, "lowpass", B.shape[1], N, dt, bandwidth, amplitude)
+    X, _, _, _ = _simulate(_Plant(A.shape[0], np.eye(A.shape[0]), A, B), dt, u)
+    return X
+
+
+@_retry
+def coulomb(rng, n_est):
+    """Coulomb friction on one mass of a chain of 1-6: -Fc sign(v_i), Fc 10-40 % of the
+    force's std (the truth simulates sign as tanh(v / eps), eps 2 % of v_i's rms)."""
+    ch = _chain(rng, lo=1, hi=6)
+    ch.amplitude = rng.uniform(1.0, 3.0)
+    A, B, states = ch.matrices()
+    i = int(rng.integers(len(ch.m)))
+    dt, bw = _mech_timing(np.random.default_rng(rng.integers(2**32)), A)
+    X = _pilot_states(A, B, dt, bw, ch.amplitude, rng)
+    eps = 0.02 * np.sqrt(np.mean(X[2 * i + 1] ** 2))
+    fc = rng.uniform(0.1, 0.4) * ch.amplitude
+    mi = ch.m[i]
+
+    def extra(x):
+        dx = np.zeros_like(x)
+        dx[2 * i + 1] = -fc / mi * _sign_smooth(x[2 * i + 1], eps)
+        return dx
+    text = f"Coulomb friction {fc:.3g} N on m{i + 1}"
+    eff = _state_effect((Term(f"v{i + 1}", "sign(x)", (f"v{i + 1}",), -fc / mi, "m/s^2"),),
+                        text)
+    return _nonlinear_chain_case("coulomb", rng, n_est, ch, extra, [eff], text,
+                                 options=("all", "positions", "subset"),
+                                 stiffness=fc / (mi * eps))
+
+
+def _input_chain(rng, lo=1, hi=12) -> _Chain:
+    """A chain whose force F acts on one mass, or (40 %, two masses or more) pushes two masses
+    apart (F enters two equations: the input channel differs from any one equation's)."""
+    ch = _chain(rng, lo=lo, hi=hi)
+    N = len(ch.m)
+    if N >= 2 and rng.random() < 0.4:
+        i, j = sorted(int(v) for v in rng.choice(N, size=2, replace=False))
+        ch.forces = [[(i, 1.0), (j, -1.0)]]
+    ch.amplitude = rng.uniform(1.0, 3.0)
+    return ch
+
+
+def _input_effect(B, states, law, order, terms=(), dynamics=None, text=""):
+    """An effect on the input F (``u_plant = F + d``), entering the equations B's column does."""
+    eqs = tuple(states[i] for i in np.flatnonzero(np.abs(B[:, 0]) > 0))
+    return TrueEffect("input", eqs, ("F",), (), law, order, ("F",), tuple(terms), dynamics,
+                      text)
+
+
+@_retry
+def actuator_gain(rng, n_est):
+    """An actuator gain error: the plant receives g F with g 0.6-0.85 or 1.15-1.4 (chain of
+    1-12 masses; F on one mass or pushing two apart). Truth: d_F = (g - 1) F."""
+    ch = _input_chain(rng)
+    A, B, states = ch.matrices()
+    g = rng.uniform(0.6, 0.85) if rng.random() < 0.5 else rng.uniform(1.15, 1.4)
+    text = f"actuator gain {g:.3g}"
+    eff = _input_effect(B, states, "static", 0, (Term("F", "x", ("F",), g - 1, "N/N"),),
+                        text=text)
+    return _linear_case("actuator_gain", rng, n_est, (A, B), (A, g * B), states, ["F"], [eff],
+                        f"chain of {len(ch.m)}: {text}", amplitude=ch.amplitude)
+
+
+def _lag_model(rng, order: int, w_bw: float, dt: float):
+    """(A, B, C, text) of an actuator's own dynamics, unit DC gain: 1/(tau s + 1) with tau
+    0.3-1.5 / w_bw (at least 3 dt), or w^2/(s^2 + 2 zeta w s + w^2) with w 0.8-2.5 w_bw (at
+    most 0.6 / dt) and zeta 0.3-0.8."""
+    if order == 1:
+        tau = max(rng.uniform(0.3, 1.5) / w_bw, 3 * dt)
+        return (np.array([[-1 / tau]]), np.array([[1 / tau]]), np.array([[1.0]]),
+                f"first-order lag {tau:.3g} s")
+    w = min(rng.uniform(0.8, 2.5) * w_bw, 0.6 / dt)
+    z = rng.uniform(0.3, 0.8)
+    return (np.array([[0.0, 1.0], [-w * w, -2 * z * w]]), np.array([[0.0], [w * w]]),
+            np.array([[1.0, 0.0]]), f"second-order lag {w:.3g} rad/s, damping {z:.2f}")
+
+
+def _actuator_lag(rng, n_est, order: int):
+    ch = _input_chain(rng)
+    A, B, states = ch.matrices()
+    dt, bw = _mech_timing(rng, A)
+    Al, Bl, Cl, text = _lag_model(rng, order, 2 * np.pi * bw, dt)
+    n = A.shape[0]
+    At = np.block([[A, B @ Cl], [np.zeros((order, n)), Al]])
+    Bt = np.vstack([np.zeros_like(B), Bl])
+    hid = HiddenDynamics(Al, Bl, Cl, -np.ones((1, 1)), ("F",), ("F",))
+    eff = _input_effect(B, states, "dynamic", order, dynamics=hid, text=text)
+    hidden = ["F_plant"] if order == 1 else ["F_plant", "dF_plant"]
+    return _linear_case(f"actuator_lag{order}", rng, n_est, (A, B), (At, Bt), states, ["F"],
+                        [eff], f"chain of {len(ch.m)}: actuator {text}", hidden=hidden,
+                        timing=(dt, bw), amplitude=ch.amplitude)
+
+
+@_retry
+def actuator_lag1(rng, n_est):
+    """Actuator lag of order 1: F reaches the chain (1-12 masses) through 1/(tau s + 1).
+    Truth: input channel, dynamic, order 1, driver F, d = (1/(tau s + 1) - 1) F."""
+    return _actuator_lag(rng, n_est, 1)
+
+
+@_retry
+def actuator_lag2(rng, n_est):
+    """Actuator lag of order 2: F reaches the chain through w^2/(s^2 + 2 zeta w s + w^2).
+    Truth: input channel, dynamic, order 2, driver F."""
+    return _actuator_lag(rng, n_est, 2)
+
+
+def _input_nonlinearity(rng, n_est, cls, form: str):
+    ch = _input_chain(rng, hi=6)
+    A, B, states = ch.matrices()
+    amp = ch.amplitude
+    c = rng.uniform(0.1, 0.4) * amp if form == "deadzone" else rng.uniform(0.8, 1.6) * amp
+    term = Term("F", form, ("F",), c, "N")
+    text = (f"input dead zone +-{c:.3g} N" if form == "deadzone" else
+            f"input saturation at +-{c:.3g} N") + f" (F's std {amp:.3g} N)"
+    eff = _input_effect(B, states, "static", 0, (term,), text=text)
+    inmap = lambda v: v + term.value({"F": v})  # noqa: E731
+    return _linear_case(cls, rng, n_est, (A, B), (A, B), states, ["F"], [eff],
+                        f"chain of {len(ch.m)}: {text}", amplitude=amp, inmap=inmap,
+                        excitation=str(rng.choice(["lowpass", "multisine"])))
+
+
+@_retry
+def dead_zone(rng, n_est):
+    """An input dead zone (a valve, a motor's static friction in the drive): the plant
+    receives F - clip(F, -c, c), c 10-40 % of F's std (chain of 1-6 masses). Low-pass or
+    multisine input (a binary one would make it a gain)."""
+    return _input_nonlinearity(rng, n_est, "dead_zone", "deadzone")
+
+
+@_retry
+def saturation(rng, n_est):
+    """Input saturation: the plant receives clip(F, -c, c), c 0.8-1.6 of F's std."""
+    return _input_nonlinearity(rng, n_est, "saturation", "sat")
+
+
+@_retry
+def flexible_shaft(rng, n_est):
+    """A hidden subsystem driven by one state (order 2): a DC motor (current i [A], optionally
+    angle th [rad], speed om [rad/s]; voltage V) whose model lacks the load behind a flexible
+    shaft. Shaft stiffness k and damping c (torsional mode 15-60 rad/s, damping 0.05-0.2),
+    load inertia 0.5-3x the motor's, load friction. The shaft's torque on the motor is a
+    function of om alone: d_om = (-k tw - c om + c om_l) / Jm with the hidden twist tw and
+    load speed om_l (dtw/dt = om - om_l, Jl dom_l/dt = k tw + c (om - om_l) - bl om_l)."""
+    Jm = rng.uniform(0.01, 0.05)
+    Jl = Jm * rng.uniform(0.5, 3.0)
+    wt = rng.uniform(15, 60)
+    k = wt ** 2 / (1 / Jm + 1 / Jl)
+    c = 2 * rng.uniform(0.05, 0.2) * wt * Jm * Jl / (Jm + Jl)
+    bl, bm = Jl * rng.uniform(0.1, 0.5), Jm * rng.uniform(0.2, 1.0)
+    Kt, R = rng.uniform(0.05, 0.3), rng.uniform(0.5, 3.0)
+    dt = 2 * np.pi / (wt * rng.uniform(15, 30))
+    L = R * dt * rng.uniform(1.0, 4.0)
+    with_angle = rng.random() < 0.5
+    states = ["i", "th", "om"] if with_angle else ["i", "om"]
+    n, io = len(states), states.index("om")
+    A = np.zeros((n, n))
+    A[0, 0], A[0, io] = -R / L, -Kt / L
+    A[io, 0], A[io, io] = Kt / Jm, -bm / Jm
+    if with_angle:
+        A[1, io] = 1.0
+    B = np.zeros((n, 1))
+    B[0, 0] = 1 / L
+    Ah = np.array([[0.0, -1.0], [k / Jl, -(c + bl) / Jl]])
+    Bh = np.array([[1.0], [c / Jl]])
+    Ch = np.array([[-k / Jm, c / Jm]])
+    Dh = np.array([[-c / Jm]])
+    At = np.block([[A, np.zeros((n, 2))], [np.zeros((2, n)), Ah]])
+    At[io, io] += Dh[0, 0]
+    At[io, n:] = Ch[0]
+    At[n:, io] = Bh[:, 0]
+    Bt = np.vstack([B, np.zeros((2, 1))])
+    text = (f"flexible shaft to a hidden load: torsional mode {wt:.3g} rad/s, Jl/Jm "
+            f"{Jl / Jm:.2f}")
+    eff = TrueEffect("state", ("om",), (), (), "dynamic", 2, ("om",),
+                     dynamics=HiddenDynamics(Ah, Bh, Ch, Dh, ("om",), ("om",)),
+                     description=text)
+    opts = ("all", "positions", "subset") if with_angle else ("all", "subset")
+    return _linear_case("flexible_shaft", rng, n_est, (A, B), (At, Bt), states, ["V"], [eff],
+                        f"DC motor: {text}", options=opts, hidden=["tw", "om_l"],
+                        timing=(dt, wt / (2 * np.pi) * rng.uniform(0.5, 1.2)),
+                        amplitude=rng.uniform(2.0, 10.0))
+
+
+@_retry
+def thermal_mass(rng, n_est):
+    """One hidden state shared by two equations (order 1): a row of 2-12 bodies and a hidden
+    thermal mass Tm (2-8x the mean capacity) coupled to two of them (0.3-1.5 W/K each):
+    d_Ta = ga/Ca (Tm - Ta), d_Tb = gb/Cb (Tm - Tb), Cm dTm/dt = ga (Ta - Tm) + gb (Tb - Tm)."""
+    cap, loss, link, heat = _thermal_params(rng)
+    A, B, states, inputs = _thermal(cap, loss, link, heat)
+    n = len(cap)
+    a, b = sorted(int(v) for v in rng.choice(n, size=2, replace=False))
+    cm = rng.uniform(2, 8) * cap.mean()
+    ga, gb = rng.uniform(0.3, 1.5, 2)
+    Ah = np.array([[-(ga + gb) / cm]])
+    Bh = np.array([[ga / cm, gb / cm]])
+    Ch = np.array([[ga / cap[a]], [gb / cap[b]]])
+    Dh = np.diag([-ga / cap[a], -gb / cap[b]])
+    At = np.zeros((n + 1, n + 1))
+    At[:n, :n] = A
+    for q, i in enumerate((a, b)):
+        At[i, (a, b)] += Dh[q]
+        At[i, n] = Ch[q, 0]
+    At[n, (a, b)] = Bh[0]
+    At[n, n] = Ah[0, 0]
+    Bt = np.vstack([B, np.zeros((1, B.shape[1]))])
+    Ta, Tb = states[a], states[b]
+    text = f"hidden thermal mass {cm:.3g} J/K on {Ta} ({ga:.2f} W/K) and {Tb} ({gb:.2f} W/K)"
+    eff = TrueEffect("state", (Ta, Tb), (), (), "dynamic", 1, (Ta, Tb),
+                     dynamics=HiddenDynamics(Ah, Bh, Ch, Dh, (Ta, Tb), (Ta, Tb)),
+                     description=text)
+    return _linear_case("thermal_mass", rng, n_est, (A, B), (At, Bt), states, inputs, [eff],
+                        f"row of {n} bodies: {text}", options=("all", "subset"),
+                        hidden=["Tm"], timing=_thermal_timing(rng, At))
+
+
+def _sensor_base(rng):
+    """(A, B, states, inputs, timing, amplitude, options, text) of a chain (1-12 masses) or a
+    row of bodies (2-12), the plant a sensor effect is drawn on."""
+    if rng.random() < 0.5:
+        cap, loss, link, heat = _thermal_params(rng)
+        A, B, states, inputs = _thermal(cap, loss, link, heat)
+        return (A, B, states, inputs, _thermal_timing(rng, A), rng.uniform(0.5, 2.0),
+                ("all", "subset"), f"row of {len(cap)} bodies")
+    ch = _chain(rng)
+    A, B, states = ch.matrices()
+    return (A, B, states, ["F"], _mech_timing(rng, A), rng.uniform(1.0, 3.0),
+            ("all", "positions", "subset"), f"chain of {len(ch.m)}")
+
+
+def _sensor_case(rng, n_est, cls, what: str, state_effect: bool = False):
+    """A sensor effect ("gain_offset", "lag", "drift") on one measured output of a chain or a
+    row of bodies; with ``state_effect`` also a wrong damper / loss (a state effect)."""
+    A, B, states, inputs, (dt, bw), amp, opts, base = _sensor_base(rng)
+    kind, meas = _measured(rng, states, A, opts)
+    o = meas[int(rng.integers(len(meas)))]
+    s = states[o]
+    effects, texts, At, Bt = [], [], A, B
+    if state_effect:
+        i = int(rng.integers(len(states) // 2 if inputs == ["F"] else len(states)))
+        A, At, eff = _static_on(rng, A, B, states, inputs, i)
+        effects.append(eff)
+        texts.append(eff.description)
+    rms = np.sqrt(np.mean(_pilot_states(At, Bt, dt, bw, amp, rng)[o] ** 2))
+    n = len(states)
+    N = n_est if n_est is not None else 4000
+    Ct = np.eye(n)[meas]
+    row = meas.index(o)
+    hidden, x0 = [], np.zeros(n)
+    if what == "gain_offset":
+        v = str(rng.choice(["gain", "offset", "both"]))
+        terms = []
+        if v in ("gain", "both"):
+            g = 1 + rng.choice([-1, 1]) * rng.uniform(0.05, 0.25)
+            Ct[row, o] = g
+            terms.append(Term(s, "x", (s,), g - 1))
+        if v in ("offset", "both"):
+            off = rng.choice([-1, 1]) * rng.uniform(0.05, 0.5) * rms
+            hidden, x0 = [f"{s}_offset"], np.append(x0, off)
+            terms.append(Term(s, "1", (), off))
+        eff = TrueEffect("sensor", (), (), (s,), "static", 0,
+                         tuple(sorted({v for t in terms for v in t.variables})), tuple(terms),
+                         description=f"sensor {s}: " + ", ".join(
+                             f"{t.expression} {t.coefficient:.3g}" for t in terms))
+    elif what == "lag":
+        tau = max(rng.uniform(0.3, 1.5) / (2 * np.pi * bw), 3 * dt)
+        hidden, x0 = [f"{s}_read"], np.append(x0, 0.0)
+        dyn = HiddenDynamics(np.array([[-1 / tau]]), np.array([[1 / tau]]), np.array([[1.0]]),
+                             -np.ones((1, 1)), (s,), (s,))
+        eff = TrueEffect("sensor", (), (), (s,), "dynamic", 1, (s,), dynamics=dyn,
+                         description=f"sensor {s} lags by {tau:.3g} s")
+    else:
+        off = rng.choice([-1, 1]) * rng.uniform(0.0, 0.3) * rms
+        rate = rng.choice([-1, 1]) * rng.uniform(0.1, 0.5) * rms / (N * dt)
+        hidden, x0 = [f"{s}_offset", f"{s}_rate"], np.append(x0, [off, rate])
+        eff = TrueEffect("sensor", (), (), (s,), "static", 0, (),
+                         (Term(s, "1", (), off), Term(s, "t", (), rate, "/s")),
+                         description=f"sensor {s} drifts {rate:.3g}/s from {off:.3g}")
+    effects.append(eff)
+    texts.append(eff.description)
+    At, Bt, Ct = _with_sensor(At, Bt, Ct, row, o, what, hidden, eff)
+    return _linear_case(cls, rng, n_est, (A, B), (At, Bt), states, inputs, effects,
+                        f"{base}: " + "; ".join(texts), options=(kind,), must=meas,
+                        hidden=hidden, timing=(dt, bw), amplitude=amp, x0=x0,
+                        C_true=Ct, measured=(kind, meas))
+
+
+def _with_sensor(At, Bt, Ct, row, o, what, hidden, eff):
+    """The true (A, B, C) with the sensor's states appended (offset: a constant; drift: an
+    offset driven by a constant rate; lag: the reading)."""
+    n, h = At.shape[0], len(hidden)
+    A2 = np.zeros((n + h, n + h))
+    A2[:n, :n] = At
+    B2 = np.vstack([Bt, np.zeros((h, Bt.shape[1]))])
+    C2 = np.hstack([Ct, np.zeros((Ct.shape[0], h))])
+    if what == "lag":
+        tau = -1 / eff.dynamics.A[0, 0]
+        A2[n, o], A2[n, n] = 1 / tau, -1 / tau
+        C2[row, :n] = 0.0
+        C2[row, n] = 1.0
+    elif what == "drift":
+        A2[n, n + 1] = 1.0
+        C2[row, n] = 1.0
+    elif h:
+        C2[row, n] = 1.0
+    return A2, B2, C2
+
+
+def _static_on(rng, A, B, states, inputs, i):
+    """(nominal A, true A, effect): a damper on mass i (chain) or body i's loss (thermal)
+    that the model lacks or has wrong; returns the nominal A with the error."""
+    mech = inputs == ["F"]
+    row = 2 * i + 1 if mech else i
+    col = row
+    val = rng.uniform(0.5, 2.0) if mech else rng.uniform(0.05, 0.3)
+    fac = _factor(rng)
+    At = np.array(A)
+    At[row, col] -= val
+    An = np.array(A)
+    An[row, col] -= fac * val
+    what = f"damping of m{i + 1}" if mech else f"loss of {states[row]}"
+    eff = _state_effect(_linear_terms(An, At, B, B, states, inputs),
+                        f"{what}: {val:.3g} 1/s, x{fac:.2f} in the model")
+    return An, At, eff
+
+
+@_retry
+def sensor_gain_offset(rng, n_est):
+    """A sensor's gain (1 +- 5-25 %) and/or offset (5-50 % of the output's rms) on one measured
+    output of a chain or a row of bodies. Truth: sensor channel, static, terms (g - 1) x_s
+    and/or the offset."""
+    return _sensor_case(rng, n_est, "sensor_gain_offset", "gain_offset")
+
+
+@_retry
+def sensor_lag(rng, n_est):
+    """A sensor lag (a thermocouple, a filtered encoder): one output reads x_s through
+    1/(tau s + 1), tau 0.3-1.5 over the excitation's band (at least 3 dt). Truth: sensor
+    channel, dynamic, order 1, driver x_s."""
+    return _sensor_case(rng, n_est, "sensor_lag", "lag")
+
+
+@_retry
+def sensor_drift(rng, n_est):
+    """A drifting sensor: one output reads x_s + o + r t, the drift r t reaching 10-50 % of
+    the output's rms over the estimation record (both records start at the offset o).
+    Truth: sensor channel, static, terms "1" (o) and "t" (r)."""
+    return _sensor_case(rng, n_est, "sensor_drift", "drift")
+
+
+@_retry
+def state_sensor(rng, n_est):
+    """Two effects of different kinds: a wrong damper (chain) or loss (bodies) in one state
+    equation, and a sensor lag or gain/offset on one output (the issue's heat loss +
+    thermocouple lag)."""
+    return _sensor_case(rng, n_est, "state_sensor", str(rng.choice(["lag", "gain_offset"])),
+                        state_effect=True)
+
+
+@_retry
+def state_input(rng, n_est):
+    """Two effects of different kinds: a wrong damper on one mass of a chain of 1-12 and an
+    actuator gain error (0.6-0.85 or 1.15-1.4) on F."""
+    ch = _input_chain(rng)
+    A, B, states = ch.matrices()
+    An, At, e1 = _static_on(rng, A, B, states, ["F"], int(rng.integers(len(ch.m))))
+    g = rng.uniform(0.6, 0.85) if rng.random() < 0.5 else rng.uniform(1.15, 1.4)
+    e2 = _input_effect(B, states, "static", 0, (Term("F", "x", ("F",), g - 1, "N/N"),),
+                       text=f"actuator gain {g:.3g}")
+    return _linear_case("state_input", rng, n_est, (An, B), (At, g * B), states, ["F"],
+                        [e1, e2], f"chain of {len(ch.m)}: {e1.description}; "
+                        f"{e2.description}", amplitude=ch.amplitude)
+
+
+@_retry
+def correct_linear(rng, n_est):
+    """A correct linear model (a chain of 1-12 masses or a row of 2-12 bodies): the model
+    must stay unchanged."""
+    A, B, states, inputs, timing, amp, opts, base = _sensor_base(rng)
+    return _linear_case("correct_linear", rng, n_est, (A, B), (A, B), states, inputs, [],
+                        f"{base}, model right", options=opts, timing=timing, amplitude=amp)
+
+
+def _closed_loop(rng, n_est, cls, effect: str | None):
+    """An open-loop unstable chain (1-3 masses; the first on a negative spring, 5-30 N/m, an
+    inverted pendulum's linearization) measured in closed loop: F = r - K y, K a discrete
+    LQR gain designed on the nominal model, every state measured (noisy), r low-pass
+    noise. ``effect``: "damping" (a damper the model lacks or has wrong), "gain" (an
+    actuator gain error) or None (the model is right). The loop must stay stable with the
+    truth (spectral radius < 0.998), else the plant is drawn again."""
+    ch = _chain(rng, lo=1, hi=3)
+    k_rest = sum(k for a, b, k in ch.springs[1:] if 0 in (a, b))
+    ch.springs[0] = (0, -1, -rng.uniform(5, 30) - k_rest)
+    A, B, states = ch.matrices()
+    if np.max(np.linalg.eigvals(A).real) <= 0.05:
+        raise _Redraw("not unstable")
+    At, Bt, An, effects = A, B, A, []
+    if effect == "damping":
+        An, At, e = _static_on(rng, A, B, states, ["F"], int(rng.integers(len(ch.m))))
+        effects.append(e)
+    elif effect == "gain":
+        g = rng.uniform(0.7, 0.85) if rng.random() < 0.5 else rng.uniform(1.15, 1.3)
+        Bt = g * B
+        effects.append(_input_effect(B, states, "static", 0,
+                                     (Term("F", "x", ("F",), g - 1, "N/N"),),
+                                     text=f"actuator gain {g:.3g}"))
+    dt, bw = _mech_timing(rng, At)
+    n = A.shape[0]
+    Ad, Bd = _zoh(An, B, dt)
+    P = solve_discrete_are(Ad, Bd, np.eye(n), 0.1 * np.eye(1))
+    K = np.linalg.solve(0.1 * np.eye(1) + Bd.T @ P @ Bd, Bd.T @ P @ Ad)
+    Adt, Bdt = _zoh(At, Bt, dt)
+    if np.max(np.abs(np.linalg.eigvals(Adt - Bdt @ K))) > 0.998:
+        raise _Redraw("the truth destabilizes the loop")
+    nom = _named(An, B, states, ["F"], list(range(n)), cls)
+    plant = _Plant(n, np.eye(n), At, Bt)
+    true = _true_system(plant, nom, [], f"{cls}_true")
+    setup = _Setup(plant, dt, bw, rng.uniform(1.0, 3.0), _vel(states), controller=K,
+                   excitation="lowpass")
+    text = "; ".join(e.description for e in effects) or "model right"
+    return _make_draw(cls, rng, nom, true, Truth(tuple(effects)), setup,
+                      f"unstable chain of {len(ch.m)} in closed loop (LQR): {text}; "
+                      f"{n} states, all measured", n_est)
+
+
+def _zoh(A, B, dt):
+    """ZOH-discretized (Ad, Bd)."""
+    n, m = B.shape
+    M = np.zeros((n + m, n + m))
+    M[:n, :n], M[:n, n:] = A, B
+    E = expm(M * dt)
+    return E[:n, :n], E[:n, n:]
+
+
+@_retry
+def unstable_closed_loop(rng, n_est):
+    """An open-loop unstable plant measured in closed loop with an effect: a damper the
+    model lacks or has wrong (state), or an actuator gain error (input)."""
+    return _closed_loop(rng, n_est, "unstable_closed_loop",
+                        str(rng.choice(["damping", "gain"])))
+
+
+@_retry
+def correct_closed_loop(rng, n_est):
+    """An open-loop unstable plant measured in closed loop, its model right: it must stay
+    unchanged."""
+    return _closed_loop(rng, n_est, "correct_closed_loop", None)
+
+
+def _oscillator(rng):
+    """(name, f(x, u) continuous, T std, dt, bandwidth [Hz], text, units) of a nonlinear
+    nominal: a pendulum (length 0.2-1.5 m, damping ratio 0.02-0.1, torque T) or a
+    hardening Duffing oscillator (mass 0.5-2 kg, k 5-40 N/m, cubic 0.3-1x k at the rms
+    deflection, force F). States (th, om) or (p, v)."""
+    if rng.random() < 0.5:
+        w0 = np.sqrt(9.81 / rng.uniform(0.2, 1.5))
+        b = 2 * rng.uniform(0.02, 0.1) * w0
+        J = rng.uniform(0.2, 2.0) * 9.81 / w0 ** 2   # m l^2
+        amp = J * w0 ** 2 * rng.uniform(0.3, 0.6)
+
+        def f(x, u):
+            return np.array([x[1], -w0 ** 2 * np.sin(x[0]) - b * x[1] + u[0] / J])
+        return ("pendulum", f, amp, 2 * np.pi / (w0 * rng.uniform(30, 60)),
+                w0 / (2 * np.pi) * rng.uniform(0.5, 1.2), ["th", "om"], ["T"],
+                f"pendulum {9.81 / w0 ** 2:.3g} m")
+    m, k, c = rng.uniform(0.5, 2.0), rng.uniform(5, 40), rng.uniform(0.1, 0.5)
+    amp = rng.uniform(1.0, 3.0)
+    x_rms = amp / k
+    k3 = rng.uniform(0.3, 1.0) * k / x_rms ** 2
+    w0 = np.sqrt(k / m)
+
+    def f(x, u):
+        return np.array([x[1], (-k * x[0] - k3 * x[0] ** 3 - c * x[1] + u[0]) / m])
+    return ("duffing", f, amp, 2 * np.pi / (2 * w0 * rng.uniform(20, 40)),
+            w0 / (2 * np.pi) * rng.uniform(0.5, 1.2), ["p", "v"], ["F"],
+            f"Duffing oscillator {m:.2g} kg, {k:.3g} N/m, {k3:.3g} N/m^3")
+
+
+def _nonlinear(rng, n_est, cls, effect: str | None):
+    """A NonlinearIOSystem nominal (pendulum or Duffing) whose truth adds ``effect`` to the
+    velocity equation: "cubic" drag -c3 v^3, "coulomb" -fc sign(v), "viscous" -cv v (each
+    10-30 % of the input's std at the velocity's rms; Coulomb 5-20 %), or None."""
+    kind, f, amp, dt, bw, states, inputs, text = _oscillator(rng)
+    u = _excitation(rng, "lowpass", 1, 1500, dt, bw, amp)
+    X, _, _, _ = _simulate(_Plant(2, np.eye(2), f=f, sub=4), dt, u)
+    vr = np.sqrt(np.mean(X[1] ** 2))
+    scale = amp * f(np.zeros(2), np.ones(1))[1]   # the input's std in d's units
+    eps = 0.02 * vr
+    v = states[1]
+    terms, extra, stiff = (), (lambda x: 0.0), 0.0
+    if effect == "cubic":
+        c3 = rng.uniform(0.1, 0.3) * scale / vr ** 3
+        terms, extra, stiff = (Term(v, "x^3", (v,), -c3),), (lambda x: -c3 * x[1] ** 3), \
+            3 * c3 * (3 * vr) ** 2
+    elif effect == "coulomb":
+        fc = rng.uniform(0.05, 0.2) * scale
+        terms, extra, stiff = (Term(v, "sign(x)", (v,), -fc),), \
+            (lambda x: -fc * _sign_smooth(x[1], eps)), fc / eps
+    elif effect == "viscous":
+        cv = rng.uniform(0.1, 0.3) * scale / vr
+        terms, extra, stiff = (Term(v, "x", (v,), -cv),), (lambda x: -cv * x[1]), cv
+    effects = [_state_effect(terms, f"{effect} {terms[0].coefficient:.3g} in eq({v})")] \
+        if terms else []
+    meas = [0, 1] if rng.random() < 0.5 else [0]
+    C = np.eye(2)[meas]
+    nom = ct.nlsys(lambda t, x, u, p: f(x, u), lambda t, x, u, p: C @ x, states=states,
+                   inputs=inputs, outputs=[states[i] for i in meas], dt=0, name=cls)
+
+    def ft(x, u):
+        dx = f(x, u)
+        return np.array([dx[0], dx[1] + extra(x)])
+    sub = max(4, int(math.ceil(dt * max(stiff, 1e-9) / 0.5)))
+    plant = _Plant(2, C, f=ft, sub=sub)
+    true = _true_system(plant, nom, [], f"{cls}_true")
+    setup = _Setup(plant, dt, bw, amp, (1,), excitation=str(rng.choice(["lowpass",
+                                                                         "multisine"])))
+    return _make_draw(cls, rng, nom, true, Truth(tuple(effects)), setup,
+                      f"{text} (NonlinearIOSystem): "
+                      f"{effects[0].description if effects else 'model right'}; measured "
+                      f"{', '.join(states[i] for i in meas)}", n_est)
+
+
+@_retry
+def nonlinear_model(rng, n_est):
+    """A NonlinearIOSystem nominal (pendulum or Duffing oscillator) with an omitted effect in
+    its velocity equation: cubic drag, Coulomb friction or viscous damping."""
+    return _nonlinear(rng, n_est, "nonlinear_model", str(rng.choice(["cubic", "coulomb",
+                                                                       "viscous"])))
+
+
+@_retry
+def correct_nonlinear(rng, n_est):
+    """A correct NonlinearIOSystem nominal (pendulum or Duffing): it must stay unchanged."""
+    return _nonlinear(rng, n_est, "correct_nonlinear", None)
+
+
+#: Every class: name -> ``draw(rng, *, n_est=None) -> ZooDraw``.
+CLASSES: dict[str, Callable[..., ZooDraw]] = {
+    "static_state": static_state,
+    "linear_force": linear_force,
+    "cubic_force": cubic_force,
+    "coulomb": coulomb,
+    "actuator_gain": actuator_gain,
+    "actuator_lag1": actuator_lag1,
+    "actuator_lag2": actuator_lag2,
+    "dead_zone": dead_zone,
+    "saturation": saturation,
+    "flexible_shaft": flexible_shaft,
+    "thermal_mass": thermal_mass,
+    "sensor_gain_offset": sensor_gain_offset,
+    "sensor_lag": sensor_lag,
+    "sensor_drift": sensor_drift,
+    "two_static": two_static,
+    "state_sensor": state_sensor,
+    "state_input": state_input,
+    "unstable_closed_loop": unstable_closed_loop,
+    "nonlinear_model": nonlinear_model,
+    "correct_linear": correct_linear,
+    "correct_nonlinear": correct_nonlinear,
+    "correct_closed_loop": correct_closed_loop,
+}
+
+#: The classes whose model is right (the score counts false updates).
+CORRECT_CLASSES = ("correct_linear", "correct_nonlinear", "correct_closed_loop")
+
+
+def class_rng(seed: int, cls: str, i: int) -> np.random.Generator:
+    """The generator of draw ``i`` of class ``cls`` in a run seeded ``seed`` (replayable:
+    independent of which other classes run)."""
+    return np.random.default_rng([int(seed), zlib.crc32(cls.encode()), int(i)])
+
+
+def draw_class(cls: str, seed: int, i: int = 0, *, n_est: int | None = None) -> ZooDraw:
+    """Draw ``i`` of class ``cls`` in a run seeded ``seed``."""
+    if cls not in CLASSES:
+        raise KeyError(f"unknown zoo class {cls!r}; one of {', '.join(CLASSES)}")
+    return CLASSES[cls](class_rng(seed, cls, i), n_est=n_est)
