@@ -92,6 +92,9 @@ class Term:
         the level or half-width for "sat" and "deadzone".
     unit : str
         The coefficient's unit, for reading.
+    smoothing : float
+        "sign(x)" only: the truth simulates sign(x) as tanh(x / smoothing)
+        when > 0 (a Coulomb friction integrable by RK4).
     """
 
     target: str
@@ -99,6 +102,7 @@ class Term:
     variables: tuple[str, ...]
     coefficient: float
     unit: str = ""
+    smoothing: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "coefficient", float(self.coefficient))
@@ -126,7 +130,7 @@ class Term:
         if self.form == "x^3":
             return v[0] ** 3
         if self.form == "sign(x)":
-            return np.sign(v[0])
+            return np.tanh(v[0] / self.smoothing) if self.smoothing > 0 else np.sign(v[0])
         if self.form == "|x|":
             return np.abs(v[0])
         if self.form == "x*u":
@@ -285,6 +289,8 @@ class ZooDraw:
         The records were measured in closed loop (u depends on the noisy y).
     description : str
         The draw in a few words (sizes, measured subset, excitation).
+    substeps : int
+        RK4 sub-steps per sample of a nonlinear truth's simulation.
     """
 
     cls: str
@@ -303,6 +309,7 @@ class ZooDraw:
     snr_db: NDArray[np.float64]
     closed_loop: bool = False
     description: str = ""
+    substeps: int = 4
 
     @property
     def nonlinear_model(self) -> bool:
@@ -430,6 +437,7 @@ class _Setup:
     controller: NDArray | None = None
     excitation: str | None = None   # None: drawn
     q_level: float = 0.03      # process-noise std per sample, relative to the noise level x rms
+    limit: tuple | None = None  # (state index, bound): a record beyond it is drawn again
 
 
 def _make_draw(cls: str, rng: np.random.Generator, nominal, true, truth: Truth, s: _Setup,
@@ -459,11 +467,13 @@ def _make_draw(cls: str, rng: np.random.Generator, nominal, true, truth: Truth, 
     _, Uv, ycv, yv = _simulate(s.plant, s.dt, uv, r_std=r_std, rng=rng, controller=s.controller)
     if not np.all(np.isfinite(y)) or not np.all(np.isfinite(yv)):
         raise _Redraw("the simulation diverged")
+    if s.limit is not None and np.max(np.abs(Xp[s.limit[0]])) > s.limit[1]:
+        raise _Redraw("a state left its range")
     x0 = np.zeros(s.plant.n) if s.plant.x0 is None else np.asarray(s.plant.x0, float)
     return ZooDraw(cls=cls, nominal=nominal, true=true, true_x0=x0, dt=s.dt, y=y, u=U,
                    y_val=yv, u_val=Uv, y_val_clean=ycv, Q=np.diag(q_std ** 2) + 1e-12 * np.eye(n0),
                    R=np.diag(r_std ** 2), truth=truth, snr_db=snr,
-                   closed_loop=s.controller is not None,
+                   closed_loop=s.controller is not None, substeps=s.plant.sub,
                    description=f"{description}; {exc} input, {s.dt:.3g} s, N = {N}")
 
 
@@ -640,7 +650,7 @@ def _vel(states) -> tuple[int, ...]:
 
 
 def _sign_smooth(v, eps):
-    """sign(v) as the truth simulates it: tanh(v / eps) with eps 1 % of the velocity's rms."""
+    """sign(v) as the truth simulates it: tanh(v / eps) with eps 2 % of the velocity's rms."""
     return np.tanh(v / eps)
 
 
@@ -915,8 +925,8 @@ def coulomb(rng, n_est):
         dx[2 * i + 1] = -fc / mi * _sign_smooth(x[2 * i + 1], eps)
         return dx
     text = f"Coulomb friction {fc:.3g} N on m{i + 1}"
-    eff = _state_effect((Term(f"v{i + 1}", "sign(x)", (f"v{i + 1}",), -fc / mi, "m/s^2"),),
-                        text)
+    eff = _state_effect((Term(f"v{i + 1}", "sign(x)", (f"v{i + 1}",), -fc / mi, "m/s^2",
+                              smoothing=eps),), text)
     return _nonlinear_chain_case("coulomb", rng, n_est, ch, extra, [eff], text,
                                  options=("all", "positions", "subset"),
                                  stiffness=fc / (mi * eps))
@@ -1030,8 +1040,8 @@ def saturation(rng, n_est):
 
 @_retry
 def flexible_shaft(rng, n_est):
-    """A hidden subsystem driven by one state (order 2): a DC motor (current i [A], optionally
-    angle th [rad], speed om [rad/s]; voltage V) whose model lacks the load behind a flexible
+    """A hidden subsystem driven by one state (order 2): a DC motor (current i [A], speed om
+    [rad/s]; voltage V) whose model lacks the load behind a flexible
     shaft. Shaft stiffness k and damping c (torsional mode 15-60 rad/s, damping 0.05-0.2),
     load inertia 0.5-3x the motor's, load friction. The shaft's torque on the motor is a
     function of om alone: d_om = (-k tw - c om + c om_l) / Jm with the hidden twist tw and
@@ -1045,14 +1055,11 @@ def flexible_shaft(rng, n_est):
     Kt, R = rng.uniform(0.05, 0.3), rng.uniform(0.5, 3.0)
     dt = 2 * np.pi / (wt * rng.uniform(15, 30))
     L = R * dt * rng.uniform(1.0, 4.0)
-    with_angle = rng.random() < 0.5
-    states = ["i", "th", "om"] if with_angle else ["i", "om"]
-    n, io = len(states), states.index("om")
+    states = ["i", "om"]   # no motor angle: an integrator's drift would swamp the SE
+    n, io = 2, 1
     A = np.zeros((n, n))
     A[0, 0], A[0, io] = -R / L, -Kt / L
     A[io, 0], A[io, io] = Kt / Jm, -bm / Jm
-    if with_angle:
-        A[1, io] = 1.0
     B = np.zeros((n, 1))
     B[0, 0] = 1 / L
     Ah = np.array([[0.0, -1.0], [k / Jl, -(c + bl) / Jl]])
@@ -1069,9 +1076,8 @@ def flexible_shaft(rng, n_est):
     eff = TrueEffect("state", ("om",), (), (), "dynamic", 2, ("om",),
                      dynamics=HiddenDynamics(Ah, Bh, Ch, Dh, ("om",), ("om",)),
                      description=text)
-    opts = ("all", "positions", "subset") if with_angle else ("all", "subset")
     return _linear_case("flexible_shaft", rng, n_est, (A, B), (At, Bt), states, ["V"], [eff],
-                        f"DC motor: {text}", options=opts, hidden=["tw", "om_l"],
+                        f"DC motor: {text}", options=("all", "subset"), hidden=["tw", "om_l"],
                         timing=(dt, wt / (2 * np.pi) * rng.uniform(0.5, 1.2)),
                         amplitude=rng.uniform(2.0, 10.0))
 
@@ -1105,7 +1111,7 @@ def thermal_mass(rng, n_est):
                      dynamics=HiddenDynamics(Ah, Bh, Ch, Dh, (Ta, Tb), (Ta, Tb)),
                      description=text)
     return _linear_case("thermal_mass", rng, n_est, (A, B), (At, Bt), states, inputs, [eff],
-                        f"row of {n} bodies: {text}", options=("all", "subset"),
+                        f"row of {n} bodies: {text}", options=("all", "subset"), must=(a, b),
                         hidden=["Tm"], timing=_thermal_timing(rng, At))
 
 
@@ -1376,8 +1382,13 @@ def _nonlinear(rng, n_est, cls, effect: str | None):
     velocity equation: "cubic" drag -c3 v^3, "coulomb" -fc sign(v), "viscous" -cv v (each
     10-30 % of the input's std at the velocity's rms; Coulomb 5-20 %), or None."""
     kind, f, amp, dt, bw, states, inputs, text = _oscillator(rng)
-    u = _excitation(rng, "lowpass", 1, 1500, dt, bw, amp)
-    X, _, _, _ = _simulate(_Plant(2, np.eye(2), f=f, sub=4), dt, u)
+    u = _excitation(rng, "lowpass", 1, 1000, dt, bw, 1.0)
+    X, _, _, _ = _simulate(_Plant(2, np.eye(2), f=f, sub=4), dt, amp * u)
+    if kind == "pendulum":     # swings of 0.3-0.8 rad rms (a lightly damped pendulum resonates)
+        amp *= rng.uniform(0.3, 0.8) / max(np.sqrt(np.mean(X[0] ** 2)), 1e-9)
+        X, _, _, _ = _simulate(_Plant(2, np.eye(2), f=f, sub=4), dt, amp * u)
+        if np.max(np.abs(X[0])) > 2.5:
+            raise _Redraw("the pendulum goes over the top")
     vr = np.sqrt(np.mean(X[1] ** 2))
     scale = amp * f(np.zeros(2), np.ones(1))[1]   # the input's std in d's units
     eps = 0.02 * vr
@@ -1389,7 +1400,7 @@ def _nonlinear(rng, n_est, cls, effect: str | None):
             3 * c3 * (3 * vr) ** 2
     elif effect == "coulomb":
         fc = rng.uniform(0.05, 0.2) * scale
-        terms, extra, stiff = (Term(v, "sign(x)", (v,), -fc),), \
+        terms, extra, stiff = (Term(v, "sign(x)", (v,), -fc, smoothing=eps),), \
             (lambda x: -fc * _sign_smooth(x[1], eps)), fc / eps
     elif effect == "viscous":
         cv = rng.uniform(0.1, 0.3) * scale / vr
@@ -1408,7 +1419,8 @@ def _nonlinear(rng, n_est, cls, effect: str | None):
     plant = _Plant(2, C, f=ft, sub=sub)
     true = _true_system(plant, nom, [], f"{cls}_true")
     setup = _Setup(plant, dt, bw, amp, (1,), excitation=str(rng.choice(["lowpass",
-                                                                         "multisine"])))
+                                                                         "multisine"])),
+                   limit=(0, 2.5) if kind == "pendulum" else None)
     return _make_draw(cls, rng, nom, true, Truth(tuple(effects)), setup,
                       f"{text} (NonlinearIOSystem): "
                       f"{effects[0].description if effects else 'model right'}; measured "
@@ -1470,3 +1482,653 @@ def draw_class(cls: str, seed: int, i: int = 0, *, n_est: int | None = None) -> 
     if cls not in CLASSES:
         raise KeyError(f"unknown zoo class {cls!r}; one of {', '.join(CLASSES)}")
     return CLASSES[cls](class_rng(seed, cls, i), n_est=n_est)
+
+
+# ------------------------------------------------------------- the truth, independently
+def simulate_true(draw: ZooDraw, u: NDArray, x0: NDArray | None = None) -> NDArray:
+    """The true plant's noise-free output (p, N) for the held input ``u`` (m, N).
+
+    Independent of the generator: ``draw.true`` is discretized by greybox
+    (ZOH for a StateSpace, RK4 with ``draw.substeps`` sub-steps for a
+    NonlinearIOSystem) and simulated from ``x0`` (default ``draw.true_x0``).
+    """
+    from .nonlinear import discretize_nonlinear, simulate_nonlinear
+    from .signals import simulate
+    from .system import discretize
+    x0 = draw.true_x0 if x0 is None else x0
+    if isinstance(draw.true, ct.StateSpace):
+        return simulate(discretize(draw.true, draw.dt), u, x0=x0).y_clean
+    sysd = discretize_nonlinear(draw.true, draw.dt, substeps=draw.substeps)
+    return simulate_nonlinear(sysd, u, x0=x0).y_clean
+
+
+def model_with_truth(draw: ZooDraw) -> tuple[ct.NonlinearIOSystem, NDArray]:
+    """(system, x0): the nominal model plus the recorded truth, built from the records alone.
+
+    Continuous NonlinearIOSystem with the nominal's states, then each dynamic
+    effect's states (``z<k>_<j>``) and a clock ``t`` [s] when a term reads
+    time. Input effects add to the input the nominal receives, state effects
+    to its derivatives, sensor effects to its outputs. Simulated on the same
+    input it must give the true plant's output: the truth is then exactly
+    what the nominal lacks.
+    """
+    nom, effects = draw.nominal, draw.truth.effects
+    states, ins = list(nom.state_labels), list(nom.input_labels)
+    outs = list(nom.output_labels)
+    n0 = len(states)
+    dyn = [(k, e) for k, e in enumerate(effects) if e.dynamics is not None]
+    zs = {k: list(range(len(states) + sum(e2.order for k2, e2 in dyn if k2 < k),
+                        len(states) + sum(e2.order for k2, e2 in dyn if k2 <= k)))
+          for k, e in dyn}
+    names = states + [f"z{k}_{j}" for k, e in dyn for j in range(e.order)]
+    clock = any(t.form == "t" for e in effects for t in e.terms)
+    nt = len(names) + int(clock)
+    if isinstance(nom, ct.StateSpace):
+        A, B, C, D = (np.asarray(M, float) for M in (nom.A, nom.B, nom.C, nom.D))
+        fnom = lambda x, u: A @ x + B @ u  # noqa: E731
+        hnom = lambda x, u: C @ x + D @ u  # noqa: E731
+    else:
+        fnom = lambda x, u: np.asarray(nom.updfcn(0.0, x, u, nom.params), float)  # noqa
+        hnom = lambda x, u: np.asarray(nom.outfcn(0.0, x, u, nom.params), float)  # noqa
+
+    def d_of(e, k, vals, x, t):
+        """d (ntargets,) of effect k."""
+        if e.dynamics is None:
+            d = np.zeros(len(e.targets))
+            for term in e.terms:
+                d[e.targets.index(term.target)] += term.value(vals, t)
+            return d
+        h = e.dynamics
+        w = np.array([vals[s] for s in h.drivers])
+        return h.C @ x[zs[k]] + h.D @ w
+
+    def parts(x, u):
+        t = x[-1] if clock else 0.0
+        vals = dict(zip(states, x[:n0])) | dict(zip(ins, u))
+        ue = np.array(u, dtype=float)
+        for k, e in enumerate(effects):
+            if e.channel == "input":
+                ue = ue + _scatter(ins, e.targets, d_of(e, k, vals, x, t))
+        return t, vals, ue
+
+    def upd(_t, x, u, _p):
+        t, vals, ue = parts(x, u)
+        vals_e = vals | dict(zip(ins, ue))
+        dx = np.zeros(nt)
+        dx[:n0] = fnom(x[:n0], ue)
+        for k, e in enumerate(effects):
+            if e.channel == "state":
+                dx[:n0] += _scatter(states, e.targets, d_of(e, k, vals, x, t))
+            if e.dynamics is not None:
+                h = e.dynamics
+                src = vals if e.channel != "input" else vals_e | dict(zip(ins, u))
+                dx[zs[k]] = h.A @ x[zs[k]] + h.B @ np.array([src[s] for s in h.drivers])
+        if clock:
+            dx[-1] = 1.0
+        return dx
+
+    def out(_t, x, u, _p):
+        t, vals, ue = parts(x, u)
+        y = hnom(x[:n0], ue)
+        for k, e in enumerate(effects):
+            if e.channel == "sensor":
+                y = y + _scatter(outs, e.targets, d_of(e, k, vals, x, t))
+        return y
+    x0 = np.zeros(nt)
+    x0[:n0] = draw.true_x0[:n0]
+    sys = ct.nlsys(upd, out, states=names + (["t"] if clock else []), inputs=ins, outputs=outs,
+                   dt=0, name=f"{draw.cls}_nominal_plus_truth")
+    return sys, x0
+
+
+def _scatter(names: list[str], targets: tuple[str, ...], d: NDArray) -> NDArray:
+    """A vector over ``names`` with ``d`` at the ``targets``."""
+    out = np.zeros(len(names))
+    for tname, v in zip(targets, d):
+        out[names.index(tname)] += v
+    return out
+
+
+# -------------------------------------------------------- what the report says, and the score
+@dataclass(frozen=True)
+class FoundTerm:
+    """One term of a reported static law, in the truth's canonical form (see :class:`Term`).
+
+    Attributes
+    ----------
+    target : str
+    expression : str
+        Canonical text (``Term.expression``) or greybox's own name for a form
+        the zoo's truth does not use (a hinge, ``sign(p2-p1)``).
+    variables : tuple of str
+    coefficient : float
+    ci95 : float
+        95 % half-width (NaN when the report gives none).
+    """
+
+    target: str
+    expression: str
+    variables: tuple[str, ...]
+    coefficient: float
+    ci95: float = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class FoundEffect:
+    """One effect as the report states it, mapped onto the truth's vocabulary.
+
+    Attributes
+    ----------
+    channel : str
+        "state", "input", "sensor", "parameters" (a nonlinear model's declared
+        parameters refitted) or "unknown".
+    targets : tuple of str
+        Equations, inputs or outputs d adds to.
+    law : str
+        "static" or "dynamic" ("parameters" for a parameter refit).
+    order : int
+    drivers : tuple of str
+        Signals the law reads (relative coordinates expanded into their states).
+    terms : tuple of FoundTerm
+        A static law's terms (linear terms one variable at a time).
+    poles : ndarray, shape (order,)
+        A dynamic law's continuous poles [1/s], sorted by modulus.
+    pole_ci : ndarray, shape (order,)
+        95 % half-widths of the poles (of their real and imaginary parts
+        alike for a complex pair; NaN where not given).
+    dc_gain : dict of (target, driver) -> float
+        A dynamic law's DC gains.
+    formula : str
+        The report's formula.
+    notes : tuple of str
+        The report's parameter notes for this effect.
+    """
+
+    channel: str
+    targets: tuple[str, ...]
+    law: str
+    order: int
+    drivers: tuple[str, ...]
+    terms: tuple[FoundTerm, ...] = ()
+    poles: NDArray = field(default_factory=lambda: np.zeros(0, complex))
+    pole_ci: NDArray = field(default_factory=lambda: np.zeros(0))
+    dc_gain: dict = field(default_factory=dict)
+    formula: str = ""
+    notes: tuple[str, ...] = ()
+
+
+def _natural(name: str):
+    """Sort key that orders p2 before p10."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+_REL = re.compile(r"^\((.+)-(.+)\)(\^3)?$")
+
+
+def _canonical_terms(target: str, name: str, kind: str, c: float, h: float,
+                     out_name: str = "") -> list[FoundTerm]:
+    """Canonical FoundTerms of one greybox law term ``(name, kind)`` with coefficient c and
+    95 % half-width h. ``out_name``: the output a sensor law's "yhat" terms read."""
+    if kind in ("x", "u"):
+        return [FoundTerm(target, name, (name,), c, h)]
+    rel = _REL.match(name)
+    if kind == "rel" and rel:
+        b, a = rel.group(1), rel.group(2)         # (b - a)
+        return [FoundTerm(target, b, (b,), c, h), FoundTerm(target, a, (a,), -c, h)]
+    if kind == "rel^3" and rel:
+        b, a = rel.group(1), rel.group(2)
+        if _natural(a) > _natural(b):
+            a, b, c = b, a, -c
+        return [FoundTerm(target, f"({b}-{a})^3", (a, b), c, h)]
+    inner = name[len("sign("):-1] if name.startswith("sign(") else name.strip("|")
+    simple = {"x^3": lambda: (f"{name[:-2]}^3", (name[:-2],)),
+              "sign": lambda: (f"sign({inner})", (inner,)),
+              "abs": lambda: (f"|{inner}|", (inner,)),
+              "x*u": lambda: (name, tuple(name.split("*"))),
+              "const": lambda: ("1", ()), "drift": lambda: ("t", ()),
+              "yhat": lambda: (out_name, (out_name,)),
+              "yhat^3": lambda: (f"{out_name}^3", (out_name,)),
+              "yhat_abs": lambda: (f"|{out_name}|", (out_name,)),
+              "yhat_sat": lambda: (f"sat({out_name})", (out_name,))}
+    if kind in simple:
+        expr, var = simple[kind]()
+        return [FoundTerm(target, expr, var, c, h)]
+    return [FoundTerm(target, name, (), c, h)]          # a form the truth never uses
+
+
+def _channel_of(name: str, equations) -> tuple[str, tuple[str, ...]]:
+    """(channel kind, targets) from a channel's name ("eq(a)+eq(b)", "force(a,b)",
+    "input(F)", "output(y)") and the effect's equations."""
+    m = re.match(r"^input\((.+)\)$", name)
+    if m:
+        return "input", (m.group(1),)
+    m = re.match(r"^output\((.+)\)$", name)
+    if m:
+        return "sensor", (m.group(1),)
+    if name.startswith(("eq(", "force(")) or equations:
+        return "state", tuple(equations)
+    return "unknown", tuple(equations)
+
+
+def _force_direction(rep, step_index: int, ch_name: str, eqs) -> NDArray | None:
+    """The weights of a force channel in its equations: from ``report.channel.G`` for the
+    first effect, else from the message "(it enters ... as [g1 g2])"."""
+    if step_index == 0 and getattr(rep, "channel", None) is not None and \
+            rep.channel.name == ch_name:
+        labels = list(rep.nominal.state_labels)
+        return np.asarray(rep.channel.G, float)[[labels.index(e) for e in eqs], 0]
+    steps = getattr(rep, "steps", ()) or ()
+    text = steps[step_index].message if step_index < len(steps) else rep.message
+    m = re.search(r"as \[([^\]]+)\]", text)
+    return np.array([float(v) for v in m.group(1).split()]) if m else None
+
+
+def _static_found(ef, rep, k_step, ch_name, kind, targets) -> FoundEffect:
+    """A static law (or a drift) from ``effect.law`` (a greybox StaticLaw)."""
+    law = ef.law
+    terms = []
+    md = law.coef.shape[0]
+    g = None
+    if kind == "state" and md == 1 and len(targets) > 1:
+        g = _force_direction(rep, k_step, ch_name, targets)
+    for k in range(md):
+        for j, (name, tkind, _idx) in enumerate(law.spec):
+            c = float(law.coef[k, j])
+            if c == 0:
+                continue
+            h = float(law.ci[k, j]) if law.ci is not None else float("nan")
+            if g is not None:                          # one force: per equation
+                for e, ge in zip(targets, g):
+                    terms += _canonical_terms(e, name, tkind, c * ge, h * abs(ge))
+            else:
+                tgt = targets[k] if k < len(targets) else targets[-1]
+                terms += _canonical_terms(tgt, name, tkind, c, h,
+                                          out_name=targets[0] if kind == "sensor" else "")
+    terms = _merge(terms)
+    drivers = tuple(sorted({v for t in terms for v in t.variables}, key=_natural))
+    return FoundEffect(kind, targets, "static", 0, drivers, tuple(terms), formula=ef.formula,
+                       notes=tuple(ef.parameter_notes))
+
+
+def _merge(terms: list[FoundTerm]) -> list[FoundTerm]:
+    """Sum the coefficients of equal (target, expression) terms (a relative coordinate
+    expanded beside a plain term); half-widths add (conservative)."""
+    out: dict = {}
+    for t in terms:
+        key = (t.target, t.expression)
+        if key in out:
+            o = out[key]
+            out[key] = FoundTerm(o.target, o.expression, o.variables,
+                                 o.coefficient + t.coefficient, o.ci95 + t.ci95)
+        else:
+            out[key] = t
+    return [t for t in out.values() if t.coefficient != 0]
+
+
+def _driver_weights(names: list[str], drivers) -> NDArray:
+    """Rows over ``names`` (states then inputs) of each driver: a unit row, or e_b - e_a for
+    a relative coordinate "(b-a)" (zeros for a name not found)."""
+    W = np.zeros((len(drivers), len(names)))
+    for r, d in enumerate(drivers):
+        rel = _REL.match(d)
+        if d in names:
+            W[r, names.index(d)] = 1.0
+        elif rel and rel.group(1) in names and rel.group(2) in names:
+            W[r, names.index(rel.group(1))], W[r, names.index(rel.group(2))] = 1.0, -1.0
+    return W
+
+
+def _dc_dict(targets, names, DC: NDArray) -> dict:
+    """{(target, name): gain} of the nonzero entries of DC (ntargets, len(names))."""
+    return {(t, nm): float(DC[c, j]) for c, t in enumerate(targets)
+            for j, nm in enumerate(names) if DC[c, j] != 0}
+
+
+def _dynamic_found(ef, rep, kind, targets, g=None) -> FoundEffect:
+    """A dynamic law from ``effect.dynamic_law`` (first-order, shared first- or higher-order)
+    or ``effect.subsystem`` (an unstructured discrete subsystem)."""
+    names = list(rep.nominal.state_labels) + list(rep.nominal.input_labels)
+    law, sub = getattr(ef, "dynamic_law", None), getattr(ef, "subsystem", None)
+    tg = list(targets)
+    if law is not None and hasattr(law, "poles") and hasattr(law, "alpha"):      # order >= 2
+        W = _driver_weights(names, law.drivers)
+        z_dc = (law.beta[-1] / law.alpha[-1]) @ W
+        DC = np.outer(law.k, z_dc) + law.E
+        poles, pci = np.asarray(law.poles, complex), np.asarray(law.pole_ci, float)
+    elif law is not None and hasattr(law, "Bz"):                                  # shared, order 1
+        DC = -np.outer(law.k, law.Bz) / law.pole + law.E
+        poles, pci = np.array([law.pole], complex), np.array([law.ci[0]], float)
+    elif law is not None:                                                         # first order
+        W = _driver_weights(names, law.drivers)
+        DC = ((law.e - law.b / law.pole) @ W)[None, :]
+        poles, pci = np.array([law.pole], complex), np.array([law.ci[0]], float)
+    elif sub is not None:
+        dt = float(rep.nominal.dt)
+        I = np.eye(sub.order)
+        Bd, Dd = np.hstack([sub.Bdx, sub.Bdu]), np.hstack([sub.Ddx, sub.Ddu])
+        DC = sub.Cd @ np.linalg.solve(I - sub.Ad, Bd) + Dd
+        poles = np.log(np.linalg.eigvals(sub.Ad).astype(complex)) / dt
+        pci = np.full(sub.order, np.nan)
+    else:
+        return FoundEffect(kind, targets, "dynamic", ef.order, (), formula=ef.formula)
+    if g is not None and DC.shape[0] == 1 and len(tg) > 1:         # one force along g
+        DC = np.outer(g, DC[0])
+    o = np.argsort(np.abs(poles))
+    used = np.flatnonzero(np.any(np.abs(DC) > 0, axis=0))
+    if sub is not None:
+        used = np.flatnonzero(np.any(np.abs(np.hstack([sub.Bdx, sub.Bdu])) > 0, axis=0) |
+                              np.any(np.abs(np.hstack([sub.Ddx, sub.Ddu])) > 0, axis=0))
+    drivers = tuple(sorted((names[j] for j in used), key=_natural))
+    return FoundEffect(kind, targets, "dynamic", len(poles), drivers, (), poles[o], pci[o],
+                       _dc_dict(tg[:DC.shape[0]], names, DC), formula=ef.formula,
+                       notes=tuple(ef.parameter_notes))
+
+
+def _sensor_found(ef, kind, targets) -> FoundEffect:
+    """A sensor law with a first-order lag (a "yhat_lag" term, coefficient tau [s]): dynamic,
+    order 1, pole -1/tau; its other terms kept (a gain or an offset beside the lag)."""
+    law, o = ef.law, targets[0]
+    j = [sp[1] for sp in law.spec].index("yhat_lag")
+    tau = float(law.coef[0, j])
+    h = float(law.ci[0, j]) if law.ci is not None else float("nan")
+    terms = []
+    for q, (name, tkind, _i) in enumerate(law.spec):
+        if q != j and law.coef[0, q] != 0 and tkind != "drift":
+            terms += _canonical_terms(o, name, tkind, float(law.coef[0, q]),
+                                      float(law.ci[0, q]) if law.ci is not None else np.nan,
+                                      out_name=o)
+    return FoundEffect(kind, targets, "dynamic", 1, (o,), tuple(terms),
+                       np.array([-1 / tau], complex), np.array([h / tau ** 2]),
+                       {(o, o): 0.0}, formula=ef.formula, notes=tuple(ef.parameter_notes))
+
+
+def found_effects(report) -> tuple[FoundEffect, ...]:
+    """What a LoopReport says the model lacked, in the truth's vocabulary (one entry per
+    effect added; empty when the model was left unchanged).
+
+    The ONE place that reads how greybox states an effect (the step's channel name, the
+    Effect's kind and order, its StaticLaw / DynamicLaw / SharedLaw / SharedLaw2 /
+    Subsystem, its formula and parameter notes): when the report gains structured
+    terms, only this function changes.
+    """
+    if not getattr(report, "updated", False):
+        return ()
+    steps = list(getattr(report, "steps", ()) or ())
+    items = [(s.effect, s.channel) for s in steps] or [
+        (report.effect, report.channel.name if report.channel is not None else
+         report.effect.channel)]
+    out = []
+    for k, (ef, name) in enumerate(items):
+        kind, targets = _channel_of(name, ef.equations)
+        if ef.kind == "parameters":
+            out.append(FoundEffect("parameters", (), "parameters", 0, (), formula=ef.formula,
+                                   notes=tuple(ef.parameter_notes)))
+            continue
+        law = getattr(ef, "law", None)
+        if ef.kind in ("static", "sensor") and law is not None:
+            if any(sp[1] == "yhat_lag" and np.any(law.coef[:, j])
+                   for j, sp in enumerate(law.spec)):
+                out.append(_sensor_found(ef, kind, targets))
+            else:
+                out.append(_static_found(ef, report, k, name, kind, targets))
+            continue
+        g = _force_direction(report, k, name, targets) if name.startswith("force(") else None
+        out.append(_dynamic_found(ef, report, kind, targets, g))
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ZooScore:
+    """How a LoopReport's explanation compares with a draw's truth.
+
+    Attributes
+    ----------
+    cls : str
+    description : str
+    correct_model : bool
+        The draw's model was right (no true effect).
+    updated : bool
+        The report changed the model.
+    right : bool
+        The right explanation: for a correct model, no update; else every true
+        effect found with the right channel (kind and targets), law kind,
+        order, exactly the true terms (static) or drivers (dynamic), every
+        coefficient within 10 % (static terms; dynamic: poles and DC gains),
+        and no other effect.
+    right_channel, right_kind, right_order, right_terms, coefficients_within : bool
+        The parts of ``right`` (each over all true effects; False when an
+        effect is missing or an extra one was added).
+    covered : int
+        True coefficients (static terms' coefficients, dynamic poles) inside
+        the report's 95 % interval.
+    n_coefficients : int
+        True coefficients in all.
+    false_flags : int
+        Parameter notes that flag a parameter the truth has right.
+    error_nominal, error_updated, error_true : float
+        Validation error [%] of the nominal, the updated and the true model
+        (SE; PE when the report's SE is undefined: an unstable model; the true
+        model's is its noise-free output's, the measurement noise alone).
+    error_kind : str
+        "SE" or "PE".
+    false_update : bool or None
+        A correct model was changed (None for a draw with effects).
+    seconds : float
+        Run time of the report [s] (NaN if not given).
+    found : str
+        What the report found, one line per effect.
+    why : str
+        The first reason the explanation is not right ("" when right).
+    """
+
+    cls: str
+    description: str
+    correct_model: bool
+    updated: bool
+    right: bool
+    right_channel: bool
+    right_kind: bool
+    right_order: bool
+    right_terms: bool
+    coefficients_within: bool
+    covered: int
+    n_coefficients: int
+    false_flags: int
+    error_nominal: float
+    error_updated: float
+    error_true: float
+    error_kind: str
+    false_update: bool | None
+    seconds: float
+    found: str
+    why: str
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of true coefficients inside the reported 95 % intervals (NaN if none)."""
+        return self.covered / self.n_coefficients if self.n_coefficients else float("nan")
+
+    @property
+    def error_ratio(self) -> float:
+        """Validation error of the updated model over the true model's."""
+        return self.error_updated / self.error_true
+
+
+def _canon_key(target: str, expression: str) -> tuple[str, str]:
+    """(target, expression) with a relative cube's coordinates in natural order."""
+    rel = _REL.match(expression)
+    if rel and rel.group(3) and _natural(rel.group(2)) > _natural(rel.group(1)):
+        expression = f"({rel.group(2)}-{rel.group(1)})^3"
+    return target, expression
+
+
+def _true_coefs(te: TrueEffect) -> dict:
+    """{canonical key: coefficient} of a static truth (orientation folded into the sign)."""
+    out = {}
+    for t in te.terms:
+        key = _canon_key(t.target, t.expression)
+        out[key] = -t.coefficient if key[1] != t.expression else t.coefficient
+    return out
+
+
+def _alternatives(te: TrueEffect, draw: ZooDraw) -> list[TrueEffect]:
+    """The effect and its observationally equivalent forms: an input effect on an input that
+    enters one equation e only is also a state effect in e (terms times B[e, input])."""
+    out = [te]
+    if te.channel != "input" or len(te.equations) != 1 or draw.nonlinear_model or \
+            len(te.inputs) != 1 or any(t.form in ("sat", "deadzone") for t in te.terms):
+        return out
+    st, ins = list(draw.nominal.state_labels), list(draw.nominal.input_labels)
+    b = float(np.asarray(draw.nominal.B)[st.index(te.equations[0]), ins.index(te.inputs[0])])
+    e = te.equations[0]
+    terms = tuple(Term(e, t.form, t.variables, b * t.coefficient, t.unit) for t in te.terms)
+    dyn = None
+    if te.dynamics is not None:
+        h = te.dynamics
+        dyn = HiddenDynamics(h.A, h.B, b * h.C, b * h.D, h.drivers, (e,))
+    out.append(TrueEffect("state", (e,), (), (), te.law, te.order, te.drivers, terms, dyn,
+                          te.description))
+    return out
+
+
+def _compare(te: TrueEffect, fe: FoundEffect) -> tuple[dict, int, int, str]:
+    """(checks, covered, n, why) of one true effect against the found effect paired with it."""
+    chk = {"kind": fe.law == te.law, "order": fe.order == te.order}
+    if te.law == "static":
+        tc = _true_coefs(te)
+        fc = {_canon_key(t.target, t.expression): t for t in fe.terms}
+        chk["terms"] = set(tc) == set(fc)
+        inside = [k for k in tc if k in fc and abs(fc[k].coefficient - tc[k]) <=
+                  COEF_RTOL * abs(tc[k])]
+        chk["coef"] = len(inside) == len(tc)
+        cov = sum(1 for k in tc if k in fc and np.isfinite(fc[k].ci95) and
+                  abs(fc[k].coefficient - tc[k]) <= fc[k].ci95)
+        n = len(tc)
+    else:
+        h = te.dynamics
+        chk["terms"] = set(fe.drivers) == set(te.drivers) and not fe.terms
+        tp = h.poles
+        ok = len(fe.poles) == len(tp) and bool(np.all(np.abs(fe.poles - tp) <=
+                                                      COEF_RTOL * np.abs(tp)))
+        DC = h.dc_gain
+        floor = 0.1 * max(np.abs(DC).max(), np.abs(h.D).max())
+        for c, tname in enumerate(h.targets):
+            for j, dname in enumerate(h.drivers):
+                got = fe.dc_gain.get((tname, dname), 0.0)
+                ok &= abs(got - DC[c, j]) <= COEF_RTOL * max(abs(DC[c, j]), floor)
+        chk["coef"] = bool(ok)
+        cov, n = 0, len(tp)
+        if len(fe.poles) == len(tp):
+            for p, q, hw in zip(tp, fe.poles, fe.pole_ci):
+                cov += int(np.isfinite(hw) and abs(p.real - q.real) <= hw and
+                           abs(p.imag - q.imag) <= hw)
+    why = "" if all(chk.values()) else (
+        f"{te.channel} {','.join(te.targets)}: wrong " +
+        ", ".join(k for k, v in chk.items() if not v))
+    return chk, int(cov), n, why
+
+
+def _right_entries(draw: ZooDraw) -> tuple[set, dict]:
+    """({(equation, variable)} of the model entries the truth changes; {output: sensor forms}
+    the truth has)."""
+    entries, sensors = set(), {}
+    for te in draw.truth.effects:
+        if te.channel == "sensor":
+            forms = sensors.setdefault(te.outputs[0], set())
+            forms |= {t.form for t in te.terms} | ({"lag"} if te.law == "dynamic" else set())
+            continue
+        rows = te.targets if te.channel == "state" else te.equations
+        for v in te.drivers:
+            entries |= {(r, v) for r in rows}
+    return entries, sensors
+
+
+_NOTE_AB = re.compile(r"^([AB])\[([^;\]]+); ([^\]]+)\]")
+_NOTE_REL = re.compile(r"^\[([^\]]+)\] lacks a term in the relative coordinate \((.+)-(.+)\)")
+_NOTE_SENSOR = {"gain": "x", "offset": "1", "drifts": "t", "first-order lag": "lag"}
+
+
+def _false_flags(draw: ZooDraw, found) -> int:
+    """Parameter notes flagging an entry, or a sensor property, the truth has right."""
+    entries, sensors = _right_entries(draw)
+    bad = 0
+    for fe in found:
+        for note in fe.notes:
+            m, r = _NOTE_AB.match(note), _NOTE_REL.match(note)
+            if m or r:
+                rows = [s.strip() for s in (m or r).group(2 if m else 1).split(",")]
+                names = [m.group(3)] if m else [r.group(2), r.group(3)]
+                bad += not any((row, nm) in entries for row in rows for nm in names)
+                continue
+            s = re.match(r"^sensor (\S+): (.*)$", note)
+            if s:
+                what = next((f for k, f in _NOTE_SENSOR.items() if s.group(2).startswith(k) or
+                             f" {k}" in s.group(2)[:40]), None)
+                bad += what is not None and what not in sensors.get(s.group(1), set())
+    return bad
+
+
+def _errors(draw: ZooDraw, report) -> tuple[float, float, str]:
+    """(nominal, updated, "SE" or "PE") validation errors [%] from the report's table."""
+    nom, upd = report.table["nominal"], report.table.get("updated", report.table["nominal"])
+    if getattr(nom, "se_defined", True) and getattr(upd, "se_defined", True):
+        return float(nom.se.value), float(upd.se.value), "SE"
+    return float(nom.pe.value), float(upd.pe.value), "PE"
+
+
+def _describe(found) -> str:
+    """One line per found effect."""
+    out = []
+    for fe in found:
+        what = (", ".join(f"{t.coefficient:+.3g}*{t.expression}" for t in fe.terms)
+                if fe.law == "static" else
+                f"poles {np.array2string(fe.poles, precision=3)} driven by "
+                f"{','.join(fe.drivers)}")
+        out.append(f"{fe.channel}({','.join(fe.targets)}) {fe.law} {fe.order}: {what}")
+    return "; ".join(out) or "model unchanged"
+
+
+def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
+    """Score a LoopReport against the draw's truth (see :class:`ZooScore`).
+
+    ``seconds``: the run time of ``close_the_loop`` [s], recorded as given.
+    """
+    found = found_effects(report)
+    e_nom, e_upd, kind = _errors(draw, report)
+    common = dict(cls=draw.cls, description=draw.description, updated=bool(report.updated),
+                  false_flags=_false_flags(draw, found), error_nominal=e_nom,
+                  error_updated=e_upd, error_true=draw.se_true(), error_kind=kind,
+                  seconds=float(seconds), found=_describe(found))
+    if draw.truth.correct:
+        ok = not report.updated
+        return ZooScore(correct_model=True, right=ok, right_channel=ok, right_kind=ok,
+                        right_order=ok, right_terms=ok, coefficients_within=ok, covered=0,
+                        n_coefficients=0, false_update=not ok,
+                        why="" if ok else "a correct model was changed", **common)
+    used, checks, cov, n, whys = set(), [], 0, 0, []
+    for te in draw.truth.effects:
+        pair = next(((alt, i) for alt in _alternatives(te, draw) for i, fe in enumerate(found)
+                     if i not in used and fe.channel == alt.channel and
+                     set(fe.targets) == set(alt.targets)), None)
+        n += len(te.terms) if te.law == "static" else te.order
+        if pair is None:
+            checks.append({"channel": False, "kind": False, "order": False, "terms": False,
+                           "coef": False})
+            whys.append(f"{te.channel} {','.join(te.targets)}: not found")
+            continue
+        used.add(pair[1])
+        chk, c, _, why = _compare(pair[0], found[pair[1]])
+        checks.append({"channel": True, **chk})
+        cov += c
+        whys.append(why)
+    extra = len(found) - len(used)
+    if extra:
+        whys.append(f"{extra} effect(s) beyond the truth")
+    allk = {k: all(c[k] for c in checks) for k in ("channel", "kind", "order", "terms",
+                                                   "coef")}
+    allk["channel"] &= extra == 0
+    return ZooScore(correct_model=False, right=all(allk.values()),
+                    right_channel=allk["channel"], right_kind=allk["kind"],
+                    right_order=allk["order"], right_terms=allk["terms"],
+                    coefficients_within=allk["coef"], covered=cov, n_coefficients=n,
+                    false_update=None, why=next((w for w in whys if w), ""), **common)

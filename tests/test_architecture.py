@@ -1,6 +1,7 @@
 """The house plan: a layer never imports a layer above it (module-level imports).
 
-Layers, bottom first: base helpers; plants and signals; metrics; filters;
+Layers, bottom first: base helpers; plants and signals; metrics (and the plant zoo, a
+test helper independent of the trace code it measures); filters;
 ident; update (and validation); trace; workflow; top (plotting, I/O, CLI,
 reproduction of the paper). Lazy imports inside ``.plot()`` methods, which
 delegate to the plotting module as STYLE.md asks, are function-level and
@@ -19,7 +20,7 @@ PKG = Path(__file__).resolve().parents[1] / "greybox"
 LAYER = {
     "exceptions": 0, "_validation": 0, "_lti": 0, "_blas": 0, "progress": 0,
     "system": 1, "signals": 1, "plants": 1, "nonlinear": 1,
-    "metrics": 2,
+    "metrics": 2, "zoo": 2,
     "filters": 3,
     "ident": 4,
     "update": 5, "validate": 5,
