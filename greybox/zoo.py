@@ -179,6 +179,7 @@ class HiddenDynamics:
 
     @property
     def order(self) -> int:
+        """Number of states of the law."""
         return int(self.A.shape[0])
 
     @property
@@ -248,6 +249,7 @@ class Truth:
 
     @property
     def correct(self) -> bool:
+        """The nominal model is right (no effect)."""
         return not self.effects
 
 
@@ -572,6 +574,7 @@ class _Chain:
     amplitude: float = 2.0   # excitation std [N]
 
     def matrices(self):
+        """Continuous (A, B, states) of the chain (see :func:`_mech`)."""
         return _mech(self.m, self.springs, self.dampers, self.forces)
 
 
@@ -671,8 +674,24 @@ def _retry(fn: Callable) -> Callable:
                 continue
         raise RuntimeError(f"{fn.__name__}: no usable plant in 30 draws")
     draw.__name__ = fn.__name__
-    draw.__doc__ = fn.__doc__
+    draw.__doc__ = (fn.__doc__ or "") + _DRAW_DOC
     return draw
+
+
+_DRAW_DOC = """
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator or int
+        Source of every random choice (a seed: a fresh generator from it).
+    n_est : int, optional
+        Estimation samples (the validation record gets half as many, at least
+        300); default 4000 and 2000.
+
+    Returns
+    -------
+    ZooDraw
+"""
 
 
 def _factor(rng) -> float:
@@ -980,6 +999,7 @@ def _lag_model(rng, order: int, w_bw: float, dt: float):
 
 
 def _actuator_lag(rng, n_est, order: int):
+    """A chain whose force reaches it through an actuator lag of ``order`` 1 or 2."""
     ch = _input_chain(rng)
     A, B, states = ch.matrices()
     dt, bw = _mech_timing(rng, A)
@@ -1010,6 +1030,7 @@ def actuator_lag2(rng, n_est):
 
 
 def _input_nonlinearity(rng, n_est, cls, form: str):
+    """A chain whose force passes a static input map: "deadzone" or "sat" (saturation)."""
     ch = _input_chain(rng, hi=6)
     A, B, states = ch.matrices()
     amp = ch.amplitude
@@ -1472,13 +1493,49 @@ CORRECT_CLASSES = ("correct_linear", "correct_nonlinear", "correct_closed_loop")
 
 
 def class_rng(seed: int, cls: str, i: int) -> np.random.Generator:
-    """The generator of draw ``i`` of class ``cls`` in a run seeded ``seed`` (replayable:
-    independent of which other classes run)."""
+    """The generator of draw ``i`` of class ``cls`` in a run seeded ``seed``.
+
+    Replayable, and independent of which other classes or draws run.
+
+    Parameters
+    ----------
+    seed : int
+        The run's seed.
+    cls : str
+        Class name (a key of ``CLASSES``).
+    i : int
+        Draw index within the class.
+
+    Returns
+    -------
+    numpy.random.Generator
+    """
     return np.random.default_rng([int(seed), zlib.crc32(cls.encode()), int(i)])
 
 
 def draw_class(cls: str, seed: int, i: int = 0, *, n_est: int | None = None) -> ZooDraw:
-    """Draw ``i`` of class ``cls`` in a run seeded ``seed``."""
+    """Draw ``i`` of class ``cls`` in a run seeded ``seed``.
+
+    Parameters
+    ----------
+    cls : str
+        Class name (a key of ``CLASSES``).
+    seed : int
+        The run's seed.
+    i : int
+        Draw index within the class.
+    n_est : int, optional
+        Estimation samples (default the class's own, 4000).
+
+    Returns
+    -------
+    ZooDraw
+
+    Raises
+    ------
+    KeyError
+        For an unknown class.
+    """
     if cls not in CLASSES:
         raise KeyError(f"unknown zoo class {cls!r}; one of {', '.join(CLASSES)}")
     return CLASSES[cls](class_rng(seed, cls, i), n_est=n_est)
@@ -1486,11 +1543,23 @@ def draw_class(cls: str, seed: int, i: int = 0, *, n_est: int | None = None) -> 
 
 # ------------------------------------------------------------- the truth, independently
 def simulate_true(draw: ZooDraw, u: NDArray, x0: NDArray | None = None) -> NDArray:
-    """The true plant's noise-free output (p, N) for the held input ``u`` (m, N).
+    """The true plant's noise-free output for a held input.
 
     Independent of the generator: ``draw.true`` is discretized by greybox
     (ZOH for a StateSpace, RK4 with ``draw.substeps`` sub-steps for a
-    NonlinearIOSystem) and simulated from ``x0`` (default ``draw.true_x0``).
+    NonlinearIOSystem) and simulated.
+
+    Parameters
+    ----------
+    draw : ZooDraw
+    u : ndarray, shape (ninputs, nsteps)
+        Input, held over each sample.
+    x0 : ndarray, shape (true.nstates,), optional
+        Initial state (default ``draw.true_x0``).
+
+    Returns
+    -------
+    ndarray, shape (noutputs, nsteps)
     """
     from .nonlinear import discretize_nonlinear, simulate_nonlinear
     from .signals import simulate
@@ -1503,8 +1572,21 @@ def simulate_true(draw: ZooDraw, u: NDArray, x0: NDArray | None = None) -> NDArr
 
 
 def model_with_truth(draw: ZooDraw) -> tuple[ct.NonlinearIOSystem, NDArray]:
-    """(system, x0): the nominal model plus the recorded truth, built from the records alone.
+    """The nominal model plus the recorded truth, built from the records alone.
 
+    Parameters
+    ----------
+    draw : ZooDraw
+
+    Returns
+    -------
+    system : control.NonlinearIOSystem
+        Continuous time (see below).
+    x0 : ndarray, shape (system.nstates,)
+        Its initial state (the nominal's part of ``draw.true_x0``, zeros else).
+
+    Notes
+    -----
     Continuous NonlinearIOSystem with the nominal's states, then each dynamic
     effect's states (``z<k>_<j>``) and a clock ``t`` [s] when a term reads
     time. Input effects add to the input the nominal receives, state effects
@@ -1611,6 +1693,10 @@ class FoundTerm:
     variables: tuple[str, ...]
     coefficient: float
     ci95: float = float("nan")
+
+    def __post_init__(self):
+        object.__setattr__(self, "coefficient", float(self.coefficient))
+        object.__setattr__(self, "ci95", float(self.ci95))
 
 
 @dataclass(frozen=True, eq=False)
@@ -1843,13 +1929,25 @@ def _sensor_found(ef, kind, targets) -> FoundEffect:
 
 
 def found_effects(report) -> tuple[FoundEffect, ...]:
-    """What a LoopReport says the model lacked, in the truth's vocabulary (one entry per
-    effect added; empty when the model was left unchanged).
+    """What a LoopReport says the model lacked, in the truth's vocabulary.
 
+    Parameters
+    ----------
+    report : greybox.workflow.LoopReport
+        From ``greybox.close_the_loop`` (linear or nonlinear nominal).
+
+    Returns
+    -------
+    tuple of FoundEffect
+        One per effect added, in order; empty when the model was left unchanged.
+
+    Notes
+    -----
     The ONE place that reads how greybox states an effect (the step's channel name, the
     Effect's kind and order, its StaticLaw / DynamicLaw / SharedLaw / SharedLaw2 /
-    Subsystem, its formula and parameter notes): when the report gains structured
-    terms, only this function changes.
+    Subsystem, its formula and parameter notes), with its helpers ``_channel_of``,
+    ``_force_direction``, ``_static_found``, ``_canonical_terms``, ``_dynamic_found``
+    and ``_sensor_found``: when the report gains structured terms, only these change.
     """
     if not getattr(report, "updated", False):
         return ()
@@ -2050,7 +2148,8 @@ def _right_entries(draw: ZooDraw) -> tuple[set, dict]:
 
 
 _NOTE_AB = re.compile(r"^([AB])\[([^;\]]+); ([^\]]+)\]")
-_NOTE_REL = re.compile(r"^\[([^\]]+)\] lacks a term in the relative coordinate \((.+)-(.+)\)")
+_NOTE_REL = re.compile(r"^\[([^\]]+)\] lacks a term in the relative coordinate "
+                       r"\(([^()-]+)-([^()]+)\)")
 _NOTE_SENSOR = {"gain": "x", "offset": "1", "drifts": "t", "first-order lag": "lag"}
 
 
@@ -2086,7 +2185,9 @@ def _describe(found) -> str:
     """One line per found effect."""
     out = []
     for fe in found:
-        what = (", ".join(f"{t.coefficient:+.3g}*{t.expression}" for t in fe.terms)
+        many = len(fe.targets) > 1
+        what = (", ".join((f"[{t.target}] " if many else "") + f"{t.coefficient:+.3g}*"
+                          f"{t.expression}" for t in fe.terms)
                 if fe.law == "static" else
                 f"poles {np.array2string(fe.poles, precision=3)} driven by "
                 f"{','.join(fe.drivers)}")
@@ -2095,9 +2196,29 @@ def _describe(found) -> str:
 
 
 def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
-    """Score a LoopReport against the draw's truth (see :class:`ZooScore`).
+    """Score a LoopReport against the draw's truth.
 
-    ``seconds``: the run time of ``close_the_loop`` [s], recorded as given.
+    Parameters
+    ----------
+    draw : ZooDraw
+    report : greybox.workflow.LoopReport
+        ``greybox.close_the_loop`` on the draw's records.
+    seconds : float
+        The run time of ``close_the_loop`` [s], recorded as given.
+
+    Returns
+    -------
+    ZooScore
+
+    Notes
+    -----
+    True effects are paired with found ones by channel kind and targets (an
+    input effect on an input that enters one equation also pairs with a state
+    effect in that equation, its terms scaled by B; the two cannot be told
+    apart from data). Static laws compare term by term (linear terms one
+    variable at a time, so a spring in a relative coordinate equals its two
+    expanded terms); dynamic laws compare order, drivers, continuous poles
+    and DC gains (a DC gain near zero against half the law's scale).
     """
     found = found_effects(report)
     e_nom, e_upd, kind = _errors(draw, report)
