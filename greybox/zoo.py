@@ -693,8 +693,11 @@ def _true_system(plant: _Plant, nominal, hidden: list[str], name: str):
 
 
 def _vel(states) -> tuple[int, ...]:
-    """Indices of the velocity (momentum) states v*, om*: they receive process noise."""
-    return tuple(i for i, s in enumerate(states) if s.startswith(("v", "om", "i")))
+    """Indices of the states that receive process noise: the velocities v*, om* and the
+    current i of a mechanical model (not its kinematic positions), else every state (the
+    temperatures of bodies)."""
+    idx = tuple(i for i, s in enumerate(states) if s.startswith(("v", "om", "i")))
+    return idx or tuple(range(len(states)))
 
 
 def _sign_smooth(v, eps):
@@ -767,7 +770,7 @@ def _linear_case(cls, rng, n_est, nom_AB, true_AB, states, inputs, effects, text
     plant = _Plant(At.shape[0], Ct, At, Bt, inmap=inmap, x0=x0)
     true = _true_system(plant, nom, list(hidden), f"{cls}_true")
     amp = amplitude if amplitude is not None else rng.uniform(1.0, 3.0)
-    setup = _Setup(plant, dt, bw, amp, tuple(i for i in _vel(states)), excitation=excitation)
+    setup = _Setup(plant, dt, bw, amp, _vel(states), excitation=excitation)
     return _make_draw(cls, rng, nom, true, Truth(tuple(effects)), setup,
                       f"{text}; {len(states)} states, measured: {kind} ({len(meas)})", n_est)
 
