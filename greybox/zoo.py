@@ -2249,6 +2249,29 @@ def _describe(found) -> str:
     return "; ".join(out) or "model unchanged"
 
 
+def _split_components(found, truths) -> tuple[FoundEffect, ...]:
+    """Found static laws in a channel of several equations, read as separate effects where
+    the truth has separate state effects whose equations make up exactly that channel (an
+    md > 1 equation channel carries one law per component: two springs in two equations
+    traced together are the same model as two effects). Notes stay with the first part."""
+    out = []
+    for fe in found:
+        groups = [te.targets for te in truths if te.channel == "state" and
+                  set(te.targets) <= set(fe.targets)]
+        whole = any(set(te.targets) == set(fe.targets) for te in truths
+                    if te.channel == "state")
+        if fe.channel != "state" or fe.law != "static" or len(fe.targets) < 2 or whole or \
+                len(groups) < 2 or sorted(t for g in groups for t in g) != sorted(fe.targets):
+            out.append(fe)
+            continue
+        for q, g in enumerate(groups):
+            terms = tuple(t for t in fe.terms if t.target in g)
+            drivers = tuple(sorted({v for t in terms for v in t.variables}, key=_natural))
+            out.append(FoundEffect("state", tuple(g), "static", 0, drivers, terms,
+                                   formula=fe.formula, notes=fe.notes if q == 0 else ()))
+    return tuple(out)
+
+
 def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
     """Score a LoopReport against the draw's truth.
 
@@ -2269,12 +2292,14 @@ def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
     True effects are paired with found ones by channel kind and targets (an
     input effect on an input that enters one equation also pairs with a state
     effect in that equation, its terms scaled by B; the two cannot be told
-    apart from data). Static laws compare term by term (linear terms one
+    apart from data; a static law in a channel of several equations counts as
+    separate effects where the truth has separate effects in exactly those
+    equations). Static laws compare term by term (linear terms one
     variable at a time, so a spring in a relative coordinate equals its two
     expanded terms); dynamic laws compare order, drivers, continuous poles
     and DC gains (a DC gain near zero against half the law's scale).
     """
-    found = found_effects(report)
+    found = _split_components(found_effects(report), draw.truth.effects)
     e_nom, e_upd, kind = _errors(draw, report)
     common = dict(cls=draw.cls, description=draw.description, updated=bool(report.updated),
                   false_flags=_false_flags(draw, found), error_nominal=e_nom,

@@ -317,3 +317,24 @@ def test_explanation_is_right_on_a_fixed_draw(cls):
     assert s.covered == s.n_coefficients, s.found
     assert s.false_flags == 0
     assert s.error_updated <= 1.5 * s.error_true
+
+
+def test_score_reads_two_laws_traced_together_as_two_effects():
+    """Two static effects in two equations, found in one channel of both equations with one
+    law per component, are the same model as two effects; a third equation in that
+    channel, or one law missing, is not."""
+    for seed in range(50):
+        d = zoo.draw_class("two_static", seed, 0, n_est=N_EST)
+        if d.description.startswith("chain"):
+            break
+    (e1, e2) = d.truth.effects
+    (t1,), (t2,) = e1.terms, e2.terms
+    spec = [(t1.variables[0], "x", 0), (t2.variables[0], "x", 1)]
+    chan = f"eq({t1.target})+eq({t2.target})"
+    s = zoo.score(d, _report(d, chan, (t1.target, t2.target), spec,
+                             [[t1.coefficient, 0.0], [0.0, t2.coefficient]],
+                             [[0.01, np.nan], [np.nan, 0.01]]))
+    assert s.right, s.why
+    s = zoo.score(d, _report(d, chan, (t1.target, t2.target), spec[:1],
+                             [[t1.coefficient], [0.0]], [[0.01], [np.nan]]))
+    assert not s.right
