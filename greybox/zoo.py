@@ -2249,27 +2249,54 @@ def _describe(found) -> str:
     return "; ".join(out) or "model unchanged"
 
 
-def _split_components(found, truths) -> tuple[FoundEffect, ...]:
-    """Found static laws in a channel of several equations, read as separate effects where
-    the truth has separate state effects whose equations make up exactly that channel (an
-    md > 1 equation channel carries one law per component: two springs in two equations
-    traced together are the same model as two effects). Notes stay with the first part."""
+def _split_components(found, draw: ZooDraw) -> tuple[FoundEffect, ...]:
+    """Found static state laws read as separate effects where the truth has separate
+    effects there: the true effects (or their one-equation forms, see
+    :func:`_alternatives`) whose equations lie in the found channel, two or more, covering
+    it. Each found term goes to the effect that has it (else to the first one in its
+    equation). An md > 1 equation channel carries one law per component, and an input
+    that enters one equation adds to that equation's law: two springs traced together, or
+    a damper and an actuator gain in the same equation, are the same model as two
+    effects. Notes stay with the first part."""
     out = []
     for fe in found:
-        groups = [te.targets for te in truths if te.channel == "state" and
-                  set(te.targets) <= set(fe.targets)]
-        whole = any(set(te.targets) == set(fe.targets) for te in truths
-                    if te.channel == "state")
-        if fe.channel != "state" or fe.law != "static" or len(fe.targets) < 2 or whole or \
-                len(groups) < 2 or sorted(t for g in groups for t in g) != sorted(fe.targets):
+        views = [] if fe.channel != "state" or fe.law != "static" else [
+            a for a in (next((v for v in _alternatives(te, draw) if v.channel == "state" and
+                              v.law == "static" and set(v.targets) <= set(fe.targets)), None)
+                        for te in draw.truth.effects) if a is not None]
+        if len(views) < 2 or {t for v in views for t in v.targets} != set(fe.targets):
             out.append(fe)
             continue
-        for q, g in enumerate(groups):
-            terms = tuple(t for t in fe.terms if t.target in g)
-            drivers = tuple(sorted({v for t in terms for v in t.variables}, key=_natural))
-            out.append(FoundEffect("state", tuple(g), "static", 0, drivers, terms,
+        keys = [set(_true_coefs(v)) for v in views]
+        parts: list[list[FoundTerm]] = [[] for _ in views]
+        for t in fe.terms:
+            k = _canon_key(t.target, t.expression)
+            q = next((q for q, ks in enumerate(keys) if k in ks), None)
+            if q is None:
+                q = next(q for q, v in enumerate(views) if t.target in v.targets)
+            parts[q].append(t)
+        for q, (v, terms) in enumerate(zip(views, parts)):
+            drivers = tuple(sorted({x for t in terms for x in t.variables}, key=_natural))
+            out.append(FoundEffect("state", v.targets, "static", 0, drivers, tuple(terms),
                                    formula=fe.formula, notes=fe.notes if q == 0 else ()))
     return tuple(out)
+
+
+def _pair(te: TrueEffect, found, used: set, draw: ZooDraw):
+    """(true form, index) of the found effect paired with ``te``: same channel kind and
+    targets (any equivalent form), the one sharing most terms (static) or the same drivers
+    (dynamic) first; None when there is none."""
+    best, best_score = None, -1
+    for alt in _alternatives(te, draw):
+        keys = set(_true_coefs(alt))
+        for i, fe in enumerate(found):
+            if i in used or fe.channel != alt.channel or set(fe.targets) != set(alt.targets):
+                continue
+            sc = (len(keys & {_canon_key(t.target, t.expression) for t in fe.terms})
+                  if alt.law == "static" else int(set(fe.drivers) == set(alt.drivers)))
+            if sc > best_score:
+                best, best_score = (alt, i), sc
+    return best
 
 
 def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
@@ -2292,14 +2319,14 @@ def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
     True effects are paired with found ones by channel kind and targets (an
     input effect on an input that enters one equation also pairs with a state
     effect in that equation, its terms scaled by B; the two cannot be told
-    apart from data; a static law in a channel of several equations counts as
-    separate effects where the truth has separate effects in exactly those
-    equations). Static laws compare term by term (linear terms one
+    apart from data; a static law counts as separate effects where the truth
+    has separate effects in the equations it enters, see
+    ``_split_components``). Static laws compare term by term (linear terms one
     variable at a time, so a spring in a relative coordinate equals its two
     expanded terms); dynamic laws compare order, drivers, continuous poles
     and DC gains (a DC gain near zero against half the law's scale).
     """
-    found = _split_components(found_effects(report), draw.truth.effects)
+    found = _split_components(found_effects(report), draw)
     e_nom, e_upd, kind = _errors(draw, report)
     common = dict(cls=draw.cls, description=draw.description, updated=bool(report.updated),
                   false_flags=_false_flags(draw, found), error_nominal=e_nom,
@@ -2313,9 +2340,7 @@ def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
                         why="" if ok else "a correct model was changed", **common)
     used, checks, cov, n, whys = set(), [], 0, 0, []
     for te in draw.truth.effects:
-        pair = next(((alt, i) for alt in _alternatives(te, draw) for i, fe in enumerate(found)
-                     if i not in used and fe.channel == alt.channel and
-                     set(fe.targets) == set(alt.targets)), None)
+        pair = _pair(te, found, used, draw)
         n += len(te.terms) if te.law == "static" else te.order
         if pair is None:
             checks.append({"channel": False, "kind": False, "order": False, "terms": False,

@@ -338,3 +338,26 @@ def test_score_reads_two_laws_traced_together_as_two_effects():
     s = zoo.score(d, _report(d, chan, (t1.target, t2.target), spec[:1],
                              [[t1.coefficient], [0.0]], [[0.01], [np.nan]]))
     assert not s.right
+
+
+def test_score_reads_a_damper_and_a_gain_in_one_equation_as_two_effects():
+    """A damper and an actuator gain in the only equation the input enters: one law with
+    both terms is the same model as the two effects; a spurious third term is caught."""
+    for seed in range(200):
+        d = zoo.draw_class("state_input", seed, 0, n_est=N_EST)
+        e1, e2 = d.truth.effects
+        if e2.equations == e1.targets:
+            break
+    else:
+        raise AssertionError("no state_input draw with the damper on the forced mass")
+    (t1,), (t2,) = e1.terms, e2.terms
+    eq = t1.target
+    b = float(np.asarray(d.nominal.B)[list(d.nominal.state_labels).index(eq), 0])
+    spec = [(t1.variables[0], "x", 0), ("F", "u", 0)]
+    s = zoo.score(d, _report(d, f"eq({eq})", (eq,), spec, [t1.coefficient,
+                                                             b * t2.coefficient], [0.01, 0.01]))
+    assert s.right, s.why
+    other = next(x for x in d.nominal.state_labels if x.startswith("p"))
+    s = zoo.score(d, _report(d, f"eq({eq})", (eq,), spec + [(other, "x", 2)],
+                             [t1.coefficient, b * t2.coefficient, 0.5], [0.01, 0.01, 0.01]))
+    assert not s.right and not s.right_terms
