@@ -52,7 +52,11 @@ def run_one(cls: str, seed: int, i: int, n_est: int | None) -> zoo.ZooScore | st
                                     dt=d.dt, delta=False)
     except Exception as e:  # noqa: BLE001 - a failure is a result of the benchmark
         return f"{type(e).__name__}: {e}"[:200]
-    return zoo.score(d, rep, time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    try:
+        return zoo.score(d, rep, seconds)
+    except Exception as e:  # noqa: BLE001 - the scorer's own failure, named as such
+        return f"scorer failed: {type(e).__name__}: {e}"[:200]
 
 
 def _median(v) -> float:

@@ -1855,7 +1855,7 @@ def _force_direction(rep, step_index: int, ch_name: str, eqs) -> NDArray | None:
     first effect, else from the message "(it enters ... as [g1 g2])"."""
     if step_index == 0 and getattr(rep, "channel", None) is not None and \
             rep.channel.name == ch_name:
-        labels = list(rep.nominal.state_labels)
+        labels = list(_base_model(rep, 0).state_labels)
         return np.asarray(rep.channel.G, float)[[labels.index(e) for e in eqs], 0]
     steps = getattr(rep, "steps", ()) or ()
     text = steps[step_index].message if step_index < len(steps) else rep.message
@@ -1924,10 +1924,20 @@ def _dc_dict(targets, names, DC: NDArray) -> dict:
             for j, nm in enumerate(names) if DC[c, j] != 0}
 
 
-def _dynamic_found(ef, rep, kind, targets, g=None) -> FoundEffect:
+def _base_model(rep, k_step: int):
+    """The model effect ``k_step`` was traced on: the nominal for the first, else the model
+    after the step before (it carries the earlier effects' states)."""
+    steps = list(getattr(rep, "steps", ()) or ())
+    if 0 < k_step <= len(steps):
+        return steps[k_step - 1].model.sys
+    return rep.nominal
+
+
+def _dynamic_found(ef, rep, k_step, kind, targets, g=None) -> FoundEffect:
     """A dynamic law from ``effect.dynamic_law`` (first-order, shared first- or higher-order)
     or ``effect.subsystem`` (an unstructured discrete subsystem)."""
-    names = list(rep.nominal.state_labels) + list(rep.nominal.input_labels)
+    base = _base_model(rep, k_step)
+    names = list(base.state_labels) + list(base.input_labels)
     law, sub = getattr(ef, "dynamic_law", None), getattr(ef, "subsystem", None)
     tg = list(targets)
     if law is not None and hasattr(law, "poles") and hasattr(law, "alpha"):      # order >= 2
@@ -2029,7 +2039,7 @@ def found_effects(report) -> tuple[FoundEffect, ...]:
                                    notes=tuple(ef.parameter_notes)))
             continue
         g = _force_direction(report, k, name, targets) if name.startswith("force(") else None
-        out.append(_dynamic_found(ef, report, kind, targets, g))
+        out.append(_dynamic_found(ef, report, k, kind, targets, g))
     return tuple(out)
 
 
