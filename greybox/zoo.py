@@ -547,13 +547,13 @@ def _observable(A: NDArray, C: NDArray) -> bool:
 
 
 def _measured(rng, states: list[str], A: NDArray, options=("all", "positions", "subset"),
-              must=()) -> tuple[str, list[int]]:
+              must=(), min_outputs: int = 1) -> tuple[str, list[int]]:
     """(kind, indices) of a measured subset: all states, the positions, or a random subset.
 
     Positions are the states named p*, th* (a mechanical model); a subset
     keeps between a quarter and all but one of the states, always the
-    indices ``must``; every choice is checked for observability (PBH), else
-    drawn again (all states as the last resort).
+    indices ``must``; every choice is checked for observability (PBH) and for at
+    least ``min_outputs`` outputs, else drawn again (all states as the last resort).
     """
     n = len(states)
     pos = [i for i, s in enumerate(states) if s.startswith(("p", "th"))]
@@ -567,7 +567,7 @@ def _measured(rng, states: list[str], A: NDArray, options=("all", "positions", "
         else:
             k = int(rng.integers(max(1, n // 4), n))
             idx = sorted(set(rng.choice(n, size=k, replace=False).tolist()) | set(must))
-        if _observable(A, np.eye(n)[idx]):
+        if len(idx) >= min_outputs and _observable(A, np.eye(n)[idx]):
             return kind, list(idx)
         kind = str(rng.choice(opts))
     return "all", list(range(n))
@@ -751,18 +751,21 @@ def _factor(rng) -> float:
 def _linear_case(cls, rng, n_est, nom_AB, true_AB, states, inputs, effects, text, *,
                  options=("all", "positions", "subset"), hidden=(), must=(), timing=None,
                  amplitude=None, x0=None, C_true=None, excitation=None, inmap=None,
-                 measured=None):
+                 measured=None, min_outputs=1):
     """A draw whose truth is linear in the states (inputs through ``inmap``).
 
     ``nom_AB``, ``true_AB``: continuous (A, B) of the nominal model and of the
     true plant (its states: the nominal's, then ``hidden``); ``timing``: (dt,
     bandwidth [Hz]), default from the true A (mechanical rule). ``C_true``: the true
     output matrix (a sensor effect), default the measured states; ``measured``: (kind,
-    indices) already drawn.
+    indices) already drawn; ``min_outputs``: fewest measured outputs (2 where one output
+    of a one-input plant could not tell an input effect from a sensor effect: with one
+    input and one output, a gain or a lag before the plant and after it are the same
+    transfer function).
     """
     (A, B), (At, Bt) = nom_AB, true_AB
     kind, meas = measured if measured is not None else _measured(rng, states, A, options,
-                                                                   must)
+                                                                   must, min_outputs)
     nom = _named(A, B, states, inputs, meas, cls)
     dt, bw = timing if timing is not None else _mech_timing(rng, At)
     Ct = C_true if C_true is not None else np.hstack([np.eye(len(states))[meas],
@@ -1030,7 +1033,8 @@ def actuator_gain(rng, n_est):
     eff = _input_effect(B, states, "static", 0, (Term("F", "x", ("F",), g - 1, "N/N"),),
                         text=text)
     return _linear_case("actuator_gain", rng, n_est, (A, B), (A, g * B), states, ["F"], [eff],
-                        f"chain of {len(ch.m)}: {text}", amplitude=ch.amplitude)
+                        f"chain of {len(ch.m)}: {text}", amplitude=ch.amplitude,
+                        min_outputs=2)
 
 
 def _lag_model(rng, order: int, w_bw: float, dt: float):
@@ -1061,7 +1065,7 @@ def _actuator_lag(rng, n_est, order: int):
     hidden = ["F_plant"] if order == 1 else ["F_plant", "dF_plant"]
     return _linear_case(f"actuator_lag{order}", rng, n_est, (A, B), (At, Bt), states, ["F"],
                         [eff], f"chain of {len(ch.m)}: actuator {text}", hidden=hidden,
-                        timing=(dt, bw), amplitude=ch.amplitude)
+                        timing=(dt, bw), amplitude=ch.amplitude, min_outputs=2)
 
 
 @_retry
@@ -1208,7 +1212,7 @@ def _sensor_case(rng, n_est, cls, what: str, state_effect: bool = False):
     """A sensor effect ("gain_offset", "lag", "drift") on one measured output of a chain or a
     row of bodies; with ``state_effect`` also a wrong damper / loss (a state effect)."""
     A, B, states, inputs, (dt, bw), amp, opts, base = _sensor_base(rng)
-    kind, meas = _measured(rng, states, A, opts)
+    kind, meas = _measured(rng, states, A, opts, min_outputs=2)
     o = meas[int(rng.integers(len(meas)))]
     s = states[o]
     effects, texts, At, Bt = [], [], A, B
@@ -1345,7 +1349,7 @@ def state_input(rng, n_est):
                        text=f"actuator gain {g:.3g}")
     return _linear_case("state_input", rng, n_est, (An, B), (At, g * B), states, ["F"],
                         [e1, e2], f"chain of {len(ch.m)}: {e1.description}; "
-                        f"{e2.description}", amplitude=ch.amplitude)
+                        f"{e2.description}", amplitude=ch.amplitude, min_outputs=2)
 
 
 @_retry

@@ -92,6 +92,10 @@ def test_truth_is_structurally_consistent(cls):
                      list(d.nominal.output_labels))
     assert list(d.true.state_labels[:len(st)]) == st
     assert list(d.true.output_labels) == outs and list(d.true.input_labels) == ins
+    if any(e.channel in ("input", "sensor") for e in d.truth.effects) and \
+            cls not in ("dead_zone", "saturation"):
+        # one output of a one-input plant: a gain or lag at the input is one at the sensor
+        assert len(outs) >= 2
     for e in d.truth.effects:
         assert e.channel in ("state", "input", "sensor") and e.law in ("static", "dynamic")
         pool = {"state": st, "input": ins, "sensor": outs}[e.channel]
