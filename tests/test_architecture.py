@@ -1,14 +1,14 @@
 """The house plan: a layer never imports a layer above it; no import circle.
 
-Layers, bottom first: base helpers; plants and signals; metrics; filters;
-ident; update (and validation); trace; workflow (its records first); top
-(plotting, I/O, CLI, reproduction of the paper). Imports inside functions
-count as much as those at module level, with one exception: the lazy import
-of :mod:`greybox.plotting` inside ``.plot()`` methods, which delegate to the
-plotting module as STYLE.md asks. Only plotting may import matplotlib, and
-only lazily. No function over ``MAX_LINES`` lines, except the debts listed in
-``LONG_FUNCTIONS`` (which may only shrink); imports of another sub-package's
-``_private`` names may only become fewer.
+Layers, bottom first: base helpers; plants and signals; metrics (and the plant zoo,
+a test helper independent of the trace code it measures); filters; ident; update
+(and validation); trace; workflow (its records first); top (plotting, I/O, CLI,
+reproduction of the paper). Imports inside functions count as much as those at
+module level, with one exception: the lazy import of :mod:`greybox.plotting` inside
+``.plot()`` methods, which delegate to the plotting module as STYLE.md asks. Only
+plotting may import matplotlib, and only lazily. No function over ``MAX_LINES``
+lines, except the debts listed in ``LONG_FUNCTIONS`` (which may only shrink);
+imports of another sub-package's ``_private`` names may only become fewer.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ PKG = Path(__file__).resolve().parents[1] / "greybox"
 LAYER = {
     "exceptions": 0, "_validation": 0, "_lti": 0, "_blas": 0, "progress": 0,
     "system": 1, "signals": 1, "plants": 1, "nonlinear": 1,
-    "metrics": 2,
+    "metrics": 2, "zoo": 2,
     "filters": 3,
     "ident": 4,
     "update": 5, "validate": 5,
