@@ -34,7 +34,8 @@ from pathlib import Path
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 RTOL = 1e-6
-_NUM = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
+# a number in text, not the digits of a name (p2, x1, sys[3] stay in the skeleton)
+_NUM = re.compile(r"(?<![\w.\[])[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 _SKIP_KEYS = {"notes", "figures", "updated_model"}
 
 
@@ -148,7 +149,8 @@ def fingerprint(args, kwargs) -> str:
             h.update(getattr(x, "__qualname__", "fn").encode())
             code = getattr(x, "__code__", None)
             if code is not None:
-                h.update(code.co_code + repr(code.co_consts).encode())
+                h.update(code.co_code + re.sub(r" at 0x[0-9a-fA-F]+", "",
+                                                repr(code.co_consts)).encode())
             for cell in getattr(x, "__closure__", None) or ():
                 try:
                     feed(cell.cell_contents)
