@@ -392,6 +392,8 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_orde
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
     chans = resolve_channel_spec(sys, channels)
+    if channels is None:  # a kinematic identity is a definition, never a candidate channel
+        chans = _without_definitions(sys, chans)
     max_order = check_positive(max_order, "max_order", integer=True, allow_zero=True)
     if delta_max_order is not None:
         delta_max_order = check_positive(delta_max_order, "delta_max_order", integer=True)
@@ -454,7 +456,7 @@ def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
                     not _kinematic_in(sys, pair) else None
                 if fch is not None and not _along_an_input(sys, fch):
                     keep.append(fch)
-    return tuple(keep)
+    return _without_definitions(P.sys, keep)
 
 
 def _joint(P: Problem, passes, final, Qf):
@@ -690,6 +692,10 @@ class _Pass:
             # unstructured subsystems (driven by all n + m signals) cost O(n) each and read
             # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
             first_max = 0
+        defs = definitions(P.sys) if S.channels is None else []
+        if defs:
+            self.notes.append("kinematic identities, definitions rather than candidate "
+                              "channels: " + ", ".join(f"eq({d})" for d in defs))
         self.screen_forces = [c for c in self.chans if c.kind == "force"] if self.big else []
         for kc, ch in enumerate(self.chans):
             P.tick("trace candidate channels", kc, len(self.chans))
@@ -1406,7 +1412,34 @@ def _channels_for(sys: ct.StateSpace, spec, physical, n0: int):
             out.append(replace(ch, G=G))
         return tuple(out)
     keep = set(physical.state_labels)
-    return tuple(ch for ch in resolve_channel_spec(sys, None) if set(ch.equations) <= keep)
+    return _without_definitions(physical, tuple(
+        ch for ch in resolve_channel_spec(sys, None) if set(ch.equations) <= keep))
+
+
+def definitions(sys: ct.StateSpace) -> list[str]:
+    """The kinematic identities of a continuous model: the state equations that only say
+    dp/dt = v (one nonzero in their row of A, off the diagonal and equal to 1; no input).
+
+    A definition is never a candidate channel of :func:`close_the_loop` (unless the
+    user names it in ``channels``): an unknown input there would rewrite what a state
+    means (a ball on a beam: pos' = vel became pos' = 0.023 vel). A discrete model
+    mixes the rows, so it has none here.
+    """
+    if ct.isdtime(sys, strict=True):
+        return []
+    A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
+    out = []
+    for i, name in enumerate(sys.state_labels):
+        nz = np.flatnonzero(A[i])
+        if nz.size == 1 and nz[0] != i and A[i, nz[0]] == 1.0 and not np.any(B[i]):
+            out.append(name)
+    return out
+
+
+def _without_definitions(sys: ct.StateSpace, chans) -> tuple:
+    """The channels that enter no kinematic identity of ``sys`` (:func:`definitions`)."""
+    defs = set(definitions(sys))
+    return tuple(c for c in chans if not set(c.equations) & defs)
 
 
 #: The final model's one-step residuals correlating with an input beyond this many times

@@ -91,10 +91,15 @@ def test_lagging_sensor_is_traced_to_the_output():
     se0, se1 = rep.table["nominal"].se.value, rep.table["updated"].se.value
     assert se1 <= 1.5 * se_true, (se1, se_true)  # measured 0.0731 % vs 0.0734 %
     assert se0 > 20 * se1, (se0, se1)  # measured 9.37 % -> 0.0731 %
-    # a cheaper state-equation explanation is not near (the best one: 0.56 % with 20 params)
+    # a cheaper state-equation explanation is not near: every state-equation candidate
+    # within 10x of the sensor law's estimation SE needs over 10x its parameters (with
+    # eq(pos), a kinematic identity, a candidate: 0.56 % with 20 parameters; without it
+    # the best is eq(vel), 10.8 % with 4: not near)
+    se_law = rep.gate["se_estimation_updated"]
     state = [c for c in rep.candidates if not c.channel.startswith("output")]
-    best = min(state, key=lambda c: c.se_estimation)
-    assert best.npar > 10 * rep.effect.law.npar, best
+    near = [c for c in state if c.se_estimation <= 10 * se_law]
+    assert all(c.npar > 10 * rep.effect.law.npar for c in near), near
+    assert min(c.se_estimation for c in state) > se_law, state
 
 
 @pytest.mark.parametrize("tau", [0.05, 0.2])
