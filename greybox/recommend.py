@@ -22,6 +22,7 @@ import numpy as np
 
 from .records import LoopReport
 from .update import UpdatedModel
+from .validate import before_after
 
 __all__ = ["MARGINAL_TOL", "judged_measure", "recommend"]
 
@@ -36,14 +37,14 @@ def judged_measure(rep: LoopReport) -> tuple[str, float, float]:
     PE when either SE is undefined (an unstable model) or the nominal model
     has a pole on or outside the unit circle; SE otherwise.
     """
-    a, b = rep.table["nominal"], rep.table["updated"]
     marginal = False
     if isinstance(rep.nominal, ct.StateSpace):
         A = np.asarray(rep.nominal.A, dtype=float)
         marginal = bool(A.size) and bool(
             np.max(np.abs(np.linalg.eigvals(A))) > 1.0 - MARGINAL_TOL)
-    if a.se_defined and b.se_defined and not marginal:
-        return "SE", float(a.se.value), float(b.se.value)
+    if not marginal:
+        return before_after(rep.table)  # SE where both simulate, else PE
+    a, b = rep.table["nominal"], rep.table["updated"]
     return "PE", float(a.pe.value), float(b.pe.value)
 
 

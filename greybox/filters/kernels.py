@@ -4,21 +4,8 @@ Shared by every filter of :mod:`greybox.filters` (each imports kernels only;
 this module imports no filter). The public unknown-input filter with its
 dispatch by relative degree is :func:`greybox.filters.uikf.uikf`.
 
-The model (5)-(6)::
-
-    x[k+1] = A x[k] + B u[k] + G d[k] + w[k],   w ~ N(0, Q)
-    y[k]   = C x[k] + D u[k]          + v[k],   v ~ N(0, R)
-
-with an unknown input ``d`` (the model error) of dimension md. The Kalman
-filter that ignores d is the same recursion with G = 0 (:func:`kalman_filter`).
-
-Time alignment: the measurement y[k] yields the estimate of d[k-1]. The
-result stores ``d_est[:, j]`` as the estimate of d[j]; its last column is
-NaN because d[N-1] would need y[N].
-
-Missing data: a NaN sample in ``y`` or ``u`` raises :class:`DataError`. The
-unknown-input filter has no prior on d, so a skipped measurement leaves
-x[k] with unbounded uncertainty along G; interpolate, or split the record.
+The model, the time alignment of ``d_est`` and the handling of missing data
+are described once, in :mod:`greybox.filters.uikf`.
 """
 
 from __future__ import annotations
