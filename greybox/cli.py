@@ -316,7 +316,12 @@ def _update(args, run: _Run) -> int:
             import matplotlib
 
             matplotlib.use("Agg")
-            from .plotting import plot_outputs, plot_residual_autocorrelation, plot_unknown_input
+            from .plotting import (
+                plot_law,
+                plot_outputs,
+                plot_residual_autocorrelation,
+                plot_unknown_input,
+            )
 
             rows = [rep.table["nominal"]] + ([rep.table["updated"]] if rep.updated else [])
             figs = [("autocorrelation", plot_residual_autocorrelation(rows)["figure"]),
@@ -324,6 +329,10 @@ def _update(args, run: _Run) -> int:
             if rep.trace is not None and rep.trace.filter_result is not None:
                 arts = plot_unknown_input(rep.trace.filter_result, 0)
                 figs.append(("d_estimate", arts["figure"]))
+            law = getattr(rep.effect, "law", None) if rep.updated else None
+            if law is not None and law.output is None and rep.trace is not None:
+                # the figure that explains a static law: d^ against the law's variable
+                figs.insert(0, ("law", plot_law(rep, u)["figure"]))
             _save(figs, figures, stage, args.out)
         summary = rep.as_dict()
         summary["figures"] = figures

@@ -24,6 +24,8 @@ __all__ = [
     "correlation_band",
     "WhitenessTest",
     "whiteness_test",
+    "effective_samples",
+    "oe_criterion",
 ]
 
 
@@ -240,3 +242,71 @@ def whiteness_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> Whit
     stat = N * (N + 2) * np.sum(r**2 / (N - ell), axis=1)
     pv = chi2.sf(stat, lags)
     return WhitenessTest(statistic=stat, pvalue=pv, lags=lags, alpha=alpha, white=pv >= alpha)
+
+
+def effective_samples(e: ArrayLike) -> NDArray[np.float64]:
+    """Effective number of independent samples of each residual channel.
+
+    ``N / tau`` with ``tau = 1 + 2 sum_k rho_k`` the integrated
+    autocorrelation time, the sum running over Geyer's initial positive
+    sequence (pairs of lags while their sum stays positive; at most N/4
+    lags). An output-error residual under process noise is strongly
+    autocorrelated: its N samples carry the information of far fewer.
+
+    Parameters
+    ----------
+    e : array_like, shape (nsignals, nsteps)
+
+    Returns
+    -------
+    ndarray, shape (nsignals,)
+        Between 1 and nsteps.
+    """
+    e = np.atleast_2d(np.asarray(e, dtype=float))
+    N = e.shape[1]
+    out = np.empty(e.shape[0])
+    L = max(2, N // 4)
+    for i, row in enumerate(e):
+        r = row - row.mean()
+        f = np.fft.rfft(r, 2 * N)
+        acf = np.fft.irfft(f * np.conj(f))[:L]
+        if acf[0] <= 0:
+            out[i] = N
+            continue
+        rho = acf / acf[0]
+        tau = 1.0
+        for k in range(1, L - 1, 2):
+            pair = rho[k] + rho[k + 1]
+            if pair <= 0:
+                break
+            tau += 2 * pair
+        out[i] = float(np.clip(N / tau, 1.0, N))
+    return out
+
+
+def oe_criterion(e: ArrayLike, npar: int, n_eff: ArrayLike) -> float:
+    """The one selection criterion of greybox: an output-error BIC on effective samples.
+
+    ``sum_i n_i log(mean(e_i^2)) + npar log(sum_i n_i)`` with ``n_i`` the
+    effective samples of output i (:func:`effective_samples`, taken once,
+    from the residual of the largest candidate, so that every candidate of a
+    comparison is scored on the same count). Lower is better. A term is
+    worth its parameter only where it lowers the output error by more than
+    the noise's own correlation can explain.
+
+    Parameters
+    ----------
+    e : array_like, shape (noutputs, nsteps)
+        Output error (any per-output scaling: it cancels between candidates).
+    npar : int
+        Parameters of the candidate (a breakpoint or a pole counts as one).
+    n_eff : array_like, shape (noutputs,)
+
+    Returns
+    -------
+    float
+    """
+    e = np.atleast_2d(np.asarray(e, dtype=float))
+    n = np.asarray(n_eff, dtype=float).reshape(-1)
+    mse = np.maximum(np.mean(e ** 2, axis=1), 1e-300)
+    return float(n @ np.log(mse) + npar * np.log(max(float(n.sum()), 2.0)))

@@ -8,7 +8,7 @@ that the compute modules never depend on it.
 from __future__ import annotations
 
 __all__: list[str] = ["plot_unknown_input", "plot_residual_autocorrelation", "plot_outputs", "plot_singular_values",
-                     "plot_pump_load", "plot_fleet_coefficients"]
+                     "plot_pump_load", "plot_fleet_coefficients", "plot_law"]
 
 
 def _plt():
@@ -276,3 +276,130 @@ def plot_fleet_coefficients(groups, *, max_panels: int = 12):
     for ax in axes[len(panels):]:
         ax.set_visible(False)
     return {"figure": fig, "axes": axes[:len(panels)]}
+
+
+def _law_variable(spec_j, x, u, states, inputs):
+    """(values, name) of the variable a law term reads (the state of x, v^3, sign(v), |v|;
+    the input of u and of a dead zone or saturation; the relative coordinate of a pair;
+    the state of a product x*u); None for a constant."""
+    _, kind, i = spec_j
+    if kind in ("x", "x^3", "sign", "abs"):
+        return x[i], states[i]
+    if kind == "u":
+        return u[i], inputs[i]
+    if kind in ("u_dz", "u_sat"):
+        return u[i[0]], inputs[i[0]]
+    if kind.startswith("rel"):
+        return x[i[1]] - x[i[0]], f"{states[i[1]]} - {states[i[0]]}"
+    if kind == "x*u":
+        return x[i[0]], states[i[0]]
+    if kind in ("x_hi", "x_lo"):
+        return x[i[0]], states[i[0]]
+    return None
+
+
+def plot_law(report, u, *, bins: int = 20, max_points: int = 3000, ax=None):
+    """The figure that explains a static law: d^ against the law's variable, the law over it.
+
+    For each component of d, the term with the largest contribution names the
+    variable (a velocity for a friction, the relative deflection for a spring
+    between bodies, the input for a dead zone). Drawn: the partial residual
+    ``d^ - (the law's other terms)`` against that variable (a thinned cloud),
+    its means in ``bins`` quantile bins with +-2 standard errors (the law's
+    shape, out of d^'s noise), and the term with its 95 % band (the
+    coefficient's interval). The law's own estimate (``report.trace.law_estimate``:
+    delayed and/or smoothed, for a channel of relative degree 2) is drawn where the
+    report has it, else the filter's d^.
+
+    Parameters
+    ----------
+    report : LoopReport
+        With a static effect (``report.effect.law``) in state, force or input
+        equations and its trace (``report.trace.filter_result``).
+    u : array_like, shape (ninputs, nsteps)
+        The estimation inputs close the loop was given.
+    bins : int
+    max_points : int
+        Points of the cloud at most.
+    ax : matplotlib Axes or list of them, optional
+        One per component of d.
+
+    Returns
+    -------
+    dict
+        ``{"figure", "axes", "variables", "bins"}``: the variable drawn per
+        component and its bins ``(centres, means, 2 standard errors)``.
+    """
+    import numpy as np
+    from dataclasses import replace
+
+    from .exceptions import DataError
+
+    law = getattr(report.effect, "law", None)
+    tr = report.trace
+    if law is None or tr is None or tr.filter_result is None or law.output is not None \
+            or not np.any(law.coef):
+        raise DataError("this report has no static law in state or input equations to draw "
+                        "(a dynamic, sensor or no effect); plot_unknown_input draws d^ itself")
+    res = tr.filter_result
+    u = np.atleast_2d(np.asarray(u, dtype=float))
+    est = tr.law_estimate if tr.law_estimate is not None else res
+    s = max(tr.relative_degree - 1, 0) if tr.law_estimate is not None else 0
+    K = min(est.d_est.shape[1], est.x_filt.shape[1], u.shape[1]) - s
+    # d^[j] of a delayed estimate estimates d about s samples later
+    x, uu, d = est.x_filt[:, s:s + K], u[:, s:s + K], est.d_est[:, :K]
+    states = list(res.sys.state_labels)
+    inputs = list(report.nominal.input_labels)
+    md = law.coef.shape[0]
+    fig, axs = _axes(ax, md, figsize=(6.4, 3.2 * md))
+    ok = np.all(np.isfinite(d), axis=0) & np.all(np.isfinite(x), axis=0)
+    ok[:min(res.settled(20), K)] = False  # the filter's start-up transient
+    names, binned = [], []
+    for c in range(md):
+        cols = np.flatnonzero(law.coef[c])
+        if not cols.size:
+            names.append(None)
+            binned.append(None)
+            continue
+        one = {}
+        for j in cols:
+            coef = np.zeros_like(law.coef)
+            coef[c, j] = law.coef[c, j]
+            one[j] = replace(law, coef=coef).evaluate(x, uu)[c]
+        j = max(cols, key=lambda q: float(np.sqrt(np.nanmean(one[q] ** 2))))
+        var = _law_variable(law.spec[j], x, uu, states, inputs)
+        ax_ = axs[c]
+        if var is None:
+            names.append(None)
+            binned.append(None)
+            continue
+        v, vname = var
+        part = d[c] - (law.evaluate(x, uu)[c] - one[j])
+        keep = np.flatnonzero(ok)
+        pick = keep[np.linspace(0, keep.size - 1, min(max_points, keep.size)).astype(int)]
+        ax_.plot(v[pick], part[pick], ".", ms=2, alpha=0.2, color="0.5", label="d^ (partial)")
+        edges = np.unique(np.nanquantile(v[keep], np.linspace(0, 1, bins + 1)))
+        idx = np.clip(np.searchsorted(edges, v[keep], side="right") - 1, 0, edges.size - 2)
+        mid, mean, err = [], [], []
+        for b in range(edges.size - 1):
+            sel = part[keep][idx == b]
+            if sel.size > 2:
+                mid.append(float(np.mean(v[keep][idx == b])))
+                mean.append(float(np.mean(sel)))
+                err.append(2 * float(np.std(sel)) / np.sqrt(sel.size))
+        ax_.errorbar(mid, mean, yerr=err, fmt="o", ms=4, color="C0", label="bin means +-2 SE")
+        order = np.argsort(v[keep])
+        vs, fs = v[keep][order], one[j][keep][order]
+        ax_.plot(vs, fs, "C3", lw=1.5, label=f"law: {law.spec[j][0]}")
+        h = law.ci[c, j] if law.ci is not None else np.nan
+        if np.isfinite(h) and law.coef[c, j] != 0:
+            lo, hi = fs * (1 - h / abs(law.coef[c, j])), fs * (1 + h / abs(law.coef[c, j]))
+            ax_.fill_between(vs, np.minimum(lo, hi), np.maximum(lo, hi), color="C3",
+                             alpha=0.2, lw=0, label="95 % band")
+        ax_.set_xlabel(vname)
+        ax_.set_ylabel(str(res.unknown_labels[c]) if c < len(res.unknown_labels) else "d")
+        ax_.legend(loc="best", fontsize="small")
+        names.append(vname)
+        binned.append((np.array(mid), np.array(mean), np.array(err)))
+    axs[0].set_title(report.effect.formula[:90], fontsize="small")
+    return {"figure": fig, "axes": axs, "variables": names, "bins": binned}

@@ -22,14 +22,9 @@ import numpy as np
 
 from .records import LoopReport
 from .update import UpdatedModel
-from .validate import before_after
+from .validate import MARGINAL_TOL, before_after, has_marginal_pole
 
 __all__ = ["MARGINAL_TOL", "judged_measure", "recommend"]
-
-#: A discrete pole whose modulus is above ``1 - MARGINAL_TOL`` counts as on the unit
-#: circle (an integrator discretized: exactly 1; a lightly damped mode stays below).
-MARGINAL_TOL = 1e-9
-
 
 def judged_measure(rep: LoopReport) -> tuple[str, float, float]:
     """``(measure, nominal, updated)`` on the validation record [%]: "SE" or "PE".
@@ -37,11 +32,7 @@ def judged_measure(rep: LoopReport) -> tuple[str, float, float]:
     PE when either SE is undefined (an unstable model) or the nominal model
     has a pole on or outside the unit circle; SE otherwise.
     """
-    marginal = False
-    if isinstance(rep.nominal, ct.StateSpace):
-        A = np.asarray(rep.nominal.A, dtype=float)
-        marginal = bool(A.size) and bool(
-            np.max(np.abs(np.linalg.eigvals(A))) > 1.0 - MARGINAL_TOL)
+    marginal = isinstance(rep.nominal, ct.StateSpace) and has_marginal_pole(rep.nominal)
     if not marginal:
         return before_after(rep.table)  # SE where both simulate, else PE
     a, b = rep.table["nominal"], rep.table["updated"]

@@ -317,7 +317,9 @@ def explain(effect: Effect, channel=None) -> dict:
         "coefficient", "ci95", "determined"}], "poles", "time_constants"}}``.
         ``kind`` of the channel: "equation", "input", "force", "output" (None when
         unknown); ``direction``: the channel's column of G over its equations;
-        ``terms`` of a static law (a sensor law's too): each selected term with its
+        ``terms`` of a static law (a sensor law's too; an input's dead zone
+        ``clip(u, ±c)`` or saturation ``u - clip(u, ±c)`` also gives its
+        ``breakpoint`` c, ``breakpoint_ci95`` and ``input``): each selected term with its
         coefficient and 95 % half-width (None when not computed; ``determined``
         False when the data do not determine it); ``poles`` [1/s] and
         ``time_constants`` [s] of a dynamic law, where it states them.
@@ -341,6 +343,11 @@ def explain(effect: Effect, channel=None) -> dict:
                                  "coefficient": _num(st.coef[c, j]),
                                  "ci95": _num(h) if np.isfinite(h) else None,
                                  "determined": bool(h != np.inf)})
+            if kind in ("u_dz", "u_sat"):  # an input's dead zone / saturation: its level
+                law["terms"][-1].update({
+                    "breakpoint": _num(idx[1]),
+                    "breakpoint_ci95": _num(idx[2]) if np.isfinite(idx[2]) else None,
+                    "input": idx[3]})
     dl = effect.dynamic_law
     if dl is not None:
         poles = getattr(dl, "poles", None)

@@ -36,7 +36,7 @@ from .metrics import (
 
 __all__ = ["ModelValidation", "validate_model", "simulate_output", "estimate_initial_state",
            "unstable_reason", "undefined_error", "UNSTABLE_TOL", "before_after",
-           "describe_before_after"]
+           "describe_before_after", "has_marginal_pole", "MARGINAL_TOL"]
 
 #: A discrete model whose spectral radius exceeds ``1 + UNSTABLE_TOL`` is unstable:
 #: its simulation error is undefined (the simulation diverges from any error in x0).
@@ -45,6 +45,29 @@ UNSTABLE_TOL = 1e-6
 #: than this factor (rho**N): a radius of 1 + 1e-5 over 8000 samples (+8 %) is as
 #: harmless as an integrator.
 UNSTABLE_GROWTH = 10.0
+
+
+#: A discrete pole whose modulus is above ``1 - MARGINAL_TOL`` counts as on the unit
+#: circle (an integrator discretized: exactly 1; a lightly damped mode stays below).
+MARGINAL_TOL = 1e-9
+
+
+def has_marginal_pole(sys: ct.StateSpace) -> bool:
+    """True when a discrete model has a pole on or outside the unit circle (an integrator:
+    a position driven by a velocity); its simulation error drifts with the initial state
+    and the noise, so it neither judges nor chooses between models (PE does).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Discrete model.
+
+    Returns
+    -------
+    bool
+    """
+    A = np.asarray(sys.A, dtype=float)
+    return bool(A.size) and bool(np.max(np.abs(np.linalg.eigvals(A))) > 1.0 - MARGINAL_TOL)
 
 
 def unstable_reason(sys: ct.StateSpace, nsteps: int | None = None) -> str:

@@ -62,6 +62,8 @@ from .trace import (
     simulate_with_law,
     trace_channel,
 )
+from .trace.channel_trace import law_estimate_of, whole_inputs
+from .trace.laws import BREAK_KINDS
 from .trace.dynamic import DynamicLaw, SharedLaw, fit_shared_dynamic, fit_sparse_dynamic
 from .trace.shared_order2 import SharedLaw2, fit_shared_order2
 from .trace.joint import joint_effect, refine_jointly
@@ -363,7 +365,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     with single_thread_blas():
         rep = _loop(once, P.sys, P.nominal, P.Q, channels, P.chans, P.settings.delta,
                     P.settings.max_effects, P.dt, functools.partial(_joint, P))
-        rep = _with_record(rep, P.y, P.u, P.Q, P.R)
+        rep = _with_record(rep, P.y, P.u, P.Q, P.R, P.sys)
         P.tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
         return recommend(nonlinear_update_of_linear(rep), P.Q, P.R)
 
@@ -672,7 +674,10 @@ class _Pass:
                                         res.sys, res.G, tr.static, ys, us, x0, Q=sm.Q, R=sm.R))
             else:
                 se = self.fit_error(sm.sys, sm.Q, sm.R)
-            self.cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok"))
+            brk = [sp[0] for j, sp in enumerate(tr.static.spec)
+                   if sp[1] in BREAK_KINDS and np.any(tr.static.coef[:, j])]
+            self.cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok",
+                                             f"with {brk[0]}" if brk else ""))
             self.scored.append(Candidate(se, tr.static.npar, tr, "static"))
         if tr.dynamic_model is not None:
             dm, sub = tr.dynamic_model, tr.dynamic
@@ -711,16 +716,25 @@ class _Pass:
                                                  tr.reason))
                 continue
             self.score(tr)
+            if S.nonlinear and whole_inputs(self.sys, ch):
+                self.static_trace(ch, breaks=True)
         P.tick("trace candidate channels", len(self.chans), len(self.chans))
 
-    def static_trace(self, ch_):
-        """The static trace of one channel (a force, a group), scored; or None."""
+    def static_trace(self, ch_, breaks: bool = False):
+        """The static trace of one channel (a force, a group), scored; or None. With
+        ``breaks``: the law offered a dead zone and a saturation of the inputs whose whole
+        effect the channel carries, scored only if it selects one."""
         try:
-            tr_ = self._trace(ch_, nonlinear=self.S.nonlinear, max_order=0)
+            tr_ = self._trace(ch_, nonlinear=self.S.nonlinear, max_order=0, breaks=breaks)
         except (GreyboxError, np.linalg.LinAlgError) as e:
             self.notes.append(f"{ch_.name}: {e}")
             return None
         if tr_.status != "ok":
+            return None
+        if breaks and not (tr_.static is not None and any(
+                sp[1] in BREAK_KINDS and np.any(tr_.static.coef[:, j])
+                for j, sp in enumerate(tr_.static.spec))):
+            self.notes.append(f"{ch_.name}: no input dead zone or saturation selected")
             return None
         self.score(tr_)
         return next((t.trace for t in self.scored[::-1] if t.trace.channel == ch_), None)
@@ -1242,7 +1256,11 @@ def _simulate_law(model: ct.StateSpace, G, law: StaticLaw, u, x0):
     return y
 
 
-def _with_record(rep: LoopReport, y, u, Q, R) -> LoopReport:
+#: Samples of the law's own estimate kept for its figure (plot_law)
+_FIGURE_SAMPLES = 20_000
+
+
+def _with_record(rep: LoopReport, y, u, Q, R, sys=None) -> LoopReport:
     """The report with its trace's whole filter record (:func:`_whole_record`).
 
     Built once, at the end: the report's trace is the first pass's (under the
@@ -1251,7 +1269,20 @@ def _with_record(rep: LoopReport, y, u, Q, R) -> LoopReport:
     """
     if rep.trace is None:
         return rep
-    return replace(rep, trace=_whole_record(rep.trace, y, u, Q, R))
+    tr = _whole_record(rep.trace, y, u, Q, R)
+    law = tr.static
+    if rep.updated and rep.effect.kind == "static" and law is not None and \
+            law.output is None and tr.relative_degree >= 2 and sys is not None:
+        # the law's own (delayed) estimate, for its figure (plot_law): the r = 1 filter's
+        # d^ of a relative-degree-2 channel is mostly amplified noise. On the first
+        # _FIGURE_SAMPLES samples: the figure needs no more
+        K = min(y.shape[1], _FIGURE_SAMPLES)
+        try:
+            tr = replace(tr, law_estimate=law_estimate_of(sys, tr, y[:, :K],
+                                                          u[:, :K], Q, R))
+        except (GreyboxError, np.linalg.LinAlgError):
+            pass
+    return replace(rep, trace=tr)
 
 
 def _search_record(y, u):

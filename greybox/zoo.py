@@ -1867,7 +1867,7 @@ def _force_direction(rep, step_index: int, ch_name: str, eqs) -> NDArray | None:
     return np.array([float(v) for v in m.group(1).split()]) if m else None
 
 
-def _static_found(ef, rep, k_step, ch_name, kind, targets) -> FoundEffect:
+def _static_found(ef, rep, k_step, ch_name, kind, targets, nominal=None) -> FoundEffect:
     """A static law (or a drift) from ``effect.law`` (a greybox StaticLaw)."""
     law = ef.law
     terms = []
@@ -1881,6 +1881,10 @@ def _static_found(ef, rep, k_step, ch_name, kind, targets) -> FoundEffect:
             if c == 0:
                 continue
             h = float(law.ci[k, j]) if law.ci is not None else float("nan")
+            if tkind in ("u_dz", "u_sat"):
+                tgt = targets[k] if k < len(targets) else targets[-1]
+                terms.append(_break_found(rep, nominal, law, tgt, name, tkind, _idx, c, h))
+                continue
             if g is not None:                          # one force: per equation
                 for e, ge in zip(targets, g):
                     terms += _canonical_terms(e, name, tkind, c * ge, h * abs(ge))
@@ -1892,6 +1896,26 @@ def _static_found(ef, rep, k_step, ch_name, kind, targets) -> FoundEffect:
     drivers = tuple(sorted({v for t in terms for v in t.variables}, key=_natural))
     return FoundEffect(kind, targets, "static", 0, drivers, tuple(terms), formula=ef.formula,
                        notes=tuple(ef.parameter_notes))
+
+
+def _break_found(rep, nominal, law, target: str, name: str, kind: str, idx, c: float,
+                 h: float) -> FoundTerm:
+    """A dead zone ("deadzone(u)") or a saturation ("sat(u)") with its level as coefficient,
+    when the term's coefficient is the plain one (-1 on the input, -B[e, u] in the one
+    equation e the input enters, within COEF_RTOL); else the term as named (a form the
+    truth never uses)."""
+    inp, level, hl = idx[3], float(idx[1]), float(idx[2])
+    expect = -1.0
+    # d is in the channel's physical units in either time base: the continuous B (the
+    # draw's nominal) where it is known
+    nom = nominal if nominal is not None else rep.nominal
+    st, ins = list(nom.state_labels), list(nom.input_labels)
+    if target in st and inp in ins:
+        expect = -float(np.asarray(nom.B)[st.index(target), ins.index(inp)])
+    if expect != 0 and abs(c / expect - 1) <= COEF_RTOL:
+        form = "deadzone" if kind == "u_dz" else "sat"
+        return FoundTerm(target, f"{form}({inp})", (inp,), level, hl)
+    return FoundTerm(target, name, (), c, h)
 
 
 def _merge(terms: list[FoundTerm]) -> list[FoundTerm]:
@@ -1996,13 +2020,17 @@ def _sensor_found(ef, kind, targets) -> FoundEffect:
                        {(o, o): 0.0}, formula=ef.formula, notes=tuple(ef.parameter_notes))
 
 
-def found_effects(report) -> tuple[FoundEffect, ...]:
+def found_effects(report, nominal=None) -> tuple[FoundEffect, ...]:
     """What a LoopReport says the model lacked, in the truth's vocabulary.
 
     Parameters
     ----------
     report : greybox.workflow.LoopReport
         From ``greybox.close_the_loop`` (linear or nonlinear nominal).
+    nominal : control.StateSpace, optional
+        The continuous nominal model given to close the loop (the draw's): the B
+        a continuous-time dead zone or saturation in one state equation is read
+        against (default: the report's discrete nominal).
 
     Returns
     -------
@@ -2036,7 +2064,7 @@ def found_effects(report) -> tuple[FoundEffect, ...]:
                    for j, sp in enumerate(law.spec)):
                 out.append(_sensor_found(ef, kind, targets))
             else:
-                out.append(_static_found(ef, report, k, name, kind, targets))
+                out.append(_static_found(ef, report, k, name, kind, targets, nominal))
             continue
         if ef.kind != "dynamic":          # a kind this mapping does not know yet
             out.append(FoundEffect(kind, targets, ef.kind, ef.order, (), formula=ef.formula,
@@ -2146,12 +2174,13 @@ def _alternatives(te: TrueEffect, draw: ZooDraw) -> list[TrueEffect]:
     enters one equation e only is also a state effect in e (terms times B[e, input])."""
     out = [te]
     if te.channel != "input" or len(te.equations) != 1 or draw.nonlinear_model or \
-            len(te.inputs) != 1 or any(t.form in ("sat", "deadzone") for t in te.terms):
+            len(te.inputs) != 1:
         return out
     st, ins = list(draw.nominal.state_labels), list(draw.nominal.input_labels)
     b = float(np.asarray(draw.nominal.B)[st.index(te.equations[0]), ins.index(te.inputs[0])])
     e = te.equations[0]
-    terms = tuple(Term(e, t.form, t.variables, b * t.coefficient, t.unit) for t in te.terms)
+    terms = tuple(Term(e, t.form, t.variables, t.coefficient if t.form in ("sat", "deadzone")
+                       else b * t.coefficient, t.unit) for t in te.terms)  # a level: as is
     dyn = None
     if te.dynamics is not None:
         h = te.dynamics
@@ -2340,7 +2369,7 @@ def score(draw: ZooDraw, report, seconds: float = float("nan")) -> ZooScore:
     expanded terms); dynamic laws compare order, drivers, continuous poles
     and DC gains (a DC gain near zero against half the law's scale).
     """
-    found = _split_components(found_effects(report), draw)
+    found = _split_components(found_effects(report, draw.nominal), draw)
     e_nom, e_upd, kind = _errors(draw, report)
     common = dict(cls=draw.cls, description=draw.description, updated=bool(report.updated),
                   false_flags=_false_flags(draw, found), error_nominal=e_nom,

@@ -42,7 +42,7 @@ def test_update_spring_json_and_report(tmp_path, capsys):
     se0, se1 = s["table"]["nominal"]["se"], s["table"]["updated"]["se"]
     assert se0 / se1 >= 3
     for f in ("report.md", "updated_model.json", "summary.json", "autocorrelation.png",
-              "outputs.png", "d_estimate.png"):
+              "outputs.png", "d_estimate.png", "law.png"):
         assert (out / f).exists(), f
     upd = read_model(out / "updated_model.json")  # same schema, readable back
     assert upd.sys.nstates == 4 and list(upd.sys.state_labels) == ["p1", "v1", "p2", "v2"]

@@ -24,7 +24,6 @@ import pytest
 
 import greybox as gb
 from greybox.system import named_ss
-from greybox.trace import law_terms
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -60,8 +59,7 @@ def test_trace_finds_a_flow_dependent_time_constant_as_the_product_term():
     # moves by ~20 %, which also brings in small T and offset terms, checked below)
     assert abs(law.coef[0, j] - (-c)) <= law.ci[0, j] + 0.05 * c, law.formula
     x_e = np.array([y[:2000]])
-    terms, spec, _ = law_terms(x_e, q[None, :2000], ["T"], ["q"], eps=law.eps)
-    contrib = np.sqrt(np.mean((law.coef[0][:, None] * terms) ** 2, axis=1))
+    contrib = np.abs(law.coef[0]) * law.term_scale(x_e, q[None, :2000])
     others = np.delete(contrib, j)
     # the offset's contribution is 0.10 of the product's (q*T has a nonzero mean: T
     # follows -q); the product dominates the law

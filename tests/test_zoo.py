@@ -372,3 +372,52 @@ def test_score_reads_a_damper_and_a_gain_in_one_equation_as_two_effects():
     s = zoo.score(d, _report(d, f"eq({eq})", (eq,), spec + [(other, "x", 2)],
                              [t1.coefficient, b * t2.coefficient, 0.5], [0.01, 0.01, 0.01]))
     assert not s.right and not s.right_terms
+
+
+@lru_cache(maxsize=None)
+def _run_draw(cls: str, seed: int, i: int):
+    d = zoo.draw_class(cls, seed, i, n_est=N_RUN)
+    rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False, max_order=1)
+    return d, rep, zoo.score(d, rep)
+
+
+@pytest.mark.parametrize("cls,i", [("dead_zone", 0), ("dead_zone", 1), ("saturation", 0),
+                                   ("saturation", 1)])
+def test_input_dead_zone_and_saturation_are_named_with_their_breakpoint(cls, i):
+    """An input dead zone or saturation (random chains, sizes, measured sets and levels):
+    the input's channel (or the one equation it enters), a static law of one breakpoint
+    term, the breakpoint within 10 % of the truth (the issue's tolerance). Two draws per
+    class, seed 3 (not chosen: the first seed tried)."""
+    d, rep, s = _run_draw(cls, 3, i)
+    assert rep.updated, rep.message
+    assert s.right_channel and s.right_kind, (s.why, s.found)
+    law = rep.effect.law
+    brk = [sp for j, sp in enumerate(law.spec) if sp[1] in ("u_dz", "u_sat") and
+           np.any(law.coef[:, j])]
+    assert len(brk) == 1, law.formula
+    assert brk[0][1] == ("u_dz" if cls == "dead_zone" else "u_sat"), law.formula
+    true_level = d.truth.effects[0].terms[0].coefficient
+    assert abs(brk[0][2][1] - true_level) <= 0.1 * true_level, (law.formula, true_level)
+    assert s.error_updated < 0.5 * s.error_nominal  # and the model is better than before
+
+
+def test_law_figure_shows_the_dead_zone_in_the_data():
+    """plot_law draws d^ against the dead zone's input: the binned partial residual follows
+    the true law -B clip(F, c) within each bin's 2 standard errors plus 5 % of the law's
+    range (a bin's mean of a nonlinear law is not the law at the bin's centre)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from greybox.plotting import plot_law
+
+    d, rep, s = _run_draw("dead_zone", 3, 0)
+    arts = plot_law(rep, d.u)
+    c_true = d.truth.effects[0].terms[0].coefficient
+    law = rep.effect.law
+    (mid, mean, err), = [b for b in arts["bins"] if b is not None]
+    assert arts["variables"] == ["F"]
+    j = next(j for j, sp in enumerate(law.spec) if sp[1] == "u_dz" and law.coef[0, j])
+    scale = -law.coef[0, j] / 1.0                      # the law's amplitude (B or 1)
+    truth = -scale * np.clip(mid, -c_true, c_true)
+    assert np.all(np.abs(mean - truth) <= err + 0.05 * 2 * scale * c_true), (mean, truth, err)

@@ -29,7 +29,7 @@ from ..filters.smoother import _smooth_feedthrough_of
 from ..metrics import autocorrelation
 from ..system import named_ss
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
-from ..validate import unstable_reason
+from ..validate import has_marginal_pole, unstable_reason
 from .channels import Channel, channel_model
 from .laws import (
     LINEAR_KINDS,
@@ -47,6 +47,7 @@ from .oe import (
     _refine_nonlinear_oe,
     _refine_static_oe,
     _select_static_oe,
+    prune_by_criterion,
     noise_covariance,
     oe_window,
     refine_force_direction,
@@ -648,10 +649,48 @@ def _free_direction(sys, channel, model, cont, law, y, u, x0, k0, Q, R, notes):
     return (G + r * dG)[:, None]
 
 
+def law_estimate_of(sys: ct.StateSpace, tr: ChannelTrace, y: NDArray, u: NDArray, Q, R,
+                    smooth: bool | str = "auto"):
+    """The estimate a trace's static law was fitted on (delayed and/or smoothed), on (y, u).
+
+    As :func:`trace_channel` computes it (its relative degree detected again);
+    for the figure of a law (:func:`greybox.plotting.plot_law`), which the
+    light trace of a report no longer carries. Returns a FilterResult whose
+    ``d_est[:, j]`` estimates d about ``tr.relative_degree - 1`` samples later.
+    """
+    cont = None if ct.isdtime(sys, strict=True) else (np.asarray(sys.A, dtype=float),
+                                                      np.asarray(tr.channel.G, dtype=float))
+    est, _, _ = _law_estimate(tr.model, list(tr.channel.labels), y, u, Q, R,
+                              tr.filter_result, smooth, [], cont)
+    return est
+
+
+def whole_inputs(sys: ct.StateSpace, channel: Channel) -> tuple[int, ...]:
+    """Indices of the inputs whose whole effect passes through a one-component channel.
+
+    An input j with ``B[:, j]`` along the channel's G (its own input channel,
+    or the one state equation it enters): its dead zone or saturation is a
+    law of this channel, so the channel's law is offered breakpoint terms in
+    u_j (:data:`greybox.trace.laws.BREAK_KINDS`).
+    """
+    if channel.md != 1 or channel.kind == "output":
+        return ()
+    g = np.asarray(channel.G, dtype=float)[:, 0]
+    B = np.asarray(sys.B, dtype=float)
+    out = []
+    for j in range(B.shape[1]):
+        b = B[:, j]
+        nb = np.linalg.norm(b)
+        if nb > 0 and np.linalg.norm(b - g * (g @ b) / (g @ g)) <= 1e-9 * nb:
+            out.append(j)
+    return tuple(out)
+
+
 def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, *,
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
                   max_order: int = 2, min_order: int = 1, skip: int | None = None,
-                  cond_tol: float = 1e-6, smooth: bool | str = "auto") -> ChannelTrace:
+                  cond_tol: float = 1e-6, smooth: bool | str = "auto",
+                  breaks: bool = False) -> ChannelTrace:
     """Run the unknown-input filter for one channel and fit static and dynamic laws.
 
     Parameters
@@ -676,6 +715,11 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     cond_tol : float
         A channel with ``sigma_min(C G) < cond_tol * ||C|| ||G||`` is skipped
         as practically unobservable (beyond the exact rank test (17)).
+    breaks : bool
+        Also offer the static law a dead zone and a saturation of each input
+        whose whole effect passes through this channel (:func:`whole_inputs`;
+        :data:`greybox.trace.laws.BREAK_KINDS`). Close the loop traces such
+        a channel twice, without and with them, and lets its criterion choose.
     smooth : bool or "auto"
         Fit the static law on the fixed-interval smoothed d^ and x^
         (:func:`greybox.smooth_uikf`, the whole record is available) rather
@@ -756,7 +800,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                          f"is fitted on terms averaged over consecutive samples")
     law = _fit_static(d, xw, uw, res.sys, nonlinear, labels, channel.units,
                       None if align.shape[1] == 1 and np.allclose(align, 1.0) else align,
-                      channel.relative, whiten=est.smoothed or r >= 2)
+                      channel.relative, whiten=est.smoothed or r >= 2,
+                      breaks=whole_inputs(sys, channel) if breaks and nonlinear else ())
     if cont is not None and r >= 2:  # first-order-hold weights: the law is simulated alike
         law = replace(law, hold=first_order_hold(cont[0], cont[2], cont[3]))
     K = d.shape[1]
@@ -818,6 +863,13 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         if se_y < se_d:
             notes.append(f"nonlinear static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
+    # the one criterion: terms only where the data support them (by output error: not for a
+    # model with an integrator, whose simulation drifts; EMPS lost its |v| term so)
+    if oe_ok and law.npar > 1 and not has_marginal_pole(model):
+        law, more = prune_by_criterion(law, model, channel.md, y, u, res.x_filt[:, 0], k0,
+                                       labels, channel.units, law.term_scale(x, uu),
+                                       cont if law.time_base == "continuous" else None, (Q, R))
+        notes += more
     if channel.kind == "force" and cont is not None and oe_ok and law.npar \
             and not law.nonlinear and law.time_base == "continuous":
         refined_G = _free_direction(sys, channel, model, cont, law, y, u, res.x_filt[:, 0], k0,

@@ -33,11 +33,40 @@ def hinge_name(state: str, kind: str, level: float) -> str:
     return f"{'max' if kind == 'x_hi' else 'min'}({state} {sign} {abs(level):.4g}, 0)"
 
 
+#: Quantiles of |u_j| where an input's dead-zone and saturation breakpoints start (each
+#: selected one is then refitted freely: :func:`_refine_break`).
+BREAK_QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9)
+#: Input breakpoint terms: ``clip(u, -c, c)`` (coefficient -1: a dead zone of half-width c)
+#: and ``u - clip(u, -c, c)`` (coefficient -1: a saturation at +-c). Index ``(j, c, half
+#: width of c, input name)``.
+BREAK_KINDS = ("u_dz", "u_sat")
+
+
+def break_name(inp: str, kind: str, level: float, half: float = np.nan) -> str:
+    """Display name of an input breakpoint term: ``clip(F, ±0.53)``, ``(F - clip(F, ±1.2))``;
+    with the level's 95 % half-width ``clip(F, ±(0.53 ± 0.01))``."""
+    lv = f"{level:.4g}" if not np.isfinite(half) else f"({level:.4g} ± {half:.2g})"
+    return f"clip({inp}, ±{lv})" if kind == "u_dz" else f"({inp} - clip({inp}, ±{lv}))"
+
+
+def break_row(v: NDArray, kind: str, level: float) -> NDArray:
+    """The breakpoint term's value on the input record v (any shape)."""
+    cl = np.clip(v, -level, level)
+    return cl if kind == "u_dz" else v - cl
+
+
+def break_slope(v: NDArray, kind: str, level: float) -> NDArray:
+    """d(break_row)/d(level): ``sign(v)`` where ``|v| > level`` (negated for "u_sat")."""
+    s = np.sign(v) * (np.abs(v) > level)
+    return s if kind == "u_dz" else -s
+
+
 def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
               input_labels: Sequence[str], *, nonlinear: bool = True,
               eps: NDArray | None = None,
               relative: Sequence[tuple[int, int]] = (),
-              saturation: bool = False) -> tuple[NDArray, list, NDArray]:
+              saturation: bool = False,
+              breaks: Sequence[int] = ()) -> tuple[NDArray, list, NDArray]:
     """Candidate terms of a static law, evaluated on (x, u).
 
     Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
@@ -55,7 +84,12 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
     hinges, ``max(x_i - c, 0)`` at the 60, 75 and 90 % quantiles of its
     record and ``min(x_i - c, 0)`` at the 10 and 25 % quantiles (kinds
     "x_hi", "x_lo", index ``(i, c)``): a level that stops rising at c (an
-    overflow, a stop) is a stiff restoring term above c.
+    overflow, a stop) is a stiff restoring term above c. With ``breaks`` (and
+    ``nonlinear``) each input j listed gets breakpoint terms ``clip(u_j, -c, c)``
+    and ``u_j - clip(u_j, -c, c)`` (kinds in :data:`BREAK_KINDS`) at the
+    :data:`BREAK_QUANTILES` of ``|u_j|``: with coefficient -1, an input dead
+    zone of half-width c and a saturation at +-c (the input channel's law; a
+    selected breakpoint is refitted freely by :func:`_fit_static`).
     """
     n, m = x.shape[0], u.shape[0]
     rel = [x[j] - x[i] for i, j in relative]
@@ -94,6 +128,13 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
             for j in range(m):
                 rows.append(x[i] * u[j])
                 spec.append((f"{state_labels[i]}*{input_labels[j]}", "x*u", (i, j)))
+        for j in breaks if x.shape[1] else ():
+            for kind in BREAK_KINDS:
+                for c in np.nanquantile(np.abs(u[j]), BREAK_QUANTILES):
+                    c = float(c)
+                    rows.append(break_row(u[j], kind, c))
+                    spec.append((break_name(input_labels[j], kind, c), kind,
+                                 (j, c, np.nan, input_labels[j])))
         if saturation and x.shape[1]:
             for i in range(n):
                 s = state_labels[i]
@@ -177,6 +218,9 @@ def _eval_terms(spec, eps, x, u):
             continue
         if kind == "x*u":
             out[r] = x[i[0]] * u[i[1]]
+            continue
+        if kind in BREAK_KINDS:  # an input's dead zone or saturation at level i[1]
+            out[r] = break_row(u[i[0]], kind, i[1])
             continue
         if kind in ("x_hi", "x_lo"):  # a saturation hinge at level c = i[1]
             out[r] = (np.maximum if kind == "x_hi" else np.minimum)(x[i[0]] - i[1], 0.0)
@@ -420,7 +464,8 @@ def _ls_fit(terms: NDArray, d: NDArray) -> NDArray[np.float64]:
     K x p matrix at p ~ 200, K = 1e5) is solved by SVD, so collinear terms
     (x and x^3 of a small state) still give a minimum-norm fit.
     """
-    sc = np.sqrt(np.einsum("ij,ij->i", terms, terms)) + 1e-300  # no K x p temporaries
+    sc = np.sqrt(np.einsum("ij,ij->i", terms, terms))  # no K x p temporaries
+    sc[sc == 0] = 1.0  # a term that is zero throughout (an input at rest over the window)
     gram = (terms @ terms.T) / np.outer(sc, sc)
     th = lstsq(gram, (terms @ d) / sc, cond=1e-12, lapack_driver="gelsd")[0]
     return (th / sc) @ terms
@@ -437,7 +482,8 @@ def _whitening(e: NDArray, p: int) -> NDArray[np.float64]:
 
 
 def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
-                relative=(), whiten=False, prebuilt=None, saturation=False) -> StaticLaw:
+                relative=(), whiten=False, prebuilt=None, saturation=False,
+                breaks=()) -> StaticLaw:
     """Sparse static law of every component of d^ on the terms of (x, u).
 
     ``align`` (md, r): d^[c, j] estimates ``sum_i align[c, i] d[c, j + i]``
@@ -450,13 +496,16 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     then feasible generalized least squares: an AR(4) filter fitted
     (Yule-Walker) to the residual of all candidate terms whitens d^ and the
     terms alike before the selection and the intervals. ``saturation``: offer
-    the hinge terms of :func:`law_terms`. ``prebuilt``:
+    the hinge terms of :func:`law_terms`; ``breaks``: the inputs offered a
+    dead zone and a saturation (:data:`BREAK_KINDS`), whose selected breakpoint
+    is then refitted with the coefficients (:func:`_refine_break`; it counts as
+    a parameter). ``prebuilt``:
     ``(terms, spec, eps)`` of other candidates (:func:`output_terms`).
     """
     if prebuilt is None:
         terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels,
                                      nonlinear=nonlinear, relative=relative,
-                                     saturation=saturation)
+                                     saturation=saturation, breaks=breaks)
     else:
         terms, spec, eps = prebuilt
     md = d.shape[0]
@@ -499,15 +548,39 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             aw, dw = None, dc
             sel = _select(tcur, dc, names)
         idx, cf = list(sel.index), sel.coef
-        coef[c, idx] = cf
+        brk = [q for q, j in enumerate(idx) if spec[j][1] in BREAK_KINDS]
+        if len(brk) > 1:  # one breakpoint per input (the strongest; refitted below)
+            top = max(brk, key=lambda q: abs(cf[q]) * tscale[idx[q]])
+            idx = [j for q, j in enumerate(idx) if q not in brk or q == top]
+            cf = np.zeros(len(idx))  # refitted with the breakpoint
+            brk = [q for q, j in enumerate(idx) if spec[j][1] in BREAK_KINDS]
         if idx:  # 95 % half-widths of the regression on d^, robust to its autocorrelation
             X = tcur[idx] if aw is None else lfilter(aw, [1.0], tcur[idx], axis=1)[:, _AR_ORDER:]
-            sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
-            cov = hac_covariance((X / sx[:, None]).T, dw - cf @ X, 1) / np.outer(sx, sx)
-            half[c, idx] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+            J = X
+            if brk:  # a dead zone's or saturation's breakpoint, fitted with the coefficients
+                def make(fn, level, white=True, sp=spec[idx[brk[0]]], c=c, ok=ok, aw=aw):
+                    row = fn(u[sp[2][0]], sp[1], level)[None, :]
+                    row = aligned(row, align[c]) if align is not None else row
+                    row = row[:, ok]
+                    return (row if aw is None or not white else
+                            lfilter(aw, [1.0], row, axis=1)[:, _AR_ORDER:])[0]
+                level, X, cf, J = _refine_break(X, dw, brk[0], make, u[spec[idx[brk[0]]][2][0]])
+                tcur = tcur.copy()
+                tcur[idx[brk[0]]] = make(break_row, level, white=False)
+            sx = np.sqrt(np.mean(J**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
+            cov = hac_covariance((J / sx[:, None]).T, dw - cf @ X, 1) / np.outer(sx, sx)
+            hw = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+            half[c, idx] = hw[:len(idx)]
+            if brk:
+                j, sp = idx[brk[0]], spec[idx[brk[0]]]
+                hl = float(hw[-1]) if np.all(np.isfinite(cov)) else np.inf
+                spec[j] = (break_name(sp[2][3], sp[1], level, hl), sp[1],
+                           (sp[2][0], float(level), hl, sp[2][3]))
+                names[j] = spec[j][0]
+        coef[c, idx] = cf
         rv[c] = (float(np.mean((dc - cf @ tcur[idx]) ** 2)) if idx else float(np.mean(dc**2)))
         gain += sel.bic_gain
-        npar += len(idx)
+        npar += len(idx) + len(brk)
         nl = any(j >= nlin for j in idx)
         any_nl |= nl
         if nl:  # best linear surrogate for the StateSpace
@@ -527,6 +600,42 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     return StaticLaw(spec=tuple(spec), eps=eps, coef=coef, Ddx=Ddx, Ddu=Ddu, nonlinear=any_nl,
                      residual_var=rv, bic_gain=gain, npar=npar, formula="; ".join(lines),
                      ci=half)
+
+
+def _refine_break(X: NDArray, dw: NDArray, q: int, make, v: NDArray):
+    """The breakpoint of row q of X refitted with the coefficients (variable projection).
+
+    ``make(fn, level)`` gives a row as the regression sees it (aligned,
+    masked, whitened) of ``fn(v, kind, level)`` with fn :func:`break_row` or
+    :func:`break_slope`. The residual sum of squares is scanned over the
+    2-98 % quantiles of ``|v|`` (49 levels) and minimized between the best
+    level's neighbours (bounded Brent). Returns ``(level, X, coefficients,
+    J)``: X with row q at that level, the least-squares coefficients and the
+    Jacobian rows (X, then the breakpoint's derivative times its coefficient)
+    for the intervals.
+    """
+    from scipy.optimize import minimize_scalar
+
+    def fit(level):
+        Xl = X.copy()
+        Xl[q] = make(break_row, level)
+        beta = lstsq(Xl.T, dw, lapack_driver="gelsy")[0]
+        r = dw - beta @ Xl
+        return float(r @ r), Xl, beta
+
+    grid = np.nanquantile(np.abs(v), np.linspace(0.02, 0.98, 49))
+    vals = [fit(g)[0] for g in grid]
+    k = int(np.argmin(vals))
+    lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+    level = float(grid[k])
+    if hi > lo:
+        res = minimize_scalar(lambda lv: fit(lv)[0], bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-6 * (hi - lo)})
+        if res.fun < vals[k]:
+            level = float(res.x)
+    _, Xl, beta = fit(level)
+    J = np.vstack([Xl, beta[q] * make(break_slope, level)[None, :]])
+    return level, Xl, beta, J
 
 
 def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Subsystem:

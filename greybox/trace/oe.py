@@ -12,8 +12,9 @@ from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
 from .._lti import lti_states
+from ..metrics import effective_samples, oe_criterion
 from .intervals import hac_covariance, undetermined
-from .laws import LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction, linear_part
+from .laws import BREAK_KINDS, LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction, linear_part
 
 # Output-error refinements of static laws run on at most this many samples
 # (their cost is then independent of the record length).
@@ -557,6 +558,12 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     se0, se1 = se_held(np.c_[theta0, sub_theta])
     if not se1 < se0:
         return law, se0, se0
+    return _nl_law_with(law, sel, keep, theta, half, labels, units, tscale), se0, se1
+
+
+def _nl_law_with(law: StaticLaw, sel, keep, theta, half, labels, units, tscale=None):
+    """The law with only the terms ``sel[q]`` for q in keep, at theta (95 % half-widths half)."""
+    md = law.coef.shape[0]
     coef = np.zeros_like(law.coef)
     ci = np.full_like(law.coef, np.nan)
     for q, th, h in zip(keep, theta, half):
@@ -573,10 +580,11 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     nonlinear = any(j not in nlin for c, j in zip(*np.nonzero(coef)))
     changes = {}
     if not nonlinear:  # only linear terms survived: the law is its own linear part
-        changes["Ddx"], changes["Ddu"] = linear_part(law.spec, coef, prob.A.shape[0],
+        changes["Ddx"], changes["Ddu"] = linear_part(law.spec, coef, law.Ddx.shape[1],
                                                      law.Ddu.shape[1])
-    return (replace(law, coef=coef, ci=ci, npar=len(keep), formula="; ".join(lines),
-                    nonlinear=nonlinear, **changes), se0, se1)
+    npar = len(keep) + sum(1 for q in keep if law.spec[sel[q][1]][1] in BREAK_KINDS)
+    return replace(law, coef=coef, ci=ci, npar=npar, formula="; ".join(lines),
+                   nonlinear=nonlinear, **changes)
 
 
 def refine_force_direction(law: StaticLaw, model: ct.StateSpace, y: NDArray, u: NDArray,
@@ -783,3 +791,94 @@ def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=
         sel, sol, hw = _prune(prob, sel, prob.fit(sel, theta, max_nfev=max_nfev))
         theta = sol.x if sol is not None else np.zeros(0)
     return sel, theta, hw
+
+
+# --------------------------------------------------------------------------- the criterion
+def backward_by_criterion(n: int, theta: NDArray, refit, resid, nout: int, weight=None):
+    """Drop terms while the output-error criterion falls (:func:`greybox.metrics.oe_criterion`).
+
+    ``refit(keep, start) -> theta`` fits the terms ``keep`` (indices 0..n-1);
+    ``resid(keep, theta)`` is their output error, flat, output by output
+    (nout outputs). The effective samples are taken once, from the residual of
+    all n terms, so every subset is scored on the same count. Each round
+    refits the law without each term in turn and drops the one whose removal
+    lowers the criterion most; it stops when none does. ``weight[q]``: the
+    parameters term q carries (2 for a breakpoint term: its coefficient and
+    its level; default 1). Returns ``(keep, theta)``.
+    """
+    w = np.ones(n, dtype=int) if weight is None else np.asarray(weight, dtype=int)
+    keep, theta = list(range(n)), np.asarray(theta, dtype=float)
+    r0 = np.asarray(resid(keep, theta)).reshape(nout, -1)
+    if not np.all(np.abs(r0) < 1e6):
+        return keep, theta
+    neff = effective_samples(r0)
+    cur = oe_criterion(r0, int(w[keep].sum()), neff)
+    while len(keep) > 1:
+        best = None
+        for q in range(len(keep)):
+            sub = keep[:q] + keep[q + 1:]
+            th = np.asarray(refit(sub, np.delete(theta, q)), dtype=float)
+            r = np.asarray(resid(sub, th)).reshape(nout, -1)
+            c = oe_criterion(r, int(w[sub].sum()), neff) if np.all(np.abs(r) < 1e6) else np.inf
+            if best is None or c < best[0]:
+                best = (c, sub, th)
+        if not best[0] < cur:
+            break
+        cur, keep, theta = best
+    return keep, theta
+
+
+def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
+                       x0: NDArray, k0: int, labels, units, tscale=None, cont=None,
+                       noise=None) -> tuple[StaticLaw, list[str]]:
+    """A static law's terms kept only where the data support them, by the one criterion.
+
+    The law's selected terms are refitted by output error on y (the linear
+    law folded into the model, in continuous time with ``cont``; a nonlinear
+    law simulated), then dropped one at a time while
+    :func:`greybox.metrics.oe_criterion` falls (:func:`backward_by_criterion`).
+    A term beside the right one that only makes up for noise or for a
+    mismatch elsewhere lowers the output error by less than its price.
+    Returns ``(law, notes)``: the law unchanged (and no note) when every term
+    is kept, or for a sensor law, a law with a lag or a drift term, or one of
+    over ``_NL_OE_MAX_TERMS`` terms.
+    """
+    sel, theta0 = _selected(law)
+    if len(sel) < 2 or len(sel) > _NL_OE_MAX_TERMS or law.output is not None or any(
+            law.spec[j][1] in ("yhat_lag", "drift") for _, j in sel):
+        return law, []
+    weight = [2 if law.spec[j][1] in BREAK_KINDS else 1 for _, j in sel]
+    p = y.shape[0]
+    if law.nonlinear:
+        W = min(_NL_OE_WINDOW, oe_window(p), y.shape[1] - k0)
+        prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, sel, theta0, noise, W)
+
+        def resid(keep, th):
+            full = np.zeros(len(sel))
+            full[keep] = th
+            return prob.resid(full / prob.theta_scale)
+
+        def refit(keep, start):
+            return prob.fit(keep, start)[0]
+    else:
+        prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
+
+        def resid(keep, th):
+            return prob.resid(th, [sel[q] for q in keep])
+
+        def refit(keep, start):
+            return prob.fit([sel[q] for q in keep], start).x
+    theta_all = refit(list(range(len(sel))), theta0)
+    keep, theta = backward_by_criterion(len(sel), theta_all, refit, resid, p, weight)
+    if len(keep) == len(sel):
+        return law, []
+    dropped = [law.spec[sel[q][1]][0] for q in range(len(sel)) if q not in keep]
+    note = (f"terms without support by the output-error criterion (BIC on effective "
+            f"samples) dropped: {', '.join(dropped)}")
+    if law.nonlinear:
+        theta, half, _ = prob.fit(keep, theta)
+        return _nl_law_with(law, sel, keep, theta, half, labels, units, tscale), [note]
+    ssel = [sel[q] for q in keep]
+    sol = prob.fit(ssel, theta)
+    return prob.law_with(ssel, sol.x, labels, units, tscale, ci=prob.halfwidths(sol, ssel),
+                         npar=len(ssel)), [note]
