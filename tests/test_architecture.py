@@ -186,8 +186,6 @@ MAX_LINES = 120
 LONG_FUNCTIONS = {
     "update.py:delta_update": 237,
     "filters/ukf.py:_run_ukf": 205,
-    "trace/channel_trace.py:trace_channel": 158,
-    "filters/kernels.py:_run": 130,
 }
 
 
