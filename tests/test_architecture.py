@@ -183,9 +183,7 @@ MAX_LINES = 120
 # The debts: functions over MAX_LINES today, with their length (lines from ``def`` to
 # the last line of the body, the docstring left out). The pipeline rebuild (one path for linear and nonlinear
 # models, named stages) removes them; an entry may only shrink or go.
-LONG_FUNCTIONS = {
-    "filters/ukf.py:_run_ukf": 205,
-}
+LONG_FUNCTIONS: dict[str, int] = {}
 
 
 def _code_lines(fn) -> int:
