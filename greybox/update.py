@@ -16,6 +16,7 @@ and the static candidate (order 0) by least squares; see
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -814,10 +815,9 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     n = sys.nstates
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, sys.noutputs, "R", definite=True)
-    if order is not None:
-        order = check_positive(order, "order", integer=True)
-    if max_order is not None:
-        max_order = check_positive(max_order, "max_order", integer=True)
+    order = None if order is None else check_positive(order, "order", integer=True)
+    max_order = None if max_order is None else check_positive(max_order, "max_order",
+                                                              integer=True)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
     x = lti_states(A, B @ u, np.zeros(n) if x0 is None else check_vector(x0, n, "x0"))
     y0 = C @ x + D @ u
@@ -856,67 +856,16 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     # standard deviations large; it would dominate the fits, the scores and r1
     k0 = wh.settling(N)
     whole, head, tail = slice(k0, N), slice(k0, Ne), slice(Ne, N)
-
-    def logdet(e):
-        # floor at 1e-12 of the mean variance: noise-free data give (near)
-        # singular covariances, whose -inf would tie every candidate
-        S = np.atleast_2d(np.cov(e, bias=True))
-        S = S + max(1e-12 * np.trace(S) / S.shape[0], np.finfo(float).tiny) * np.eye(S.shape[0])
-        sign, ld = np.linalg.slogdet(S)
-        return ld if sign > 0 else -np.inf
-
-    def score(poles, hold, fit_on=whole, score_on=None):
-        """(BIC, fit) of the fixed poles (and held integrators); with ``score_on``
-        the fit uses ``fit_on`` and the score is ``log det`` on ``score_on``."""
-        grams = {}
-        fit = _fit_delta(wh, poles, hold, u, wdy, sl=fit_on, grams=grams)
-        npar = fit.npar
-        if m > 1 and poles.size:
-            # one state per pole (rank-one residues, as in an order-k model):
-            # input directions from the full-residue fit's SVD, then refit
-            dirs = [np.linalg.svd(Rq)[2][:1].T for Rq in fit.residues]
-            fit = _fit_delta(wh, poles, hold, u, wdy, dirs, sl=fit_on, grams=grams)
-            npar = fit.npar + int(np.sum(np.where(poles.imag == 0.0, 1, 2))) * (m - 1)
-        if fit.cancels(u, dy):
-            return float("nan"), None
-        e = wh.apply(dy - fit.predict(u))
-        if score_on is not None:
-            return logdet(e[:, score_on]), fit
-        return Neff * logdet(e[:, whole]) + npar * np.log(Neff), fit
-
-    # effective sample size: the whitened errors of an imperfect noise model stay
-    # correlated (oversampled data); AR(1) correction N (1 - r1) / (1 + r1) with
-    # r1 the mean lag-1 autocorrelation of the initial model's whitened errors
-    ew = wdy[:, whole]
-    r1 = float(np.mean(np.sum(ew[:, 1:] * ew[:, :-1], axis=1)
-                       / np.maximum(np.sum(ew**2, axis=1), np.finfo(float).tiny)))
-    r1 = min(max(r1, 0.0), 0.999)
-    Neff = max((N - k0) * (1.0 - r1) / (1.0 + r1), 1.0)
-    crit, cands, origin = {("initial", 0): Neff * logdet(ew)}, [], {}
+    ew = wdy[:, whole]  # the initial model's whitened errors
+    Neff = _effective_samples(ew)
+    score = _DeltaScore(wh=wh, u=u, wdy=wdy, dy=dy, whole=whole, Neff=Neff)
+    crit, cands, origin = {("initial", 0): Neff * _logdet(ew)}, [], {}
     horizons = [horizon] if horizon is not None else _default_horizons(p + m)
     cut = _Cut(deadline)
     for name, (data, hold) in variants.items():
-        starts = {}
-        if order is None and hold is not None and name == list(variants)[-1]:
-            starts[(name, 0)] = None  # held integrators only
-        for h in horizons:
-            if cut.late("N4SID horizons"):
-                break
-            try:
-                fits = _n4sid_fits(data, u, orders, float(sys.dt), h,
-                                   late=lambda: cut.late("N4SID orders"))
-            except GreyboxError:
-                continue  # horizon too long for these data
-            for k in orders:
-                key = (name if len(horizons) == 1 else f"{name} h{h}", k)
-                s_ = fits[k].sys if k in fits else None
-                fABC = None if s_ is None else tuple(np.asarray(v, dtype=float)
-                                                     for v in (s_.A, s_.B, s_.C))
-                if (fABC is None or not all(np.all(np.isfinite(v)) for v in fABC)
-                        or _spectral_radius(fABC[0]) >= 1.0):
-                    crit[key] = float("nan")
-                    continue
-                starts[key] = fABC
+        held_only = order is None and hold is not None and name == list(variants)[-1]
+        starts = _n4sid_starts(name, data, u, orders, float(sys.dt), horizons, cut, crit,
+                               held_only)
         for key, fABC in starts.items():
             if cut.late("candidate scores"):
                 break
@@ -933,55 +882,17 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     ranked = sorted(((b_, k, name, key) for (name, key), (b_, k) in
                      ((nk, (crit[nk[1]], nk[1][1])) for nk in origin) if k > 0),
                     key=lambda c: (c[0], c[1]))
-    for _, k, name, key in ranked[:nrefine if refine else 0]:
-        if cut.late("pole refinement"):
-            break
-        (fA, fB, fC), data, hold = origin[(name, key)]
-        try:
-            # output error simulates from rest: from the record's start, not k0
-            rsl = slice(0, Ne if refine_window is None else min(Ne, refine_window))
-            ref = refine_output_error(fA, fB, fC, u[:, rsl], data[:, rsl],
-                                      max_iter=refine_iter)
-        except IdentificationError:
-            crit[(key[0] + "+oe", k)] = float("nan")
-            continue
-        if _spectral_radius(ref.A) > 1.0 - 1e-6:
-            # driven to the parametrization's bound: not a real pole (with process
-            # noise in the data a simulation-error fit follows its random walk)
-            crit[(key[0] + "+oe", k)] = float("nan")
-            continue
-        new_poles = _upper_poles(ref.A)
-        t_new, _ = score(new_poles, hold, head, tail)
-        t_old, _ = score(_upper_poles(fA), hold, head, tail)
-        crit[(key[0] + "+oe tail", k)] = t_new - t_old
-        if not t_new < t_old:
-            continue
-        crit[(key[0] + "+oe", k)], fit = score(new_poles, hold)
-        if fit is not None:
-            cands.append((crit[(key[0] + "+oe", k)], k, name, fit))
+    rsl = slice(0, Ne if refine_window is None else min(Ne, refine_window))
+    _refine_poles(ranked[:nrefine if refine else 0], origin, u, rsl, refine_iter, score,
+                  head, tail, crit, cands, cut)
     se = {"initial_estimation": relative_error(y, y0).value}
-
-    def no_improvement(why):
-        delta = named_ss(np.zeros((0, 0)), np.zeros((0, m)), np.zeros((p, 0)),
-                         np.zeros((p, m)), sys.dt, states=[], inputs=sys.input_labels,
-                         outputs=[f"d{s}" for s in sys.output_labels], name="delta")
-        upd = UpdatedModel(sys=sys, Q=Q, R=R, order=n, kind="delta")
-        return DeltaModel(updated=upd, delta=delta, order=0, improved=False, marginal=False,
-                          nfixed=0, refined=False, se=se, criterion=crit,
-                          message=f"parallel model: no improvement found ({why})" + cut.note(),
-                          bounded=cut.what())
-
     if not cands:
-        return no_improvement("no stable candidate")
+        return _no_delta(sys, Q, R, se, crit, cut, "no stable candidate")
     ranked = sorted(cands, key=lambda c: (c[0], c[1]))
     if not ranked[0][0] < crit[("initial", 0)]:
-        return no_improvement(f"BIC {ranked[0][0]:.6g} >= initial model's "
-                              f"{crit[('initial', 0)]:.6g}")
-
-    def sel_error(yh, sl):
-        """Plain SE (eq. 42) [%] in the selection coordinates on the samples ``sl``."""
-        return relative_error(ys_sel[:, sl], _difference(yh / w[:, None], factor)[:, sl]).value
-
+        return _no_delta(sys, Q, R, se, crit, cut, f"BIC {ranked[0][0]:.6g} >= initial "
+                                                    f"model's {crit[('initial', 0)]:.6g}")
+    sel_error = functools.partial(_sel_error, ys_sel, w, factor)
     # judged on the estimation record only: the candidates in BIC order (those
     # below the initial model's BIC, at most _TAIL_TRIES) until one lowers the
     # plain SE on the whole record and, with its residues fitted on the head,
@@ -999,10 +910,20 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
             break
         failed.append(f"order {k}: {e_est:.3g} %, tail {e_tail:.3g} %")
     else:
-        return no_improvement(f"no candidate lowers the SE ({e0_est:.3g} %) without raising "
-                              f"the held-out tail's ({e0_tail:.3g} %): {'; '.join(failed)}")
+        return _no_delta(sys, Q, R, se, crit, cut,
+                         f"no candidate lowers the SE ({e0_est:.3g} %) without raising "
+                         f"the held-out tail's ({e0_tail:.3g} %): {'; '.join(failed)}")
     se["delta_tail"] = e_tail
     se["delta_estimation"] = relative_error(y, yh).value
+    return _delta_model(sys, Q, R, fit, k, name == "marginal", se, crit, cut, state_prefix)
+
+
+def _delta_model(sys, Q, R, fit, k: int, marginal: bool, se: dict, crit: dict, cut,
+                 state_prefix: str) -> DeltaModel:
+    """The improved DeltaModel: ``sys`` beside the delta ``fit`` (its realization and held
+    integrators), the delta alone, and the message (``k`` N4SID poles)."""
+    A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
+    n, (p, m) = A.shape[0], D.shape
     dA, dB, dC = fit.realize()
     nD = dA.shape[0]
     Bm = B.copy()
@@ -1034,9 +955,147 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     msg = (f"parallel model: order {n + nD} (delta order {nD}, {k} N4SID poles{fixed}), "
            f"estimation SE {se['initial_estimation']:.3g} % -> {se['delta_estimation']:.3g} %")
     return DeltaModel(updated=UpdatedModel(sys=combined, Q=Qa, R=R, order=n + nD, kind="delta"),
-                      delta=delta, order=nD, improved=True, marginal=name == "marginal",
+                      delta=delta, order=nD, improved=True, marginal=marginal,
                       nfixed=rho, refined=True, se=se, criterion=crit,
                       message=msg + cut.note(), bounded=cut.what())
+
+
+def _no_delta(sys, Q, R, se: dict, crit: dict, cut, why: str) -> DeltaModel:
+    """The DeltaModel when no parallel model improves ``sys`` (``why``): sys unchanged."""
+    p, m = sys.noutputs, sys.ninputs
+    delta = named_ss(np.zeros((0, 0)), np.zeros((0, m)), np.zeros((p, 0)),
+                     np.zeros((p, m)), sys.dt, states=[], inputs=sys.input_labels,
+                     outputs=[f"d{s}" for s in sys.output_labels], name="delta")
+    upd = UpdatedModel(sys=sys, Q=Q, R=R, order=sys.nstates, kind="delta")
+    return DeltaModel(updated=upd, delta=delta, order=0, improved=False, marginal=False,
+                      nfixed=0, refined=False, se=se, criterion=crit,
+                      message=f"parallel model: no improvement found ({why})" + cut.note(),
+                      bounded=cut.what())
+
+
+def _effective_samples(ew) -> float:
+    """Effective sample size of the whitened errors ``ew`` (noutputs, nsteps): those of an
+    imperfect noise model stay correlated (oversampled data); AR(1) correction
+    N (1 - r1) / (1 + r1), r1 the mean lag-1 autocorrelation (in [0, 0.999])."""
+    r1 = float(np.mean(np.sum(ew[:, 1:] * ew[:, :-1], axis=1)
+                       / np.maximum(np.sum(ew**2, axis=1), np.finfo(float).tiny)))
+    r1 = min(max(r1, 0.0), 0.999)
+    return max(ew.shape[1] * (1.0 - r1) / (1.0 + r1), 1.0)
+
+
+def _sel_error(ys_sel, w, factor, yh, sl) -> float:
+    """Plain SE (eq. 42) [%] of the outputs ``yh`` in the selection coordinates (scaled by
+    ``w``, differenced by ``factor``) against ``ys_sel``, on the samples ``sl``."""
+    return relative_error(ys_sel[:, sl], _difference(yh / w[:, None], factor)[:, sl]).value
+
+
+def _logdet(e) -> float:
+    """``log det`` of the covariance of the residuals ``e`` (nsignals, nsteps), floored at
+    1e-12 of the mean variance: noise-free data give (near) singular covariances, whose
+    -inf would tie every candidate."""
+    S = np.atleast_2d(np.cov(e, bias=True))
+    S = S + max(1e-12 * np.trace(S) / S.shape[0], np.finfo(float).tiny) * np.eye(S.shape[0])
+    sign, ld = np.linalg.slogdet(S)
+    return ld if sign > 0 else -np.inf
+
+
+@dataclass(frozen=True)
+class _DeltaScore:
+    """The score of a delta candidate: fixed poles (and held integrators), residues fitted
+    on the whitened output error ``wdy`` of ``dy`` (:func:`_fit_delta`).
+
+    Called ``(poles, hold, fit_on=whole, score_on=None)``: ``(BIC, fit)`` with the
+    effective sample size ``Neff``; with ``score_on`` the fit uses ``fit_on`` and the
+    score is ``log det`` on ``score_on``; ``(nan, None)`` when the fit cancels the error.
+    """
+
+    wh: object
+    u: NDArray = field(repr=False)
+    wdy: NDArray = field(repr=False)
+    dy: NDArray = field(repr=False)
+    whole: slice
+    Neff: float
+
+    def __call__(self, poles, hold, fit_on=None, score_on=None):
+        wh, u, wdy, dy, m = self.wh, self.u, self.wdy, self.dy, self.u.shape[0]
+        fit_on = self.whole if fit_on is None else fit_on
+        grams = {}
+        fit = _fit_delta(wh, poles, hold, u, wdy, sl=fit_on, grams=grams)
+        npar = fit.npar
+        if m > 1 and poles.size:
+            # one state per pole (rank-one residues, as in an order-k model):
+            # input directions from the full-residue fit's SVD, then refit
+            dirs = [np.linalg.svd(Rq)[2][:1].T for Rq in fit.residues]
+            fit = _fit_delta(wh, poles, hold, u, wdy, dirs, sl=fit_on, grams=grams)
+            npar = fit.npar + int(np.sum(np.where(poles.imag == 0.0, 1, 2))) * (m - 1)
+        if fit.cancels(u, dy):
+            return float("nan"), None
+        e = wh.apply(dy - fit.predict(u))
+        if score_on is not None:
+            return _logdet(e[:, score_on]), fit
+        return self.Neff * _logdet(e[:, self.whole]) + npar * np.log(self.Neff), fit
+
+
+def _n4sid_starts(name: str, data, u, orders, dt: float, horizons, cut, crit: dict,
+                  held_only: bool) -> dict:
+    """The stable N4SID models ``(A, B, C)`` of one variant's ``data``, keyed ``(name
+    [hH], order)`` per horizon and order; an unstable or non-finite one is recorded in
+    ``crit`` as nan. ``held_only``: the held integrators alone start too, key
+    ``(name, 0)`` (None)."""
+    starts = {}
+    if held_only:
+        starts[(name, 0)] = None  # held integrators only
+    for h in horizons:
+        if cut.late("N4SID horizons"):
+            break
+        try:
+            fits = _n4sid_fits(data, u, orders, dt, h, late=lambda: cut.late("N4SID orders"))
+        except GreyboxError:
+            continue  # horizon too long for these data
+        for k in orders:
+            key = (name if len(horizons) == 1 else f"{name} h{h}", k)
+            s_ = fits[k].sys if k in fits else None
+            fABC = None if s_ is None else tuple(np.asarray(v, dtype=float)
+                                                 for v in (s_.A, s_.B, s_.C))
+            if (fABC is None or not all(np.all(np.isfinite(v)) for v in fABC)
+                    or _spectral_radius(fABC[0]) >= 1.0):
+                crit[key] = float("nan")
+                continue
+            starts[key] = fABC
+    return starts
+
+
+def _refine_poles(ranked, origin: dict, u, rsl: slice, refine_iter: int, score, head, tail,
+                  crit: dict, cands: list, cut) -> None:
+    """The ``ranked`` candidates' poles refined by output error on the samples ``rsl`` of
+    their variant's data (modal form, stable by construction); a refit kept as a new
+    candidate (appended to ``cands``) only if, with residues fitted on ``head``, it
+    predicts the held-out ``tail`` better than N4SID's poles. Scores go into ``crit``."""
+    for _, k, name, key in ranked:
+        if cut.late("pole refinement"):
+            break
+        (fA, fB, fC), data, hold = origin[(name, key)]
+        try:
+            # output error simulates from rest: from the record's start, not k0
+            ref = refine_output_error(fA, fB, fC, u[:, rsl], data[:, rsl],
+                                      max_iter=refine_iter)
+        except IdentificationError:
+            crit[(key[0] + "+oe", k)] = float("nan")
+            continue
+        if _spectral_radius(ref.A) > 1.0 - 1e-6:
+            # driven to the parametrization's bound: not a real pole (with process
+            # noise in the data a simulation-error fit follows its random walk)
+            crit[(key[0] + "+oe", k)] = float("nan")
+            continue
+        new_poles = _upper_poles(ref.A)
+        t_new, _ = score(new_poles, hold, head, tail)
+        t_old, _ = score(_upper_poles(fA), hold, head, tail)
+        crit[(key[0] + "+oe tail", k)] = t_new - t_old
+        if not t_new < t_old:
+            continue
+        crit[(key[0] + "+oe", k)], fit = score(new_poles, hold)
+        if fit is not None:
+            cands.append((crit[(key[0] + "+oe", k)], k, name, fit))
 
 
 def _upper_poles(A: NDArray) -> NDArray:

@@ -111,6 +111,7 @@ from .filters import (
 )
 from .nominal_refit import free_parameters, law_coordinates, refit_jointly
 from .metrics import (
+    WhitenessTest,
     autocorrelation,
     correlation_band,
     cross_correlation,
@@ -234,6 +235,86 @@ class NonlinearUpdate:
                                   for k in ("A", "B", "C", "D")}}
 
 
+@dataclass(frozen=True)
+class _OEEvidence:
+    """What an output-error fit says for its law: ``wald`` the Wald statistic of "all
+    coefficients zero", ``nfree`` the parameters fitted (coefficients and hinge levels)."""
+
+    wald: float
+    nfree: int
+
+
+@dataclass(frozen=True)
+class _OEFit:
+    """A law refined by output error (:func:`_refine_law_oe`): the law with its 95 %
+    half-widths in ``ci``, the updated model ``f + G law`` and the fit's evidence."""
+
+    law: object = field(repr=False)
+    model: ct.NonlinearIOSystem = field(repr=False)
+    evidence: _OEEvidence
+
+
+@dataclass(frozen=True)
+class _LawCandidate:
+    """One scored candidate: a channel's static law and its updated model.
+
+    Attributes
+    ----------
+    se : float
+        Estimation SE [%] of the updated model simulated from the channel's
+        start state at sample SKIP; inf when the simulation diverged.
+    npar : int
+        Terms of the law (its penalty on d^ counts them).
+    trace : ChannelTrace
+        The channel's trace; ``trace.static`` is the law.
+    model : control.NonlinearIOSystem
+        The updated model ``f(x, u) + G law(x, u)`` in the nominal's time base.
+    refined : bool
+        The law's coefficients (and hinge levels) were refined by output error.
+    evidence : _OEEvidence or None
+        The output-error fit's evidence, when the law had one.
+    oe_terms : bool
+        The law's terms were chosen by output error (d^ mostly estimation noise).
+    """
+
+    se: float
+    npar: int
+    trace: ChannelTrace = field(repr=False)
+    model: ct.NonlinearIOSystem = field(repr=False)
+    refined: bool = False
+    evidence: _OEEvidence | None = None
+    oe_terms: bool = False
+
+    @property
+    def law(self):
+        """The candidate's static law (``trace.static``)."""
+        return self.trace.static
+
+    @property
+    def channel(self):
+        """The candidate's channel (``trace.channel``)."""
+        return self.trace.channel
+
+
+@dataclass(frozen=True)
+class _Pick:
+    """The chosen candidate, the nominal its joint refit starts from, and that refit when
+    :func:`_pick_after_refit` already made it (a JointRefit; None otherwise)."""
+
+    candidate: _LawCandidate
+    start: ct.NonlinearIOSystem = field(repr=False)
+    refit: object = field(default=None, repr=False)
+
+
+@dataclass(frozen=True)
+class _JointFit:
+    """Stage 2c (:func:`_joint_refit`): the declared parameters refitted alone (``alone``)
+    and jointly with the law and its spill (``refit``), both JointRefit records."""
+
+    alone: object = field(repr=False)
+    refit: object = field(repr=False)
+
+
 _OP_TEXT = ("the mean of the {what} filtered states and of the inputs over the estimation "
             "record")
 
@@ -338,10 +419,10 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
     per parameter the larger variance of the autocorrelation-robust one of
     the linear pipeline (:func:`greybox.trace.intervals.hac_covariance`) and
     the sandwich under the noise model ``noise = (Q, R, P_start)`` along the
-    fitted simulation. Returns ``(law, model, (wald, nfree))`` with the
-    law's 95 % half-widths in ``ci``, ``wald`` the Wald statistic of "all
-    coefficients zero" and ``nfree`` the parameters fitted (coefficients and
-    hinge levels); None when the fit fails.
+    fitted simulation. Returns an :class:`_OEFit`: the law with its 95 %
+    half-widths in ``ci``, the updated model, and the evidence: ``wald`` the
+    Wald statistic of "all coefficients zero" and ``nfree`` the parameters
+    fitted (coefficients and hinge levels); None when the fit fails.
     """
     theta0, law_at, sel, hinges = law_coordinates(law)
     if not sel:
@@ -408,8 +489,9 @@ def _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise=None):
                                  *noise)
     new = _with_intervals(law_at(sol.x), sel, hinges,
                           1.96 * np.sqrt(np.clip(np.diag(cov), 0, None)), ch, base)
-    evidence = (_wald_zero(sol.x[:nc], cov[:nc, :nc]), int(sol.x.size))
-    return new, add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated"), evidence
+    evidence = _OEEvidence(wald=_wald_zero(sol.x[:nc], cov[:nc, :nc]), nfree=int(sol.x.size))
+    return _OEFit(law=new, model=add_law(base, ch.G, new.evaluate, name=f"{base.name}_updated"),
+                  evidence=evidence)
 
 
 def _with_intervals(law, sel, hinges, hw, ch, base):
@@ -959,10 +1041,10 @@ def _held_out_terms(chosen, base, ch, disc, y, u, x_start, C, D, noise, notes):
     put to the test: the law with and without it, fitted on the first half of
     the estimation samples, simulated on through the second; the term is
     dropped (and the rest refined again) when the law without it simulates
-    the held-out half as well. ``chosen`` is ``(law, model, evidence)`` of
+    the held-out half as well. ``chosen`` is the :class:`_OEFit` of
     :func:`_refine_law_oe`.
     """
-    law = chosen[0]
+    law = chosen.law
     N = y.shape[1]
     half = SKIP + (N - SKIP) // 2
     first = _LawOutputError(law, base, ch.G, disc, y[:, :half], u[:, :half], x_start, C, D)
@@ -1001,8 +1083,8 @@ def _refine_pruned(law, base, ch, disc, y, u, x_start, C, D, noise):
     weigh them). None when a fit fails.
     """
     ref = _refine_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise)
-    while ref is not None and ref[0].npar > 1:
-        new = ref[0]
+    while ref is not None and ref.law.npar > 1:
+        new = ref.law
         t = np.abs(new.coef) / np.where(np.isfinite(new.ci) & (new.ci > 0), new.ci, np.inf)
         # not a hinge: a stiff hinge's simulation is far from linear in its coefficient
         # (barely determined while no hinge is far worse; the selection's BIC took it)
@@ -1053,23 +1135,23 @@ def _excess(res: FilterResult, d: NDArray) -> float:
 
 
 def _oe_bic(oe, entry, y, u, disc, x0, C, D) -> bool:
-    """Whether the law chosen by output error ``oe`` has a lower output-error BIC than ``entry``.
+    """Whether the law chosen by output error ``oe`` has a lower output-error BIC than ``entry``
+    (both :class:`_LawCandidate`).
 
     ``n log(SE^2) + k log(n)`` for each (SE [%] of the estimation simulation, k
     the free parameters: coefficients and hinge levels), n = Ny / c with c the
     colour of the chosen law's residual (:func:`_residual_colour`).
     """
     def nfree(e):
-        law = e[2].static
-        return int(e[5][1]) if e[5] is not None else int(law.npar)
+        return int(e.evidence.nfree) if e.evidence is not None else int(e.law.npar)
 
-    se_o, se_e = oe[0], entry[0]
+    se_o, se_e = oe.se, entry.se
     if not np.isfinite(se_o):
         return False
     if not np.isfinite(se_e):
         return True
     try:
-        sim = simulate_nonlinear(disc(oe[3]), u[:, SKIP:], x0=x0)
+        sim = simulate_nonlinear(disc(oe.model), u[:, SKIP:], x0=x0)
         colour = _residual_colour(y[:, SKIP:] - C @ sim.x - D @ u[:, SKIP:])
     except GreyboxError:
         colour = 1.0
@@ -1080,7 +1162,7 @@ def _oe_bic(oe, entry, y, u, disc, x0, C, D) -> bool:
 
 def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfree_fixed: int,
                  notes: list, declared: dict, alone=None, jr=None):
-    """Stage 2c: ``(alone, joint)`` refits of the nominal's declared parameters, or None.
+    """Stage 2c: the :class:`_JointFit` of the nominal's declared parameters, or None.
 
     ``alone``: the parameters (and the initial state) refitted by output error
     without a law; ``joint``: with the law's coefficients, hinge levels and
@@ -1118,16 +1200,16 @@ def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfre
                      "nominal")
         return None
     notes.append(text)
-    return alone, jr
+    return _JointFit(alone=alone, refit=jr)
 
 
 _REFIT_NEAR = 3  # candidates within the parsimony margin refitted with the parameters
 
 
 def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
-    """``(candidate, start, joint refit or None)``: of the candidates within the parsimony margin (sparsest
-    first), the one whose law, refitted jointly with the nominal's declared parameters,
-    has the lowest output-error BIC, and the nominal its refit started from.
+    """A :class:`_Pick`: of the candidates within the parsimony margin (sparsest first),
+    the one whose law, refitted jointly with the nominal's declared parameters, has the
+    lowest output-error BIC, the nominal its refit started from, and that refit.
 
     The final model carries the refitted parameters, so the candidates are compared
     on it: on the fixed nominal a law that stands in for a parameter's error can look
@@ -1145,12 +1227,11 @@ def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
     starts = [b for i, b in enumerate(starts) if all(b is not a for a in starts[:i])]
     fits = []
     for s in near[:_REFIT_NEAR]:
-        ch = s[2].channel
+        ch = s.channel
         best = (None, starts[0])
         for b in starts:
             try:
-                jr = refit_jointly(b, disc, yy, uu, x0_of[ch.name], C, D, law=s[2].static,
-                                   G=ch.G)
+                jr = refit_jointly(b, disc, yy, uu, x0_of[ch.name], C, D, law=s.law, G=ch.G)
             except (GreyboxError, np.linalg.LinAlgError, ValueError):
                 jr = None
             if jr is not None and jr.law is not None and np.isfinite(jr.se) and (
@@ -1159,38 +1240,18 @@ def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
         fits.append(best)
     done = [jr for jr, _ in fits if jr is not None]
     if not done:
-        return near[0], starts[0], None
+        return _Pick(candidate=near[0], start=starts[0])
     n = yy.size / max(_residual_colour(jr.residual) for jr in done)
     bic = [n * np.log(jr.se ** 2) + jr.nfree * np.log(n) if jr is not None else np.inf
            for jr, _ in fits]
     i = int(np.argmin(bic))
     notes.append("candidates within the parsimony margin compared with the nominal's declared "
                  "parameters refitted with each law (output-error BIC, lower is better): "
-                 + ", ".join(f"{s[2].channel.name} {b:.1f} (SE {f[0].se:.3g} %)"
-                             if f[0] is not None else f"{s[2].channel.name} failed"
+                 + ", ".join(f"{s.channel.name} {b:.1f} (SE {f[0].se:.3g} %)"
+                             if f[0] is not None else f"{s.channel.name} failed"
                              for s, b, f in zip(near, bic, fits))
-                 + f"; chosen {near[i][2].channel.name}")
-    return near[i], fits[i][1], fits[i][0]
-
-
-def _updated(upd, disc, y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub, val_nom, u_mean,
-             C, D, **changes) -> tuple[dict, NonlinearUpdate]:
-    """(table, NonlinearUpdate) of an updated nonlinear model: its validation row beside the
-    nominal's, and its linearization at the mean of its UKF's states on the estimation record.
-
-    ``changes``: the NonlinearUpdate's ``parameters`` and ``spill``.
-    """
-    upd_d = disc(upd)
-    row, _ = _validation_row(upd_d, y_val, u_val, Q=Q, R=R, x0=_prior(C, D, y_val, u_val)[0],
-                             P0=P0, name="updated", lags=lags, alpha=alpha, order=n)
-    kf_u = ukf(upd_d, y, u, Q=Q, R=R, x0=_prior(C, D, y, u)[0], P0=P0)
-    x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
-    nl = NonlinearUpdate(model=upd, discrete=upd_d, linearization=linearize_at(upd_d, x_op_u,
-                                                                               u_mean),
-                         x_op=x_op_u, u_op=u_mean,
-                         operating_point=_OP_TEXT.format(what="updated UKF's"), substeps=nsub,
-                         **changes)
-    return {"nominal": val_nom, "updated": row}, nl
+                 + f"; chosen {near[i].channel.name}")
+    return _Pick(candidate=near[i], start=fits[i][1], refit=fits[i][0])
 
 
 def _refit_evidence(residual, se_null: float, se_alt: float, k: int
@@ -1230,54 +1291,6 @@ def _refit_notes(jr) -> tuple[str, ...]:
     if jr.dropped:
         out.append(f"law term(s) left to a declared parameter: {', '.join(jr.dropped)}")
     return tuple(out)
-
-
-def _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc, y, u, y_val, u_val,
-                     Q, R, P0, lags, alpha, n, nsub, val_nom, u_mean, C, D, report, notes,
-                     why="the refitted model's UKF innovations are white", law_gate=None,
-                     cands=(), tr=None):
-    """The report when the declared parameters refitted alone leave white innovations.
-
-    Gate: the likelihood ratio of the refitted parameters against the declared
-    ones on the estimation outputs' simulation, divided by the residual's
-    colour, above ``bic_factor`` times ``k log(Ny / c)`` (k the parameters),
-    and the estimation SE below ``min_se_drop`` times the nominal's. Reached
-    also when the best law failed its gate against the refitted parameters
-    (``law_gate``: then None when this gate fails too, and the law's evidence
-    is kept as ``gate["law_bic_gain"]``, ``gate["law_bic_penalty"]``).
-    """
-    if law_gate is not None:
-        gate["law_bic_gain"] = float(law_gate["bic_gain"])
-        gate["law_bic_penalty"] = float(law_gate["bic_penalty"])
-    gain, penalty, colour = _refit_evidence(alone.residual, se_nom, alone.se,
-                                            len(alone.parameters))
-    passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
-              "se_drop": alone.se < min_se_drop * se_nom}
-    gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
-                 "oe_colour": colour, "se_estimation_updated": alone.se,
-                 "se_estimation_parameters_only": alone.se, "min_se_drop": min_se_drop,
-                 "passed": passed,
-                 "evidence": "output error: likelihood ratio of the refitted parameters against "
-                             "the declared ones, divided by the residual's colour"})
-    changed = _changed(alone.parameters)
-    if not (passed["bic"] and passed["se_drop"]):
-        if law_gate is not None:
-            return None
-        failed = [k for k, v in passed.items() if not v]
-        return report("model error detected (UKF innovations not white); the declared "
-                      f"parameters refitted alone failed the gate: {', '.join(failed)} ({why}); "
-                      "model unchanged", True, cands=cands, tr=tr, gate_used=gate)
-    table, nl = _updated(alone.model, disc, y, u, y_val, u_val, Q, R, P0, lags, alpha, n,
-                         nsub, val_nom, u_mean, C, D, parameters=alone.parameters)
-    lin_u = nl.linearization
-    what = ", ".join(changed) if changed else "none beyond its 95 % interval"
-    return report(f"model error found in the nominal's parameters (no law needed: {why}): "
-                  f"{what}; {describe_before_after(table)}", True, updated=True, cands=cands,
-                  tr=tr, gate_used=gate,
-                  effect=Effect(kind="parameters", formula=alone.parameter_text(),
-                                parameter_notes=_refit_notes(alone)),
-                  table=table, model=UpdatedModel(sys=lin_u, Q=Q, R=R, order=n,
-                                                  kind="parameters"), nl=nl)
 
 
 def _wald_zero(theta: NDArray, cov: NDArray) -> float:
@@ -1423,6 +1436,176 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     DimensionError, DataError, CovarianceError
         Bad shapes or data.
     """
+    P = _prepare(sys, y, u, y_val, u_val, Q=Q, R=R, dt=dt, channels=channels,
+                 nonlinear=nonlinear, alpha=alpha, lags=lags, parsimony=parsimony,
+                 min_se_drop=min_se_drop, bic_factor=bic_factor, substeps=substeps,
+                 refit_parameters=refit_parameters, progress=progress)
+    s = _NonlinearPass(P)
+    r = s.residual()
+    if r.white.all_white:
+        return s.no_error(r)
+    rep = s.parameters_alone(r)
+    if rep is not None:  # the refitted parameters alone leave white innovations
+        return rep
+    s.trace_channels(r)
+    pick = s.choose()
+    if pick is None:
+        return s.unexplained(r)
+    v = s.judge(r, s.joint_refit(pick, s.refine(pick)))
+    if not v.passed:
+        return s.refused(r, v)
+    s.caveats(v)
+    return s.report(r, v, s.validate(r, v))
+
+
+# --------------------------------------------------------------------------- the stages
+@dataclass(frozen=True)
+class _Settings:
+    """The options of :func:`close_the_loop_nonlinear`, checked once at the boundary (see
+    there)."""
+
+    alpha: float
+    lags: int
+    parsimony: float
+    min_se_drop: float
+    bic_factor: float
+    nonlinear: bool
+    refit_parameters: bool
+    channels: object = None  # the user's channel spec; None: every channel
+
+
+@dataclass(frozen=True)
+class _Discretize:
+    """A model in the discrete time of the data, as every row of the table simulates it:
+    RK4 with ``substeps`` sub-steps per sample (inputs and d held) for a ``continuous``
+    model, a discrete model as it is (then ``substeps`` = 0)."""
+
+    continuous: bool
+    dt: float
+    substeps: int
+
+    def __call__(self, model):
+        if self.continuous:
+            return discretize_nonlinear(model, self.dt, substeps=self.substeps)
+        return model
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """One call's checked data: the model as given, its nonlinear form, the records, noise.
+
+    ``sys`` is the model as given, ``base`` the NonlinearIOSystem (``as_nonlinear``) with
+    the linear output map ``C, D``; ``disc`` discretizes a model as the table does and
+    ``nominal_d`` is ``disc(base)``; ``y, u`` (noutputs/ninputs, nsteps) the estimation
+    record, ``y_val, u_val`` the validation record; ``x_guess, P0`` the filters' prior
+    from the first sample (:func:`_prior`), ``u_mean`` (ninputs,) the inputs' mean.
+    """
+
+    sys: object = field(repr=False)
+    base: ct.NonlinearIOSystem = field(repr=False)
+    C: NDArray[np.float64] = field(repr=False)
+    D: NDArray[np.float64] = field(repr=False)
+    y: NDArray[np.float64] = field(repr=False)
+    u: NDArray[np.float64] = field(repr=False)
+    y_val: NDArray[np.float64] = field(repr=False)
+    u_val: NDArray[np.float64] = field(repr=False)
+    Q: NDArray[np.float64] = field(repr=False)
+    R: NDArray[np.float64] = field(repr=False)
+    dt: float
+    disc: _Discretize
+    nominal_d: ct.NonlinearIOSystem = field(repr=False)
+    x_guess: NDArray[np.float64] = field(repr=False)
+    P0: NDArray[np.float64] = field(repr=False)
+    u_mean: NDArray[np.float64] = field(repr=False)
+    settings: _Settings
+    tick: object = field(repr=False)
+
+    @property
+    def cont(self) -> bool:
+        """The model is continuous-time (discretized with RK4)."""
+        return self.disc.continuous
+
+    @property
+    def nsub(self) -> int:
+        """RK4 sub-steps per sample (0 for a discrete model)."""
+        return self.disc.substeps
+
+
+@dataclass(frozen=True)
+class _Residual:
+    """Stage 1: the nominal UKF's residual on the estimation record.
+
+    ``white`` the Ljung-Box test of its one-step innovations (from SKIP),
+    ``se_nom`` the nominal's estimation SE [%], ``val_nom`` its validation row,
+    ``x_op`` (nstates,) the mean filtered state (the operating point),
+    ``lin_nom`` the discrete nominal's linearization there and ``lin_cont`` the
+    model's own (continuous when it is), ``crit`` the stated criterion.
+    """
+
+    white: WhitenessTest
+    se_nom: float
+    val_nom: ModelValidation = field(repr=False)
+    x_op: NDArray[np.float64]
+    lin_nom: ct.StateSpace = field(repr=False)
+    lin_cont: ct.StateSpace = field(repr=False)
+    crit: str
+
+
+@dataclass(frozen=True)
+class _DHat:
+    """Stage 2 for one channel: its unknown-input filter and d^ aligned with x^ and u.
+
+    ``d`` (md, nsteps') estimates ``sum_i align[:, i] d[j + i]`` (r = 2: x and u
+    carry one more column); ``d_fit`` is what the law is fitted on (the mean of
+    consecutive samples when d^ alternates sign, ``alt``, its lag-1
+    autocorrelation ``r1``) and ``weights`` the alignment that fit uses (None for
+    r = 1 without alternation).
+    """
+
+    model: ct.NonlinearIOSystem = field(repr=False)
+    result: FilterResult = field(repr=False)
+    r: int
+    align: NDArray[np.float64]
+    d: NDArray[np.float64] = field(repr=False)
+    x: NDArray[np.float64] = field(repr=False)
+    u: NDArray[np.float64] = field(repr=False)
+    d_fit: NDArray[np.float64] = field(repr=False)
+    weights: NDArray[np.float64] | None
+    r1: float
+    alt: bool
+
+
+@dataclass(frozen=True)
+class _Evidence:
+    """The law's evidence for the gate: its likelihood ratio ``gain`` and BIC ``penalty``."""
+
+    gain: float
+    penalty: float
+
+
+@dataclass(frozen=True)
+class _Verdict:
+    """Stage 3: the candidate as refined and refitted, the gate's call, and the ratio of its
+    mean squared simulation error to the noise model's (a diagnostic)."""
+
+    candidate: _LawCandidate
+    passed: bool
+    floor_ratio: float
+
+
+@dataclass(frozen=True)
+class _BeforeAfter:
+    """Stage 4: the validation table (nominal and updated rows) and the NonlinearUpdate."""
+
+    table: dict = field(repr=False)
+    update: NonlinearUpdate = field(repr=False)
+
+
+def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, alpha, lags,
+             parsimony, min_se_drop, bic_factor, substeps, refit_parameters,
+             progress) -> _Problem:
+    """Check every argument of :func:`close_the_loop_nonlinear` once; the problem, its
+    settings, and the RK4 sub-step count at the operating point the outputs suggest."""
     tick = ProgressClock(progress)
     base = as_nonlinear(sys)
     if isinstance(sys, ct.StateSpace):
@@ -1464,410 +1647,630 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     x_guess, P0 = _prior(C, D, y, u)
     u_mean = u.mean(axis=1) if m else np.zeros(0)
     x_mean_y = np.linalg.lstsq(C, y.mean(axis=1) - D @ u_mean, rcond=None)[0]
-    if cont:
-        nsub = substeps or rk4_substeps(base, dt, x_op=x_mean_y, u_op=u_mean)
+    nsub = (substeps or rk4_substeps(base, dt, x_op=x_mean_y, u_op=u_mean)) if cont else 0
+    disc = _Discretize(continuous=cont, dt=dt, substeps=nsub)
+    settings = _Settings(alpha=alpha, lags=lags, parsimony=parsimony, min_se_drop=min_se_drop,
+                         bic_factor=bic_factor, nonlinear=nonlinear,
+                         refit_parameters=refit_parameters, channels=channels)
+    return _Problem(sys=sys, base=base, C=C, D=D, y=y, u=u, y_val=y_val, u_val=u_val, Q=Q,
+                    R=R, dt=dt, disc=disc, nominal_d=disc(base), x_guess=x_guess, P0=P0,
+                    u_mean=u_mean, settings=settings, tick=tick)
 
-        def disc(s):
-            return discretize_nonlinear(s, dt, substeps=nsub)
-    else:
-        nsub = 0
 
-        def disc(s):
-            return s
-    nominal_d = disc(base)
-    notes = []
-    if cont:
-        notes.append(f"continuous model discretized with RK4, {nsub} sub-step(s) per sample "
-                     f"(inputs and d held over the sample); every model in the table uses it")
+def _gate(gate: dict, S: _Settings, gain: float, penalty: float, se_updated: float,
+          se_nom: float) -> bool:
+    """The gate (module stage 3), recorded in ``gate``: True when the evidence ``gain``
+    exceeds ``bic_factor`` times its ``penalty`` and the estimation SE drops below
+    ``min_se_drop`` times the nominal's (the innovations are known not to be white)."""
+    passed = {"whiteness": True, "bic": gain > S.bic_factor * penalty,
+              "se_drop": se_updated < S.min_se_drop * se_nom}
+    gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": S.bic_factor,
+                 "se_estimation_updated": se_updated, "min_se_drop": S.min_se_drop,
+                 "passed": passed})
+    return bool(passed["bic"] and passed["se_drop"])
 
-    # 1. residual of the nominal model: the UKF's innovations
-    tick("residual of the nominal model", 0, 1)
-    val_nom, _ = _validation_row(nominal_d, y_val, u_val, Q=Q, R=R,
-                                 x0=_prior(C, D, y_val, u_val)[0], P0=P0, name="nominal",
-                                 lags=lags, alpha=alpha, order=n)
-    kf = ukf(nominal_d, y, u, Q=Q, R=R, x0=x_guess, P0=P0)
-    white = whiteness_test(kf.innovations[:, SKIP:], lags, alpha=alpha)
-    se_nom = _se_from(nominal_d, u, kf.x_filt[:, SKIP], y, C, D)
-    x_op = kf.x_filt[:, SKIP:].mean(axis=1)
-    op_text = _OP_TEXT.format(what="nominal UKF's")
-    lin_nom = linearize_at(nominal_d, x_op, u_mean)
-    lin_cont = linearize_at(base, x_op, u_mean) if cont else lin_nom
-    crit = CRITERION.format(pct=100 * (parsimony - 1))
-    gate = {"whiteness_pvalue": white.pvalue, "alpha": alpha, "se_estimation_nominal": se_nom,
-            "measure": "SE"}
-    tick("residual of the nominal model", 1, 1)
 
-    def _report(msg, detected, updated=False, effect=None, ch=None, cands=(), tr=None,
-                table=None, model=None, nl=None, gate_used=None):
-        nl = nl or NonlinearUpdate(model=sys, discrete=nominal_d, linearization=lin_nom,
-                                   x_op=x_op, u_op=u_mean, operating_point=op_text,
-                                   substeps=nsub)
-        model = model or UpdatedModel(sys=lin_nom, Q=Q, R=R, order=n, kind="nominal")
+def _failed(gate: dict) -> list[str]:
+    """The conditions a recorded gate failed."""
+    return [k for k, ok in gate["passed"].items() if not ok]
+
+
+class _NonlinearPass:
+    """Close the loop on a nonlinear nominal; the stages are methods, called in order by
+    :func:`close_the_loop_nonlinear`.
+
+    What they decide is kept in ``cands`` (every candidate's score, for the report),
+    ``scored`` (the :class:`_LawCandidate` in play), ``x0_of`` (where each channel's
+    simulations start), ``gate`` and ``notes`` (the decision trail). ``base`` and
+    ``kf`` are the nominal the trace runs on and its UKF: the declared parameters
+    refitted alone when that lowered the estimation SE (stage 1b, ``alone``);
+    ``joint`` the refit of stage 2c when it was kept.
+    """
+
+    def __init__(self, P: _Problem):
+        self.P, self.S = P, P.settings
+        self.base, self.kf = P.base, None
+        self.declared, self.alone, self.joint = {}, None, None
+        self.cands: list[CandidateScore] = []
+        self.scored: list[_LawCandidate] = []
+        self.x0_of: dict = {}
+        self.gate: dict = {}
+        self.notes: list[str] = []
+        if P.cont:
+            self.notes.append(f"continuous model discretized with RK4, {P.nsub} sub-step(s) per "
+                              f"sample (inputs and d held over the sample); every model in the "
+                              f"table uses it")
+
+    # ------------------------------------------------------------------ reports
+    def _nominal_update(self, r: _Residual, refused=None) -> NonlinearUpdate:
+        """The NonlinearUpdate of the unchanged model (with a refused joint refit, if any)."""
+        P = self.P
+        return NonlinearUpdate(model=P.sys, discrete=P.nominal_d, linearization=r.lin_nom,
+                               x_op=r.x_op, u_op=P.u_mean,
+                               operating_point=_OP_TEXT.format(what="nominal UKF's"),
+                               substeps=P.nsub, refused=refused)
+
+    def _report(self, r: _Residual, msg, detected, *, updated=False, effect=None, ch=None,
+                tr=None, table=None, model=None, nl=None, gate=None) -> LoopReport:
+        P = self.P
+        nl = nl or self._nominal_update(r)
+        model = model or UpdatedModel(sys=r.lin_nom, Q=P.Q, R=P.R, order=P.base.nstates,
+                                      kind="nominal")
         return LoopReport(model_error_detected=detected, updated=updated, message=msg,
-                          residual=white, effect=effect or Effect(kind="none"), channel=ch,
-                          candidates=tuple(cands), gate=gate if gate_used is None else
-                          gate_used, criterion=crit, nominal=lin_nom,
-                          model=model, table=table or {"nominal": val_nom, "updated": val_nom},
-                          trace=tr, notes=tuple(notes), nonlinear=nl)
+                          residual=r.white, effect=effect or Effect(kind="none"), channel=ch,
+                          candidates=tuple(self.cands),
+                          gate=self.gate if gate is None else gate, criterion=r.crit,
+                          nominal=r.lin_nom, model=model,
+                          table=table or {"nominal": r.val_nom, "updated": r.val_nom},
+                          trace=tr, notes=tuple(self.notes), nonlinear=nl)
 
-    if white.all_white:
-        gate["passed"] = {"whiteness": False}
-        return _report("no significant model error: the nominal UKF's one-step innovations "
-                       f"are white on every output (Ljung-Box, {lags} lags, all p >= "
-                       f"{alpha:g}); model unchanged", False)
+    def no_error(self, r: _Residual) -> LoopReport:
+        """The report when the nominal UKF's innovations are white: nothing to find."""
+        S = self.S
+        self.gate["passed"] = {"whiteness": False}
+        return self._report(r, "no significant model error: the nominal UKF's one-step "
+                               f"innovations are white on every output (Ljung-Box, {S.lags} "
+                               f"lags, all p >= {S.alpha:g}); model unchanged", False)
 
-    # 1b. the parameters the model declares, refitted alone by output error: a nominal that
-    # is only mis-calibrated is said so (and the trace then runs on the refitted nominal)
-    declared, alone, base_declared = free_parameters(base), None, base
-    if refit_parameters and declared:
-        tick("nominal parameters refitted alone", 0, 1)
-        alone = refit_jointly(base, disc, y[:, SKIP:], u[:, SKIP:], kf.x_filt[:, SKIP], C, D)
-        if alone is not None and alone.se < se_nom:
-            notes.append(f"the nominal's declared parameters refitted alone by output error: "
-                         f"estimation SE {se_nom:.3g} % -> {alone.se:.3g} % "
-                         f"({alone.parameter_text()}); the trace runs on this refitted nominal")
-            base = alone.model
-            kf = ukf(disc(base), y, u, Q=Q, R=R, x0=x_guess, P0=P0)
-            white_p = whiteness_test(kf.innovations[:, SKIP:], lags, alpha=alpha)
+    def unexplained(self, r: _Residual) -> LoopReport:
+        """The report when no candidate channel has a finite estimation SE."""
+        self.gate["passed"] = {"whiteness": True, "trace": False}
+        return self._report(r, "model error detected, but no candidate channel could explain "
+                               "it (see candidates)", True)
+
+    # ------------------------------------------------------------------ 1. residual
+    def residual(self) -> _Residual:
+        """1. The nominal UKF's innovations (whiteness), its SE, the operating point."""
+        P, S = self.P, self.S
+        n = P.base.nstates
+        P.tick("residual of the nominal model", 0, 1)
+        val_nom, _ = _validation_row(P.nominal_d, P.y_val, P.u_val, Q=P.Q, R=P.R,
+                                     x0=_prior(P.C, P.D, P.y_val, P.u_val)[0], P0=P.P0,
+                                     name="nominal", lags=S.lags, alpha=S.alpha, order=n)
+        kf = ukf(P.nominal_d, P.y, P.u, Q=P.Q, R=P.R, x0=P.x_guess, P0=P.P0)
+        white = whiteness_test(kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
+        se_nom = _se_from(P.nominal_d, P.u, kf.x_filt[:, SKIP], P.y, P.C, P.D)
+        x_op = kf.x_filt[:, SKIP:].mean(axis=1)
+        lin_nom = linearize_at(P.nominal_d, x_op, P.u_mean)
+        lin_cont = linearize_at(P.base, x_op, P.u_mean) if P.cont else lin_nom
+        self.kf = kf
+        self.gate.update({"whiteness_pvalue": white.pvalue, "alpha": S.alpha,
+                          "se_estimation_nominal": se_nom, "measure": "SE"})
+        P.tick("residual of the nominal model", 1, 1)
+        return _Residual(white=white, se_nom=se_nom, val_nom=val_nom, x_op=x_op,
+                         lin_nom=lin_nom, lin_cont=lin_cont,
+                         crit=CRITERION.format(pct=100 * (S.parsimony - 1)))
+
+    # ------------------------------------------------------------------ 1b. parameters
+    def parameters_alone(self, r: _Residual) -> LoopReport | None:
+        """1b. The declared parameters refitted alone by output error: a nominal that is only
+        mis-calibrated is said so (the report), else the trace runs on the refitted nominal
+        when it simulates better (None)."""
+        P, S = self.P, self.S
+        self.declared = free_parameters(P.base)
+        if not (S.refit_parameters and self.declared):
+            return None
+        P.tick("nominal parameters refitted alone", 0, 1)
+        alone = refit_jointly(P.base, P.disc, P.y[:, SKIP:], P.u[:, SKIP:],
+                              self.kf.x_filt[:, SKIP], P.C, P.D)
+        if alone is not None and alone.se < r.se_nom:
+            self.notes.append(f"the nominal's declared parameters refitted alone by output "
+                              f"error: estimation SE {r.se_nom:.3g} % -> {alone.se:.3g} % "
+                              f"({alone.parameter_text()}); the trace runs on this refitted "
+                              f"nominal")
+            self.alone, self.base = alone, alone.model
+            self.kf = ukf(P.disc(self.base), P.y, P.u, Q=P.Q, R=P.R, x0=P.x_guess, P0=P.P0)
+            white_p = whiteness_test(self.kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
             if white_p.all_white:
-                return _parameters_only(alone, se_nom, gate, bic_factor, min_se_drop, disc,
-                                        y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub,
-                                        val_nom, u_mean, C, D, _report, notes)
-        else:
-            alone = None
-        tick("nominal parameters refitted alone", 1, 1)
+                return self.parameters_only(r, self.gate)
+        P.tick("nominal parameters refitted alone", 1, 1)
+        return None
 
-    # 2. trace every channel with the unknown-input UKF; static laws on d^
-    chans = resolve_channel_spec(lin_cont, channels)
-    notes.append("nonlinear nominal: candidate channels from its linearization at the "
-                 "operating point; static laws only (dynamic subsystem laws are linear and "
-                 "not offered)")
-    cands, scored = [], []
-    x0_of = {}  # where each channel's simulations start
-    N = y.shape[1]
-    for kc, ch in enumerate(chans):
-        tick("trace candidate channels", kc, len(chans))
+    def parameters_only(self, r: _Residual, gate: dict,
+                        why="the refitted model's UKF innovations are white", law_gate=None,
+                        tr=None) -> LoopReport | None:
+        """The report when the declared parameters refitted alone are the update.
+
+        Gate (:func:`_gate`, recorded in ``gate``): the likelihood ratio of the
+        refitted parameters against the declared ones on the estimation outputs'
+        simulation, divided by the residual's colour, above ``bic_factor`` times
+        ``k log(Ny / c)`` (k the parameters), and the estimation SE below
+        ``min_se_drop`` times the nominal's. Reached also when the best law failed
+        its gate against the refitted parameters (``law_gate``: then None when this
+        gate fails too, and the law's evidence is kept as ``gate["law_bic_gain"]``,
+        ``gate["law_bic_penalty"]``).
+        """
+        P, alone = self.P, self.alone
+        if law_gate is not None:
+            gate["law_bic_gain"] = float(law_gate["bic_gain"])
+            gate["law_bic_penalty"] = float(law_gate["bic_penalty"])
+        gain, penalty, colour = _refit_evidence(alone.residual, r.se_nom, alone.se,
+                                                len(alone.parameters))
+        gate.update({"oe_colour": colour, "se_estimation_parameters_only": alone.se,
+                     "evidence": "output error: likelihood ratio of the refitted parameters "
+                                 "against the declared ones, divided by the residual's colour"})
+        if not _gate(gate, self.S, gain, penalty, alone.se, r.se_nom):
+            if law_gate is not None:
+                return None
+            return self._report(r, "model error detected (UKF innovations not white); the "
+                                   "declared parameters refitted alone failed the gate: "
+                                   f"{', '.join(_failed(gate))} ({why}); model unchanged",
+                                True, tr=tr, gate=gate)
+        changed = _changed(alone.parameters)
+        ba = self._updated(r, alone.model, parameters=alone.parameters)
+        what = ", ".join(changed) if changed else "none beyond its 95 % interval"
+        return self._report(r, f"model error found in the nominal's parameters (no law needed: "
+                               f"{why}): {what}; {describe_before_after(ba.table)}", True,
+                            updated=True, tr=tr, gate=gate,
+                            effect=Effect(kind="parameters", formula=alone.parameter_text(),
+                                          parameter_notes=_refit_notes(alone)),
+                            table=ba.table, nl=ba.update,
+                            model=UpdatedModel(sys=ba.update.linearization, Q=P.Q, R=P.R,
+                                               order=P.base.nstates, kind="parameters"))
+
+    # ------------------------------------------------------------------ 2. trace
+    def trace_channels(self, r: _Residual) -> None:
+        """2. Trace every candidate channel with the unknown-input UKF; static laws on d^."""
+        P = self.P
+        chans = resolve_channel_spec(r.lin_cont, self.S.channels)
+        self.notes.append("nonlinear nominal: candidate channels from its linearization at "
+                          "the operating point; static laws only (dynamic subsystem laws are "
+                          "linear and not offered)")
+        for kc, ch in enumerate(chans):
+            P.tick("trace candidate channels", kc, len(chans))
+            self.trace_channel(r, ch, kc, len(chans))
+        P.tick("trace candidate channels", len(chans), len(chans))
+
+    def _dhat(self, r: _Residual, ch) -> _DHat | None:
+        """d^ of one channel (the unknown-input UKF, or the delayed one for r = 2) aligned
+        with x^ and u; None, the candidate scored, when it cannot be estimated."""
+        P = self.P
         labels = list(ch.labels)
-        r = 1
+        rd = 1
         try:
-            model_cd = disc(with_unknown_inputs(base, ch.G, labels))
-            r, G_op, align = _delay_of(model_cd, labels, x_op, u_mean, Q, R)
-            if r == 1:
-                res = ui_ukf(model_cd, y, u, unknown=labels, Q=Q, R=R, x0=x_guess, P0=P0)
+            model_cd = P.disc(with_unknown_inputs(self.base, ch.G, labels))
+            rd, G_op, align = _delay_of(model_cd, labels, r.x_op, P.u_mean, P.Q, P.R)
+            if rd == 1:
+                res = ui_ukf(model_cd, P.y, P.u, unknown=labels, Q=P.Q, R=P.R, x0=P.x_guess,
+                             P0=P.P0)
             else:
-                res = delayed_ui_ukf(model_cd, y, u, unknown=labels, Q=Q, R=R, x0=x_guess,
-                                     P0=P0, G=G_op, relative_degree=r)
+                res = delayed_ui_ukf(model_cd, P.y, P.u, unknown=labels, Q=P.Q, R=P.R,
+                                     x0=P.x_guess, P0=P.P0, G=G_op, relative_degree=rd)
         except RankConditionError as e:  # (17) fails: d is not observable in this channel
-            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", str(e)))
-            continue
+            self.cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "skipped", str(e)))
+            return None
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed",
-                                        (f"delayed (r = {r}) estimate: " if r > 1 else "")
-                                        + str(e)))
-            continue
+            self.cands.append(CandidateScore(ch.name, "-", 0, np.inf, 0, "failed",
+                                             (f"delayed (r = {rd}) estimate: " if rd > 1 else "")
+                                             + str(e)))
+            return None
         # d^[:, j] estimates sum_i align[:, i] d[j + i]; x and u carry r - 1 more columns
-        d = res.d_est[:, SKIP:N - r]
+        N = P.y.shape[1]
+        d = res.d_est[:, SKIP:N - rd]
         x = res.x_filt[:, SKIP:N - 1]
-        uw = u[:, SKIP:N - 1]
-        if r == 1:
+        uw = P.u[:, SKIP:N - 1]
+        if rd == 1:
             x = x[:, :d.shape[1]]
             uw = uw[:, :d.shape[1]]
         # d^ alternating sign (a channel seen through a ZOH zero near z = -1, e.g. a
         # velocity equation through positions only) from the r = 1 filter (the delayed
         # one was not better): fit on the mean of consecutive samples, as the linear
         # trace does
-        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if r == 1 and d.shape[1] > 2 else 0.0
+        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if rd == 1 and d.shape[1] > 2 else 0.0
         alt = r1 < _ALTERNATING  # then the mean of two samples, terms weighted alike
-        d_fit = 0.5 * (d[:, 1:] + d[:, :-1]) if alt else d
-        al = np.full((d.shape[0], 2), 0.5) if alt else (align if r > 1 else None)
+        return _DHat(model=model_cd, result=res, r=rd, align=align, d=d, x=x, u=uw,
+                     d_fit=0.5 * (d[:, 1:] + d[:, :-1]) if alt else d,
+                     weights=np.full((d.shape[0], 2), 0.5) if alt else
+                     (align if rd > 1 else None), r1=r1, alt=alt)
+
+    def trace_channel(self, r: _Residual, ch, kc: int, nch: int) -> None:
+        """2. One channel: d^ and its static law; when d^ is mostly estimation noise also the
+        terms chosen by output error, the lower output-error BIC of the two kept; a law with
+        a saturation hinge also competes reduced to its hinges."""
+        P, S = self.P, self.S
+        dh = self._dhat(r, ch)
+        if dh is None:
+            return
+        labels = list(ch.labels)
         try:
-            law = _fit_static(d_fit, x, uw, lin_cont, nonlinear, labels, ch.units, al,
-                              ch.relative, whiten=r > 1, saturation=nonlinear and r > 1)
+            law = _fit_static(dh.d_fit, dh.x, dh.u, r.lin_cont, S.nonlinear, labels, ch.units,
+                              dh.weights, ch.relative, whiten=dh.r > 1,
+                              saturation=S.nonlinear and dh.r > 1)
         except (GreyboxError, np.linalg.LinAlgError) as e:  # e.g. no finite d^ left
-            cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "failed",
-                                        f"static law on d^: {e}"))
-            continue
-        if alt:
-            notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation {r1:.2f}): "
-                         f"the static law is fitted on the mean of consecutive samples")
-        if r > 1:
-            notes.append(f"{ch.name}: relative degree {r} (delayed unscented estimate, "
-                         f"greybox.delayed_ui_ukf): d^[j] estimates "
-                         + ", ".join(f"{labels[c]}: " + " + ".join(
-                             f"{align[c, i]:.3g}*d[j+{i}]" for i in range(r))
-                             for c in range(len(labels))))
-        tr = ChannelTrace(channel=ch, status="ok", model=model_cd, filter_result=res,
-                          static=law, relative_degree=r)
-        noise_ch = _noise_of(res, Q, R, kf.P_filt)
+            self.cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "failed",
+                                             f"static law on d^: {e}"))
+            return
+        if dh.alt:
+            self.notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation "
+                              f"{dh.r1:.2f}): the static law is fitted on the mean of "
+                              f"consecutive samples")
+        if dh.r > 1:
+            self.notes.append(f"{ch.name}: relative degree {dh.r} (delayed unscented estimate, "
+                              f"greybox.delayed_ui_ukf): d^[j] estimates " + ", ".join(
+                                  f"{labels[c]}: " + " + ".join(
+                                      f"{dh.align[c, i]:.3g}*d[j+{i}]" for i in range(dh.r))
+                                  for c in range(len(labels))))
+        tr = ChannelTrace(channel=ch, status="ok", model=dh.model, filter_result=dh.result,
+                          static=law, relative_degree=dh.r)
+        noise_ch = _noise_of(dh.result, P.Q, P.R, self.kf.P_filt)
         # d^ mostly estimation noise (delayed, or an r = 1 estimate barely above its own
         # variance): the law's terms are chosen by output error too, one more start beside
         # d^'s law (the linear trace's rule, trace.channel_trace)
-        noisy = r > 1 or _excess(res, d) < _LOW_SNR
+        noisy = dh.r > 1 or _excess(dh.result, dh.d) < _LOW_SNR
         # where the channel's simulations start: for a noisy channel the state (the
         # channel's filter's or the nominal UKF's) whose nominal simulation follows y best
         # over the first samples (a delayed filter's x^ at SKIP can be far off)
-        x0c = _start_state(nominal_d, (res.x_filt[:, SKIP], kf.x_filt[:, SKIP]), y, u, C, D) \
-            if noisy else res.x_filt[:, SKIP]
-        x0_of[ch.name] = x0c
-        chosen = None
-        if noisy:
-            tick("output-error term selection", kc, len(chans))
-            try:
-                chosen = _select_law_oe(law, base, ch, disc, y, u, x0c, C, D,
-                                        noise_ch, d_fit, x, uw, al, bic_factor)
-            except (GreyboxError, np.linalg.LinAlgError, ValueError):
-                chosen = None
-            if chosen is not None:
-                chosen = _refine_pruned(chosen, base, ch, disc, y, u, x0c, C,
-                                        D, noise_ch)
-            if chosen is not None and chosen[0].npar > 1:
-                chosen = _held_out_terms(chosen, base, ch, disc, y, u, x0c, C,
-                                         D, noise_ch, notes)
+        x0c = _start_state(P.nominal_d, (dh.result.x_filt[:, SKIP], self.kf.x_filt[:, SKIP]),
+                           P.y, P.u, P.C, P.D) if noisy else dh.result.x_filt[:, SKIP]
+        self.x0_of[ch.name] = x0c
+        chosen = self._oe_terms(law, ch, dh, x0c, noise_ch, kc, nch) if noisy else None
+        dead = ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1)))
         if law.npar == 0 and chosen is None:
-            cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "skipped",
-                                        "no law term explains d^" + (
-                                            ", nor any by output error" if noisy else "")))
-            continue
-        if ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1))) and chosen is None:
-            cands.append(CandidateScore(ch.name, "static", 0, np.inf, law.npar, "redundant",
-                                        "a component of d has no term"))
-            continue
-        entry = None
-        if law.npar and not (ch.md > 1 and bool(np.any(np.all(law.coef == 0, axis=1)))):
-            upd = add_law(base, ch.G, law.evaluate, name=f"{base.name}_updated")
-            se = _se_from(disc(upd), u, x0c, y, C, D)
-            refined, evidence = False, None
-            if r > 1 and law.npar <= OE_MAX_TERMS:
-                # a delayed d^ is noisy (d shows in y only through C A G~): its law's
-                # coefficients are refined by output error before the channels are compared
-                ref_d = _refine_law_oe(law, base, ch, disc, y, u, x0c, C, D,
-                                       noise_ch)
-                if ref_d is not None:
-                    se_d = _se_from(disc(ref_d[1]), u, x0c, y, C, D)
-                    if se_d < se:
-                        law, upd, se, refined = ref_d[0], ref_d[1], se_d, True
-                        evidence = ref_d[2]
-                        tr = replace(tr, static=law)
-            entry = (se, law.npar, tr, upd, refined, evidence, False)
-            why = "delayed d^ law refined by output error" if refined else ""
+            self.cands.append(CandidateScore(ch.name, "static", 0, np.inf, 0, "skipped",
+                                             "no law term explains d^" + (
+                                                 ", nor any by output error" if noisy else "")))
+            return
+        if dead and chosen is None:
+            self.cands.append(CandidateScore(ch.name, "static", 0, np.inf, law.npar,
+                                             "redundant", "a component of d has no term"))
+            return
+        entry = self._dhat_candidate(tr, dh, x0c, noise_ch) if law.npar and not dead else None
         if chosen is not None:
-            law_o, upd_o, ev_o = chosen
-            se_o = _se_from(disc(upd_o), u, x0c, y, C, D)
-            oe = (se_o, law_o.npar, replace(tr, static=law_o), upd_o, True, ev_o, True)
-            # d^'s law against the one chosen by output error: the lower BIC of the output
-            # error (effective sample count Ny / c, c the chosen law's residual colour)
-            if entry is None or _oe_bic(oe, entry, y, u, disc, x0c, C, D):
-                if entry is not None:
-                    cands.append(CandidateScore(ch.name, "static", 0, entry[0], entry[1],
-                                                "replaced", "d^ law: higher output-error BIC "
-                                                "than the terms chosen by output error"))
-                entry, why = oe, "terms chosen by output error on y"
-            else:
-                cands.append(CandidateScore(ch.name, "static", 0, se_o, law_o.npar,
-                                            "replaced", "terms chosen by output error: higher "
-                                            "output-error BIC than d^'s law"))
-        se, npar_e, tr, upd = entry[:4]
-        law = tr.static
-        cands.append(CandidateScore(ch.name, "static", 0, se, npar_e, "ok", why))
-        scored.append(entry)
-        # a law with a saturation hinge beside other terms: the hinges alone, their
-        # coefficients and levels refined by output error, compete as a sparser candidate
-        # (d^ of a delayed estimate is noisy and correlated with x^: its other terms are
-        # often the closed-loop artefacts of PAPER_NOTES 8.4)
+            entry = self._against_oe(entry, chosen, tr, x0c)
+        why = ("terms chosen by output error on y" if entry.oe_terms else
+               "delayed d^ law refined by output error" if entry.refined else "")
+        self.cands.append(CandidateScore(ch.name, "static", 0, entry.se, entry.npar, "ok", why))
+        self.scored.append(entry)
+        self._hinge_candidate(r, entry, dh, x0c, noise_ch)
+
+    def _oe_terms(self, law, ch, dh: _DHat, x0c, noise_ch, kc: int, nch: int) -> _OEFit | None:
+        """The law's terms chosen by output error on y (:func:`_select_law_oe`), refined with
+        weak terms pruned, and terms that do not predict held-out samples dropped."""
+        P = self.P
+        P.tick("output-error term selection", kc, nch)
         try:
-            hl = _hinge_law(law, d_fit, x, uw, lin_cont, labels, ch.units, al, ch.relative)
+            law_o = _select_law_oe(law, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D,
+                                   noise_ch, dh.d_fit, dh.x, dh.u, dh.weights, self.S.bic_factor)
+        except (GreyboxError, np.linalg.LinAlgError, ValueError):
+            law_o = None
+        if law_o is None:
+            return None
+        chosen = _refine_pruned(law_o, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D,
+                                noise_ch)
+        if chosen is not None and chosen.law.npar > 1:
+            chosen = _held_out_terms(chosen, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D,
+                                     noise_ch, self.notes)
+        return chosen
+
+    def _dhat_candidate(self, tr, dh: _DHat, x0c, noise_ch) -> _LawCandidate:
+        """d^'s law as a candidate (its updated model's estimation SE); a delayed channel's
+        coefficients refined by output error first, kept if the SE drops."""
+        P, law, ch = self.P, tr.static, tr.channel
+        upd = add_law(self.base, ch.G, law.evaluate, name=f"{self.base.name}_updated")
+        se = _se_from(P.disc(upd), P.u, x0c, P.y, P.C, P.D)
+        if dh.r > 1 and law.npar <= OE_MAX_TERMS:
+            # a delayed d^ is noisy (d shows in y only through C A G~): its law's
+            # coefficients are refined by output error before the channels are compared
+            ref = _refine_law_oe(law, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D, noise_ch)
+            if ref is not None:
+                se_d = _se_from(P.disc(ref.model), P.u, x0c, P.y, P.C, P.D)
+                if se_d < se:
+                    return _LawCandidate(se=se_d, npar=ref.law.npar,
+                                         trace=replace(tr, static=ref.law), model=ref.model,
+                                         refined=True, evidence=ref.evidence)
+        return _LawCandidate(se=se, npar=law.npar, trace=tr, model=upd)
+
+    def _against_oe(self, entry: _LawCandidate | None, chosen: _OEFit, tr,
+                    x0c) -> _LawCandidate:
+        """d^'s law (``entry``, None: none) against the one chosen by output error: the lower
+        BIC of the output error (effective sample count Ny / c, c the chosen law's residual
+        colour, :func:`_oe_bic`); the loser is scored "replaced"."""
+        P, ch = self.P, tr.channel
+        se_o = _se_from(P.disc(chosen.model), P.u, x0c, P.y, P.C, P.D)
+        oe = _LawCandidate(se=se_o, npar=chosen.law.npar, trace=replace(tr, static=chosen.law),
+                           model=chosen.model, refined=True, evidence=chosen.evidence,
+                           oe_terms=True)
+        if entry is None or _oe_bic(oe, entry, P.y, P.u, P.disc, x0c, P.C, P.D):
+            if entry is not None:
+                self.cands.append(CandidateScore(ch.name, "static", 0, entry.se, entry.npar,
+                                                 "replaced", "d^ law: higher output-error BIC "
+                                                 "than the terms chosen by output error"))
+            return oe
+        self.cands.append(CandidateScore(ch.name, "static", 0, se_o, chosen.law.npar,
+                                         "replaced", "terms chosen by output error: higher "
+                                         "output-error BIC than d^'s law"))
+        return entry
+
+    def _hinge_candidate(self, r: _Residual, entry: _LawCandidate, dh: _DHat, x0c,
+                         noise_ch) -> None:
+        """A law with a saturation hinge beside other terms: the hinges alone, their
+        coefficients and levels refined by output error, compete as a sparser candidate
+        (d^ of a delayed estimate is noisy and correlated with x^: its other terms are
+        often the closed-loop artefacts of PAPER_NOTES 8.4)."""
+        P, ch = self.P, entry.channel
+        try:
+            hl = _hinge_law(entry.law, dh.d_fit, dh.x, dh.u, r.lin_cont, list(ch.labels),
+                            ch.units, dh.weights, ch.relative)
         except (GreyboxError, np.linalg.LinAlgError):
             hl = None
-        if hl is not None and hl.npar and (ch.md == 1 or np.all(np.any(hl.coef, axis=1))):
-            ref_h = _refine_law_oe(hl, base, ch, disc, y, u, x0c, C, D,
-                                   noise_ch)
-            if ref_h is not None:
-                hl, upd_h, ev_h = ref_h
-                se_h = _se_from(disc(upd_h), u, x0c, y, C, D)
-                cands.append(CandidateScore(ch.name, "static", 0, se_h, hl.npar, "ok",
-                                            "saturation hinge(s) only, coefficient(s) and "
-                                            "level(s) refined by output error"))
-                scored.append((se_h, hl.npar, replace(tr, static=hl), upd_h, True, ev_h,
-                               entry[6]))
-    tick("trace candidate channels", len(chans), len(chans))
-    finite = [s for s in scored if np.isfinite(s[0])]
-    if not finite:
-        gate["passed"] = {"whiteness": True, "trace": False}
-        return _report("model error detected, but no candidate channel could explain it "
-                       "(see candidates)", True, cands=cands)
-    best = min(s[0] for s in finite)
-    near = sorted((s for s in finite if s[0] <= parsimony * best),
-                  key=lambda s: (s[1], s[2].channel.md, s[0]))
-    pick, start, jr_pick = near[0], base, None
-    if refit_parameters and declared and len(near) > 1:
-        tick("candidates refitted with the nominal's parameters", 0, 1)
-        pick, start, jr_pick = _pick_after_refit(near, (base, base_declared), disc, y, u,
-                                                 x0_of, C, D, notes)
-        tick("candidates refitted with the nominal's parameters", 1, 1)
-    se_c, npar, tr, upd, refined, evidence, oe_terms = pick
-    ch, law = tr.channel, tr.static
-    # refine the law's coefficients by output error on y, in the nominal's time base with
-    # the same RK4 (PAPER_NOTES §9.3, §9.5); kept only if the estimation SE drops
-    tick("output-error refinement", 0, 1)
-    ref = None
-    if oe_terms:
-        notes.append(f"{ch.name}: d^ is mostly estimation noise: the law's terms were chosen by "
-                     f"output error on y (forward selection, BIC on the effective sample "
-                     f"count Ny / colour), its coefficients and levels refined by output error")
-    elif refined and any(law.spec[j][1] in _HINGE_KINDS
-                         for j in np.flatnonzero(law.coef.any(0))):
-        notes.append(f"{ch.name}: the law's saturation hinges alone, refined by output error "
-                     f"on y (coefficients and levels), were chosen over the full d^ law")
-    elif refined:
-        notes.append(f"{ch.name}: the delayed d^ law was refined by output error on y before "
-                     f"the channels were compared")
-    elif law.npar <= OE_MAX_TERMS:
-        ref = _refine_law_oe(law, base, ch, disc, y, u, x0_of[ch.name], C, D,
-                             _noise_of(tr.filter_result, Q, R, kf.P_filt))
-    else:
-        notes.append(f"{ch.name}: the law has {law.npar} terms (> {OE_MAX_TERMS}): not refined "
-                     f"by output error (each term costs a simulation per iteration)")
-    if ref is not None:
-        law_r, upd_r, ev_r = ref
-        se_r = _se_from(disc(upd_r), u, x0_of[ch.name], y, C, D)
-        if se_r < se_c:
-            notes.append(f"{ch.name}: law refined by output error on y: estimation SE "
-                         f"{se_c:.3g}% -> {se_r:.3g}%")
-            law, upd, se_c, evidence = law_r, upd_r, se_r, ev_r
-            tr = replace(tr, static=law)
-    tick("output-error refinement", 1, 1)
+        if hl is None or not hl.npar or not (ch.md == 1 or np.all(np.any(hl.coef, axis=1))):
+            return
+        ref = _refine_law_oe(hl, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D, noise_ch)
+        if ref is None:
+            return
+        se_h = _se_from(P.disc(ref.model), P.u, x0c, P.y, P.C, P.D)
+        self.cands.append(CandidateScore(ch.name, "static", 0, se_h, ref.law.npar, "ok",
+                                         "saturation hinge(s) only, coefficient(s) and "
+                                         "level(s) refined by output error"))
+        self.scored.append(_LawCandidate(se=se_h, npar=ref.law.npar,
+                                         trace=replace(entry.trace, static=ref.law),
+                                         model=ref.model, refined=True,
+                                         evidence=ref.evidence, oe_terms=entry.oe_terms))
 
-    # 2c. the nominal's declared parameters refitted jointly with the law (and its spill
-    # into the other state equations), against the parameters refitted alone
-    joint = None
-    if refit_parameters and free_parameters(base):
-        tick("joint refit of the nominal's parameters", 0, 1)
-        joint = _joint_refit(start, disc, law, ch, y, u, x0_of[ch.name], C, D, se_c,
-                             int(evidence[1]) if evidence is not None else law.npar, notes,
-                             declared, alone,
-                             jr=jr_pick if law is pick[2].static else None)
+    # ------------------------------------------------------------------ 3. choose
+    def choose(self) -> _Pick | None:
+        """3. The lowest estimation SE, within ``parsimony`` of it the fewest parameters (then
+        the fewest components, then the SE); for a model that declares parameters, the
+        lowest output-error BIC of those candidates refitted jointly with them
+        (:func:`_pick_after_refit`). None when no candidate has a finite SE."""
+        P, S = self.P, self.S
+        finite = [s for s in self.scored if np.isfinite(s.se)]
+        if not finite:
+            return None
+        best = min(s.se for s in finite)
+        near = sorted((s for s in finite if s.se <= S.parsimony * best),
+                      key=lambda s: (s.npar, s.channel.md, s.se))
+        if not (S.refit_parameters and self.declared and len(near) > 1):
+            return _Pick(candidate=near[0], start=self.base)
+        P.tick("candidates refitted with the nominal's parameters", 0, 1)
+        pick = _pick_after_refit(near, (self.base, P.base), P.disc, P.y, P.u, self.x0_of,
+                                 P.C, P.D, self.notes)
+        P.tick("candidates refitted with the nominal's parameters", 1, 1)
+        return pick
+
+    def refine(self, pick: _Pick) -> _LawCandidate:
+        """The chosen law's coefficients refined by output error on y, in the nominal's time
+        base with the same RK4 (PAPER_NOTES §9.3, §9.5); kept only if the estimation SE
+        drops. A law already fitted by output error is kept as it is."""
+        P, c = self.P, pick.candidate
+        ch, law = c.channel, c.law
+        P.tick("output-error refinement", 0, 1)
+        ref = None
+        if c.oe_terms:
+            self.notes.append(f"{ch.name}: d^ is mostly estimation noise: the law's terms were "
+                              f"chosen by output error on y (forward selection, BIC on the "
+                              f"effective sample count Ny / colour), its coefficients and "
+                              f"levels refined by output error")
+        elif c.refined and any(law.spec[j][1] in _HINGE_KINDS
+                               for j in np.flatnonzero(law.coef.any(0))):
+            self.notes.append(f"{ch.name}: the law's saturation hinges alone, refined by output "
+                              f"error on y (coefficients and levels), were chosen over the full "
+                              f"d^ law")
+        elif c.refined:
+            self.notes.append(f"{ch.name}: the delayed d^ law was refined by output error on y "
+                              f"before the channels were compared")
+        elif law.npar <= OE_MAX_TERMS:
+            ref = _refine_law_oe(law, self.base, ch, P.disc, P.y, P.u, self.x0_of[ch.name], P.C,
+                                 P.D, _noise_of(c.trace.filter_result, P.Q, P.R, self.kf.P_filt))
+        else:
+            self.notes.append(f"{ch.name}: the law has {law.npar} terms (> {OE_MAX_TERMS}): not "
+                              f"refined by output error (each term costs a simulation per "
+                              f"iteration)")
+        if ref is not None:
+            se_r = _se_from(P.disc(ref.model), P.u, self.x0_of[ch.name], P.y, P.C, P.D)
+            if se_r < c.se:
+                self.notes.append(f"{ch.name}: law refined by output error on y: estimation SE "
+                                  f"{c.se:.3g}% -> {se_r:.3g}%")
+                c = replace(c, se=se_r, trace=replace(c.trace, static=ref.law), model=ref.model,
+                            evidence=ref.evidence)
+        P.tick("output-error refinement", 1, 1)
+        return c
+
+    def joint_refit(self, pick: _Pick, c: _LawCandidate) -> _LawCandidate:
+        """2c. The nominal's declared parameters refitted jointly with the law (and its spill
+        into the other state equations), against the parameters refitted alone
+        (:func:`_joint_refit`); kept in ``joint`` and ``alone`` when it wins."""
+        P = self.P
+        if not (self.S.refit_parameters and free_parameters(self.base)):
+            return c
+        ch, law = c.channel, c.law
+        P.tick("joint refit of the nominal's parameters", 0, 1)
+        joint = _joint_refit(pick.start, P.disc, law, ch, P.y, P.u, self.x0_of[ch.name], P.C,
+                             P.D, c.se,
+                             int(c.evidence.nfree) if c.evidence is not None else law.npar,
+                             self.notes, self.declared, self.alone,
+                             jr=pick.refit if law is pick.candidate.law else None)
         if joint is not None:
-            alone, jr = joint
+            self.alone, self.joint, jr = joint.alone, joint, joint.refit
             _, _, sel_j, hinges_j = law_coordinates(jr.law)
-            law = _with_intervals(jr.law, sel_j, hinges_j, jr.law_halfwidths, ch, base)
-            upd, se_c = jr.model, jr.se
-            tr = replace(tr, static=law)
-            x0_of[ch.name] = jr.x_start
-        tick("joint refit of the nominal's parameters", 1, 1)
+            law = _with_intervals(jr.law, sel_j, hinges_j, jr.law_halfwidths, ch, self.base)
+            c = replace(c, se=jr.se, model=jr.model, trace=replace(c.trace, static=law))
+            self.x0_of[ch.name] = jr.x_start
+        P.tick("joint refit of the nominal's parameters", 1, 1)
+        return c
 
-    # 3. gate. The evidence for the law: its likelihood-ratio statistic on d^ (the BIC gain
-    # plus its penalty), or for a delayed channel whose law was refined by output error, its
-    # quasi likelihood ratio on the output error: a delayed d^ is mostly estimation noise,
-    # and the coefficients were estimated on y, where the evidence is (module stage 3)
-    Nd = N - 1 - SKIP
-    if joint is not None:
-        Ny = p * (N - SKIP)
-        gain, penalty, colour = _refit_evidence(jr.residual, alone.se, jr.se, jr.nlaw)
-        n_eff = Ny / colour
-        gate.update({"oe_colour": colour, "se_estimation_parameters_only": alone.se})
-        gate["evidence"] = ("output error: likelihood ratio of the law (nominal parameters "
-                            "refitted with it) against the nominal parameters refitted alone, "
-                            f"divided by the residual's colour ({colour:.3g}); {jr.nlaw} free "
-                            f"law parameter(s), {Ny} residuals ({n_eff:.0f} independent)")
-    elif (tr.relative_degree > 1 or oe_terms) and evidence is not None:
-        wald, nfree = evidence
-        Ny = p * (N - SKIP)
-        gain, colour = _oe_likelihood_ratio(disc(upd), x0_of[ch.name], y, u,
-                                            C, D, se_nom, se_c)
-        # BIC's log n with n the independent samples, Ny / colour
-        n_eff = Ny / colour if np.isfinite(colour) else Ny
-        penalty = float(nfree * np.log(max(n_eff, 2.0)))
-        gate.update({"oe_wald": float(wald), "oe_colour": colour})
-        gate["evidence"] = ("output error: likelihood ratio of the law against the nominal "
-                            f"on the estimation outputs' simulation, divided by the residual's "
-                            f"colour ({colour:.3g}); {nfree} free parameter(s), {Ny} residuals "
-                            f"({n_eff:.0f} independent)")
-    else:
-        gain = float(law.bic_gain + law.npar * np.log(Nd))
-        penalty = float(npar * np.log(Nd))
-        gate["evidence"] = "d^: likelihood ratio of the law against d = 0 (BIC gain + penalty)"
-    gain = float(gain)
-    # the updated model's simulation error against what the noise model alone allows
-    # (a diagnostic, not a criterion: real data rarely reach their noise model)
-    floor_ratio = _floor_ratio(disc(upd), se_c, y, x_op, u_mean, C, Q, R)
-    gate["oe_floor_ratio"] = floor_ratio
-    passed = {"whiteness": True, "bic": gain > bic_factor * penalty,
-              "se_drop": se_c < min_se_drop * se_nom}
-    gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": bic_factor,
-                 "se_estimation_updated": se_c, "min_se_drop": min_se_drop, "passed": passed})
-    spill = joint[1].spill if joint is not None else ()
-    effect = Effect(kind="static", order=0, formula=law.formula, channel=ch.name,
-                    equations=tuple(ch.equations) + tuple(s for s, _, _ in spill),
-                    nonlinear=law.nonlinear, linearized=False, law=law,
-                    parameter_notes=_refit_notes(joint[1]) if joint is not None else ())
-    if not (passed["bic"] and passed["se_drop"]):
-        failed = [k for k, v in passed.items() if not v]
-        if alone is not None:  # the declared parameters refitted alone, under their own gate
-            rep_p = _parameters_only(alone, se_nom, dict(gate), bic_factor, min_se_drop, disc,
-                                     y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub,
-                                     val_nom, u_mean, C, D, _report, notes,
-                                     why=f"the best law ({ch.name}, static) failed the gate "
-                                         f"against them: {', '.join(failed)}",
-                                     law_gate=gate, cands=cands, tr=tr)
-            if rep_p is not None:
-                return rep_p
-            notes.append("the declared parameters refitted alone failed their gate too "
-                         f"(estimation SE {se_nom:.3g} % -> {alone.se:.3g} %)")
-        nl = None
-        if joint is not None:  # the refused joint refit, for inspection
-            nl = NonlinearUpdate(model=sys, discrete=nominal_d, linearization=lin_nom,
-                                 x_op=x_op, u_op=u_mean, operating_point=op_text,
-                                 substeps=nsub, refused=joint[1])
-        return _report(f"model error detected (UKF innovations not white), but the best "
-                       f"candidate ({ch.name}, static) failed the gate: {', '.join(failed)}; "
-                       f"model unchanged", True, cands=cands, tr=tr, nl=nl)
+    # ------------------------------------------------------------------ 3. gate
+    def _evidence(self, r: _Residual, c: _LawCandidate) -> _Evidence:
+        """The law's evidence (module stage 3), its kind recorded in the gate: the likelihood
+        ratio against the parameters refitted alone (a joint refit), or on the output error
+        (a delayed channel or terms chosen by output error: d^ is mostly estimation noise
+        and the coefficients were estimated on y), or on d^ (the BIC gain plus penalty)."""
+        P, law, gate = self.P, c.law, self.gate
+        N, p = P.y.shape[1], P.base.noutputs
+        Nd = N - 1 - SKIP
+        if self.joint is not None:
+            jr, alone = self.joint.refit, self.joint.alone
+            Ny = p * (N - SKIP)
+            gain, penalty, colour = _refit_evidence(jr.residual, alone.se, jr.se, jr.nlaw)
+            n_eff = Ny / colour
+            gate.update({"oe_colour": colour, "se_estimation_parameters_only": alone.se})
+            gate["evidence"] = ("output error: likelihood ratio of the law (nominal parameters "
+                                "refitted with it) against the nominal parameters refitted "
+                                f"alone, divided by the residual's colour ({colour:.3g}); "
+                                f"{jr.nlaw} free law parameter(s), {Ny} residuals "
+                                f"({n_eff:.0f} independent)")
+        elif (c.trace.relative_degree > 1 or c.oe_terms) and c.evidence is not None:
+            nfree = c.evidence.nfree
+            Ny = p * (N - SKIP)
+            gain, colour = _oe_likelihood_ratio(P.disc(c.model), self.x0_of[c.channel.name],
+                                                P.y, P.u, P.C, P.D, r.se_nom, c.se)
+            # BIC's log n with n the independent samples, Ny / colour
+            n_eff = Ny / colour if np.isfinite(colour) else Ny
+            penalty = float(nfree * np.log(max(n_eff, 2.0)))
+            gate.update({"oe_wald": float(c.evidence.wald), "oe_colour": colour})
+            gate["evidence"] = ("output error: likelihood ratio of the law against the nominal "
+                                "on the estimation outputs' simulation, divided by the "
+                                f"residual's colour ({colour:.3g}); {nfree} free parameter(s), "
+                                f"{Ny} residuals ({n_eff:.0f} independent)")
+        else:
+            gain = float(law.bic_gain + law.npar * np.log(Nd))
+            penalty = float(c.npar * np.log(Nd))
+            gate["evidence"] = ("d^: likelihood ratio of the law against d = 0 (BIC gain + "
+                                "penalty)")
+        return _Evidence(gain=float(gain), penalty=penalty)
 
-    if floor_ratio > FLOOR_NOTE ** 2:
-        notes.append(f"{ch.name}: the updated model's simulation error on the estimation data "
-                     f"is {np.sqrt(floor_ratio):.1f}x (RMS) what the noise model (Q, R) "
-                     f"allows: the law explains part of the error; it may be incomplete, or a "
-                     f"proxy for another law (e.g. a term of the right one missing)")
-    weak = _weak_terms(law)
-    if weak:
-        notes.append(f"{ch.name}: {len(weak)} of the law's {law.npar} terms ({', '.join(weak)}) "
-                     f"have 95 % intervals containing 0: d^ is mostly estimation noise in this "
-                     f"channel (e.g. a velocity equation seen through positions only) and the "
-                     f"law may be spurious; measure the state the suspected equation drives, "
-                     f"or name the channel (channels=...)")
+    def judge(self, r: _Residual, c: _LawCandidate) -> _Verdict:
+        """3. The gate: update only if the law's evidence exceeds ``bic_factor`` times its BIC
+        penalty and the estimation SE drops below ``min_se_drop`` times the nominal's."""
+        P = self.P
+        ev = self._evidence(r, c)
+        # the updated model's simulation error against what the noise model alone allows
+        # (a diagnostic, not a criterion: real data rarely reach their noise model)
+        floor_ratio = _floor_ratio(P.disc(c.model), c.se, P.y, r.x_op, P.u_mean, P.C, P.Q, P.R)
+        self.gate["oe_floor_ratio"] = floor_ratio
+        passed = _gate(self.gate, self.S, ev.gain, ev.penalty, c.se, r.se_nom)
+        return _Verdict(candidate=c, passed=passed, floor_ratio=floor_ratio)
 
-    # 4. before/after on validation data, both simulated with the same RK4
-    tick("validation", 0, 1)
-    table, nl = _updated(upd, disc, y, u, y_val, u_val, Q, R, P0, lags, alpha, n, nsub,
-                         val_nom, u_mean, C, D,
-                         parameters=joint[1].parameters if joint else (), spill=spill)
-    x_op_u, lin_u = nl.x_op, nl.linearization
-    tick("validation", 1, 1)
-    notes.append(f"the 'nominal' and 'updated' rows simulate the nonlinear models"
-                 f"{' (RK4)' if cont else ''}; report.model.sys (updated_model.json) is the "
-                 f"updated model's linearization at x_op = "
-                 f"{np.array2string(x_op_u, precision=4)}, u_op = "
-                 f"{np.array2string(u_mean, precision=4)} ({nl.operating_point}), not a row "
-                 f"of the table")
-    notes.append("the parallel delta baseline (linear) is not computed for a nonlinear "
-                 "nominal model")
-    for name, r in table.items():
-        if not r.se_defined:
-            notes.append(f"{name}: SE n/a: {r.se_reason}")
-    where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
-    if ch.kind == "input":
-        where = f"input {ch.input} (it enters {where})"
-    if spill:
-        where += " (and " + ", ".join(f"eq({s}) at {g:.2g}x" for s, g, _ in spill) + ")"
-    changed = _changed(joint[1].parameters if joint else ())
-    refit = ""
-    if joint:
-        refit = ("; nominal parameters refitted with it: " + (", ".join(changed) if changed
-                                                              else "none changed beyond its "
-                                                              "95 % interval"))
-    msg = f"model error found in {where}: static effect{refit}; {describe_before_after(table)}"
-    return _report(msg, True, updated=True, effect=effect, ch=ch, cands=cands, tr=tr,
-                   table=table, model=UpdatedModel(sys=lin_u, Q=Q, R=R, order=n, kind="static"),
-                   nl=nl)
+    def refused(self, r: _Residual, v: _Verdict) -> LoopReport:
+        """3. The gate refused the best law: the declared parameters refitted alone, under
+        their own gate, or the model unchanged (a refused joint refit kept for inspection)."""
+        ch, tr = v.candidate.channel, v.candidate.trace
+        failed = _failed(self.gate)
+        if self.alone is not None:  # the declared parameters refitted alone, under their gate
+            rep = self.parameters_only(r, dict(self.gate),
+                                       why=f"the best law ({ch.name}, static) failed the gate "
+                                           f"against them: {', '.join(failed)}",
+                                       law_gate=self.gate, tr=tr)
+            if rep is not None:
+                return rep
+            self.notes.append("the declared parameters refitted alone failed their gate too "
+                              f"(estimation SE {r.se_nom:.3g} % -> {self.alone.se:.3g} %)")
+        nl = self._nominal_update(r, refused=self.joint.refit) if self.joint is not None \
+            else None
+        return self._report(r, f"model error detected (UKF innovations not white), but the "
+                               f"best candidate ({ch.name}, static) failed the gate: "
+                               f"{', '.join(failed)}; model unchanged", True, tr=tr, nl=nl)
+
+    def caveats(self, v: _Verdict) -> None:
+        """Notes on a law that passed the gate: far above the noise floor, or weak terms."""
+        ch, law = v.candidate.channel, v.candidate.law
+        if v.floor_ratio > FLOOR_NOTE ** 2:
+            self.notes.append(f"{ch.name}: the updated model's simulation error on the "
+                              f"estimation data is {np.sqrt(v.floor_ratio):.1f}x (RMS) what the "
+                              f"noise model (Q, R) allows: the law explains part of the error; "
+                              f"it may be incomplete, or a proxy for another law (e.g. a term "
+                              f"of the right one missing)")
+        weak = _weak_terms(law)
+        if weak:
+            self.notes.append(f"{ch.name}: {len(weak)} of the law's {law.npar} terms "
+                              f"({', '.join(weak)}) have 95 % intervals containing 0: d^ is "
+                              f"mostly estimation noise in this channel (e.g. a velocity "
+                              f"equation seen through positions only) and the law may be "
+                              f"spurious; measure the state the suspected equation drives, or "
+                              f"name the channel (channels=...)")
+
+    # ------------------------------------------------------------------ 4. validate
+    def _updated(self, r: _Residual, model, **changes) -> _BeforeAfter:
+        """The updated model's validation row beside the nominal's, and its NonlinearUpdate:
+        its linearization at the mean of its UKF's states on the estimation record.
+
+        ``changes``: the NonlinearUpdate's ``parameters`` and ``spill``.
+        """
+        P, S = self.P, self.S
+        upd_d = P.disc(model)
+        row, _ = _validation_row(upd_d, P.y_val, P.u_val, Q=P.Q, R=P.R,
+                                 x0=_prior(P.C, P.D, P.y_val, P.u_val)[0], P0=P.P0,
+                                 name="updated", lags=S.lags, alpha=S.alpha,
+                                 order=P.base.nstates)
+        kf_u = ukf(upd_d, P.y, P.u, Q=P.Q, R=P.R, x0=_prior(P.C, P.D, P.y, P.u)[0], P0=P.P0)
+        x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
+        nl = NonlinearUpdate(model=model, discrete=upd_d,
+                             linearization=linearize_at(upd_d, x_op_u, P.u_mean), x_op=x_op_u,
+                             u_op=P.u_mean, operating_point=_OP_TEXT.format(what="updated UKF's"),
+                             substeps=P.nsub, **changes)
+        return _BeforeAfter(table={"nominal": r.val_nom, "updated": row}, update=nl)
+
+    def validate(self, r: _Residual, v: _Verdict) -> _BeforeAfter:
+        """4. Before/after on the validation record, both models simulated with the same RK4."""
+        P = self.P
+        jr = self.joint.refit if self.joint is not None else None
+        P.tick("validation", 0, 1)
+        ba = self._updated(r, v.candidate.model,
+                           parameters=jr.parameters if jr is not None else (),
+                           spill=jr.spill if jr is not None else ())
+        P.tick("validation", 1, 1)
+        nl = ba.update
+        self.notes.append(f"the 'nominal' and 'updated' rows simulate the nonlinear models"
+                          f"{' (RK4)' if P.cont else ''}; report.model.sys (updated_model.json) "
+                          f"is the updated model's linearization at x_op = "
+                          f"{np.array2string(nl.x_op, precision=4)}, u_op = "
+                          f"{np.array2string(P.u_mean, precision=4)} ({nl.operating_point}), "
+                          f"not a row of the table")
+        self.notes.append("the parallel delta baseline (linear) is not computed for a "
+                          "nonlinear nominal model")
+        for name, row in ba.table.items():
+            if not row.se_defined:
+                self.notes.append(f"{name}: SE n/a: {row.se_reason}")
+        return ba
+
+    # ------------------------------------------------------------------ 5. report
+    def report(self, r: _Residual, v: _Verdict, ba: _BeforeAfter) -> LoopReport:
+        """5. The report of an update: where, what (and the parameters refitted with it),
+        before/after."""
+        P, c = self.P, v.candidate
+        ch, law = c.channel, c.law
+        jr = self.joint.refit if self.joint is not None else None
+        spill = jr.spill if jr is not None else ()
+        effect = Effect(kind="static", order=0, formula=law.formula, channel=ch.name,
+                        equations=tuple(ch.equations) + tuple(s for s, _, _ in spill),
+                        nonlinear=law.nonlinear, linearized=False, law=law,
+                        parameter_notes=_refit_notes(jr) if jr is not None else ())
+        where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
+        if ch.kind == "input":
+            where = f"input {ch.input} (it enters {where})"
+        if spill:
+            where += " (and " + ", ".join(f"eq({s}) at {g:.2g}x" for s, g, _ in spill) + ")"
+        refit = ""
+        if jr is not None:
+            changed = _changed(jr.parameters)
+            refit = ("; nominal parameters refitted with it: " + (
+                ", ".join(changed) if changed else "none changed beyond its 95 % interval"))
+        msg = (f"model error found in {where}: static effect{refit}; "
+               f"{describe_before_after(ba.table)}")
+        return self._report(r, msg, True, updated=True, effect=effect, ch=ch, tr=c.trace,
+                            table=ba.table, nl=ba.update,
+                            model=UpdatedModel(sys=ba.update.linearization, Q=P.Q, R=P.R,
+                                               order=P.base.nstates, kind="static"))
 
 
 def _add_sensor_law(sys, law, name: str) -> ct.NonlinearIOSystem:

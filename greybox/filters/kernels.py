@@ -563,53 +563,10 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         converged = bool(np.max(np.abs(Pn - Pp_prev)) <= tol * max(np.max(np.abs(Pn)), 1e-300))
     ksettled = None
     if kconv is not None:
-        # the first step from which every variance stays within 10 % of its converged value
-        far = np.flatnonzero(np.any(np.abs(np.reshape(pdiag, (-1, n)) - np.diag(Pp)) >
-                                    0.1 * np.maximum(np.abs(np.diag(Pp)), tiny), axis=1))
-        if far.size:
-            ksettled = pk[far[-1] + 1] if far[-1] + 1 < len(pk) else kconv
-        else:  # the first recorded step (earlier ones were not checked)
-            ksettled = pk[0] if pk else kconv
+        ksettled = _settled_step(pdiag, pk, Pp, kconv, n, tiny)
         pdiag = pk = None
-        # constant-gain fast path from sample kconv on, no per-sample Python loop:
-        # x^[k+1|k] = A (I - L C) x^[k|k-1] + A L y[k] + (B - A L D) u[k], run in time
-        # chunks written straight into the outputs (temporaries O(n * chunk))
         K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
-        L = _combined_gain(K, M, G, C, F)
-        AL = A @ L
-        Bf = B - AL @ D if has_D else B
-        rec = LTIRecursion(A @ (np.eye(n) - L @ C))
-        S = rec.in_map  # fold the modal input transform into the drive matrices
-        mapped = S is not None
-        if mapped:
-            AL, Bf = S @ AL, S @ Bf
-        C_is_I = C.shape == (n, n) and np.array_equal(C, np.eye(n))
-        xk = A @ x_filt[:, kconv - 1]
-        if m:
-            xk += B @ u[:, kconv - 1]
-        with single_thread_blas():
-            for a in range(kconv, N, _CHUNK):
-                b = min(N, a + _CHUNK)
-                ys = y[:, a:b]
-                drive = AL @ ys
-                if m:
-                    drive += Bf @ u[:, a:b]
-                xp = x_pred[:, a:b]
-                xk = rec.run(drive, xk, xp, mapped=mapped)
-                del drive
-                e = innov[:, a:b]
-                if C_is_I:
-                    np.subtract(ys, xp, out=e)
-                else:
-                    np.matmul(C, xp, out=e)
-                    np.subtract(ys, e, out=e)
-                if has_D:
-                    e -= D @ u[:, a:b]
-                xfc = x_filt[:, a:b]
-                np.matmul(L, e, out=xfc)
-                xfc += xp
-                if md:
-                    np.matmul(M, e, out=d_est[:, a - 1:b - 1])
+        _constant_gain_run(A, B, C, D, G, K, M, F, kconv, y, u, x_filt, x_pred, innov, d_est)
         if md:
             d_var[:, kconv - 1:N - 1] = np.diag(Pd)[:, None]
         if Phist is not None:
@@ -621,6 +578,65 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         K=K, M=M, converged=converged, period_converged=kconv, sys=model, G=G,
         unknown_labels=labels, u=u, y=y, period_settled=ksettled,
     )
+
+
+def _settled_step(pdiag, pk, Pp, kconv: int, n: int, tiny: float) -> int:
+    """The first step from which every variance of P[k|k-1] stays within 10 % of its
+    converged value ``diag(Pp)``; ``pdiag`` the diagonals recorded at the steps ``pk``
+    before the gains were frozen at ``kconv``."""
+    far = np.flatnonzero(np.any(np.abs(np.reshape(pdiag, (-1, n)) - np.diag(Pp)) >
+                                0.1 * np.maximum(np.abs(np.diag(Pp)), tiny), axis=1))
+    if far.size:
+        return pk[far[-1] + 1] if far[-1] + 1 < len(pk) else kconv
+    return pk[0] if pk else kconv  # the first recorded step (earlier ones were not checked)
+
+
+def _constant_gain_run(A, B, C, D, G, K, M, F, kconv: int, y, u, x_filt, x_pred, innov,
+                       d_est) -> None:
+    """The constant-gain fast path from sample ``kconv`` on, no per-sample Python loop.
+
+    ``x^[k+1|k] = A (I - L C) x^[k|k-1] + A L y[k] + (B - A L D) u[k]``, run in time
+    chunks written straight into the outputs ``x_filt, x_pred, innov, d_est``
+    (temporaries O(n * chunk)); ``K, M`` the frozen gains.
+    """
+    n, N = A.shape[0], y.shape[1]
+    m, md = B.shape[1], G.shape[1]
+    has_D = m > 0 and bool(np.any(D))
+    L = _combined_gain(K, M, G, C, F)
+    AL = A @ L
+    Bf = B - AL @ D if has_D else B
+    rec = LTIRecursion(A @ (np.eye(n) - L @ C))
+    S = rec.in_map  # fold the modal input transform into the drive matrices
+    mapped = S is not None
+    if mapped:
+        AL, Bf = S @ AL, S @ Bf
+    C_is_I = C.shape == (n, n) and np.array_equal(C, np.eye(n))
+    xk = A @ x_filt[:, kconv - 1]
+    if m:
+        xk += B @ u[:, kconv - 1]
+    with single_thread_blas():
+        for a in range(kconv, N, _CHUNK):
+            b = min(N, a + _CHUNK)
+            ys = y[:, a:b]
+            drive = AL @ ys
+            if m:
+                drive += Bf @ u[:, a:b]
+            xp = x_pred[:, a:b]
+            xk = rec.run(drive, xk, xp, mapped=mapped)
+            del drive
+            e = innov[:, a:b]
+            if C_is_I:
+                np.subtract(ys, xp, out=e)
+            else:
+                np.matmul(C, xp, out=e)
+                np.subtract(ys, e, out=e)
+            if has_D:
+                e -= D @ u[:, a:b]
+            xfc = x_filt[:, a:b]
+            np.matmul(L, e, out=xfc)
+            xfc += xp
+            if md:
+                np.matmul(M, e, out=d_est[:, a - 1:b - 1])
 
 
 def _check_options(level, gain, tol):

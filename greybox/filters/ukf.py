@@ -285,25 +285,12 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     p, m, md = C.shape[0], pb.u.shape[0], len(pb.unknown)
     wm, wc = points.weights(n)
     npts = wm.size
-    linear = isinstance(pb.sys, ct.StateSpace)
-    jac = md > 0 and pb.G is None
-    ncol = npts + (2 * md if jac else 0)
-    fast_points = isinstance(points, MerweScaledSigmaPoints)
-    if fast_points:
-        E = np.zeros((n, ncol))
-        E[:, :npts] = points.offsets(n)
-    # one product FX @ W gives the predicted mean, the probe differences F(+h) - F(-h)
-    # and, when the covariance weights are >= 0, Z = (FX - xp 1') diag(sqrt(wc)) with
-    # P[k|k-1] = Z Z' + Q (the columns of (I - wm 1') sum to zero: a common shift of
-    # the points, such as G d for a linear model, leaves Z unchanged)
-    nj = md if jac else 0
+    linear, jac = isinstance(pb.sys, ct.StateSpace), md > 0 and pb.G is None
+    nj = md if jac else 0  # the G probes: two columns per unknown input
+    ncol = npts + 2 * nj
+    E = _offsets(points, n, npts, ncol)
     sqrt_wc = np.sqrt(wc) if np.all(wc >= 0) else None
-    W = np.zeros((ncol, 1 + nj + (npts if sqrt_wc is not None else 0)))
-    W[:npts, 0] = wm
-    for j in range(nj):
-        W[npts + 2 * j, 1 + j], W[npts + 2 * j + 1, 1 + j] = 1.0, -1.0
-    if sqrt_wc is not None:
-        W[:npts, 1 + nj:] = (np.eye(npts) - wm[:, None]) * sqrt_wc
+    W = _batch_weights(wm, sqrt_wc, ncol, nj)
     c_eye = C.shape == (n, n) and bool(np.array_equal(C, np.eye(n)))  # all states measured
     # inputs of the batch call: known rows once per step, unknown rows at d_lin (+-h probes)
     Ubuf = np.zeros((m if linear else pb.sys.ninputs, ncol))
@@ -313,14 +300,12 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     # rows per sample, transposed at the end; x_pred = xp - G d_lin and the innovations
     # e + C G d_lin are formed after the loop from the rows xp, e and G d_lin
     x_filt, xp_rows, e_rows = np.empty((N, n)), np.empty((N, n)), np.empty((N, p))
-    gd_rows = np.zeros((N, n)) if md else None
-    g_rows = np.zeros((N, n)) if md == 1 else None
+    gd_rows, g_rows = (np.zeros((N, n)) if md else None), (np.zeros((N, n)) if md == 1 else None)
     dl_rows = np.zeros(N)  # d_lin used at each step (md = 1)
     pd = np.inf  # Pd when md = 1 (stays inf if d is never seen)
     d_est, d_var = np.full((N, md), np.nan), np.full((N, md), np.nan)
     Phist = np.empty((n, n, N)) if store_covariances else None
-    has_D = m > 0 and bool(np.any(D))
-    y, u = pb.y, pb.u
+    y, u, has_D = pb.y, pb.u, m > 0 and bool(np.any(D))
     yT = np.ascontiguousarray(((y - D @ u) if has_D else y).T)  # y - D u, a row per sample
     # k = 0: measurement update of the prior
     K, _, _, Rt, Pf = _measurement_gains(pb.P0, C, np.zeros((n, 0)), R)
@@ -330,88 +315,41 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     if Phist is not None:
         Phist[:, :, 0] = Pf
     Pp, M, Pd = pb.P0, np.zeros((md, p)), np.zeros((md, md))
-    dlin = np.zeros(md)
-    dlf = 0.0  # d_lin when md = 1, as a Python float
+    dlin, dlf = np.zeros(md), 0.0  # dlf: d_lin when md = 1, as a Python float
     G = pb.G if pb.G is not None else np.zeros((n, md))
     F = G if c_eye else C @ G
-    h2 = np.ones(md)
-    Sol = None
-    fun, dt = pb.fun, pb.dt
+    h2, Sol = np.ones(md), None
     with np.errstate(all="ignore"):  # non-finite values are checked and reported below
         for k in range(1, N):
-            if fast_points:
-                S, info = _dpotrf(Pf, lower=1, clean=1)  # reads the lower triangle
-                if info:
-                    S = robust_cholesky(Pf)  # symmetrize + jitter, or CovarianceError
-                Xall = xf[:, None] + S @ E
-            else:
-                X = points.points(xf, Pf)
-                Xall = np.concatenate([X] + [xf[:, None]] * (ncol - npts), axis=1)
+            Xall = _sigma_columns(points, E, xf, Pf, ncol, npts)
             if m:
                 Ubuf[krows] = u[:, k - 1:k]
-            if jac and md == 1:
-                r = urows[0]
-                hj = 1e-4 * max(1.0, abs(dlf))  # central-difference step, units of d
-                Ubuf[r] = dlf
-                Ubuf[r, npts] = dlf + hj
-                Ubuf[r, npts + 1] = dlf - hj
-                h2[0] = 2 * hj
-            elif jac:
-                for j, r in enumerate(urows):
-                    dj = float(dlin[j])
-                    hj = 1e-4 * max(1.0, abs(dj))  # central-difference step, units of d
-                    Ubuf[r] = dj
-                    Ubuf[r, npts + 2 * j] = dj + hj
-                    Ubuf[r, npts + 2 * j + 1] = dj - hj
-                    h2[j] = 2 * hj
+            if jac:
+                _probe_inputs(Ubuf, urows, (dlf,) if md == 1 else dlin, npts, h2)
             elif urows and d_lin == "previous":
                 Ubuf[urows] = dlin[:, None]
-            try:
-                FX = fun((k - 1) * dt, Xall, Ubuf)
-            except Exception as exc:  # a user function: report where it failed, chain it
-                raise ModelError(f"the state update of {pb.sys.name} failed at step {k} "
-                                 f"(time {(k - 1) * dt:g} s) on a sigma point or ensemble "
-                                 f"member: {exc}") from exc
-            if not isfinite(zeros_check @ FX.reshape(-1)):  # 0 * (nan or inf) is nan
-                raise _nonfinite_error(pb, k, FX, Xall, npts)
+            FX = _batch_update(pb, k, Xall, Ubuf, zeros_check, npts)
             out = FX @ W
             xp = out[:, 0]
             if jac:
                 G = out[:, 1:1 + nj] / h2  # central differences dF/dd
                 F = G if c_eye else C @ G
-            if sqrt_wc is not None:
-                Z = out[:, 1 + nj:]
-                Pp = Z @ Z.T + Q
-            else:
-                dX = FX[:, :npts] - xp[:, None]
-                Pp = (dX * wc) @ dX.T + Q
-                Pp = 0.5 * (Pp + Pp.T)
+            Pp = _predicted_covariance(out, FX, xp, wc, sqrt_wc, nj, npts, Q)
             if linear and md:
                 xp = xp + G @ dlin  # the split linear model takes the known inputs only
-            if c_eye:
-                CP, Rt, e = Pp, Pp + R, yT[k] - xp
-            else:
-                CP = C @ Pp
-                Rt = CP @ C.T + R
-                e = yT[k] - C @ xp
-            # one solve Rt^-1 [C Pp, C G, e] and one product give every term of (8)-(10):
-            # T = [C Pp, F, e]' Rt^-1 [C Pp, F, e] holds K C Pp, K F, K e, F' Rt^-1 F, ...
-            B = np.concatenate((CP, F, e[:, None]), axis=1)
-            _, Sol, info = _dposv(Rt, B, lower=1)
-            if info:  # Rt not positive definite in floating point: LU as uikf does
-                Sol = np.linalg.solve(Rt, B)
-            T = B.T @ Sol
+            Rt, e, Sol, T = _innovation_products(Pp, C, R, F, yT[k], xp, c_eye)
             unseen = md == 1 and not T[n, n] > 0
             if md > 1:
                 try:
                     Pd = np.linalg.inv(T[n:n + md, n:n + md])  # (F' Rt^-1 F)^-1
                 except np.linalg.LinAlgError:
                     unseen = True
+            if unseen or not md:  # the plain UKF update
+                xf = xp + T[:n, -1]
+                Pf = Pp - T[:n, :n]
             if unseen:  # C G = 0 here (e.g. a sqrt or a clip at its limit): y[k] says
                 # nothing of d[k-1]; d^ stays NaN, the state gets the plain UKF update
                 # with d at its linearization value, which then restarts from 0
-                xf = xp + T[:n, -1]
-                Pf = Pp - T[:n, :n]
                 d_var[k - 1] = np.inf
                 if md == 1:
                     g_rows[k], dl_rows[k] = G[:, 0], dlf
@@ -420,41 +358,20 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
                     gd_rows[k] = G @ dlin
                 dlin = np.zeros(md)
             elif md == 1:  # the common case in scalars: fewer numpy calls, same algebra
-                pd = 1.0 / float(T[n, n])  # (F' Rt^-1 F)^-1
-                dd1 = pd * float(T[n, -1])  # M e
-                dh1 = dlf + dd1  # d^[k-1]
-                if not isfinite(dh1):
-                    _check_d(np.array([dh1]), k, pb.labels)
-                g = G[:, 0]
-                GKF = g - T[:n, n]  # G - K F
-                xf = xp + GKF * dd1 + T[:n, -1]  # x^[k|k-1] + G dd + K (e - F dd)
-                Pf = np.multiply.outer(pd * GKF, GKF)  # (G - K F) Pd (G - K F)'
-                Pf -= T[:n, :n]  # - K C Pp
-                Pf += Pp  # lower triangle used only: not symmetrized in the loop
+                xf, Pf, pd, dh1 = _scalar_d_update(T, xp, Pp, G, dlf, n, k, pb.labels)
                 d_est[k - 1, 0] = dh1
                 d_var[k - 1, 0] = pd
-                g_rows[k], dl_rows[k] = g, dlf  # G d_lin is formed after the loop
+                g_rows[k], dl_rows[k] = G[:, 0], dlf  # G d_lin is formed after the loop
                 if d_lin == "previous":
                     dlf = dh1
                     dlin[0] = dh1
             elif md:
-                Pd = 0.5 * (Pd + Pd.T)
-                dd = Pd @ T[n:n + md, -1]  # M e
-                dh = dlin + dd
-                if not isfinite(dh @ dh):
-                    _check_d(dh, k, pb.labels)
-                GKF = G - T[:n, n:n + md]  # G - K F
-                xf = xp + GKF @ dd + T[:n, -1]  # x^[k|k-1] + G dd + K (e - F dd)
-                # not symmetrized: the next Cholesky reads the lower triangle only
-                Pf = Pp - T[:n, :n] + GKF @ Pd @ GKF.T
+                xf, Pf, Pd, dh = _vector_d_update(T, xp, Pp, G, Pd, dlin, n, k, pb.labels)
                 d_est[k - 1] = dh
                 d_var[k - 1] = Pd.diagonal()
                 gd_rows[k] = G @ dlin
                 if d_lin == "previous":
                     dlin = dh
-            else:
-                xf = xp + T[:n, -1]
-                Pf = Pp - T[:n, :n]
             xp_rows[k] = xp
             e_rows[k] = e
             x_filt[k] = xf
@@ -463,11 +380,8 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     Pf = 0.5 * (Pf + Pf.T)
     if md == 1:  # d_lin at step k (d^[k-2], or 0 after a step where d was not seen)
         gd_rows = g_rows * dl_rows[:, None]
-    if md:
-        x_pred = xp_rows - gd_rows  # f(x, u) without d, as uikf's x_pred
-        innov = e_rows + gd_rows @ C.T
-    else:
-        x_pred, innov = xp_rows, e_rows
+    x_pred = xp_rows - gd_rows if md else xp_rows  # f(x, u) without d, as uikf's x_pred
+    innov = e_rows + gd_rows @ C.T if md else e_rows
     if Sol is not None:  # the gains of the last step, for the record
         K = Sol[:, :n].T
         if md == 1:
@@ -482,6 +396,134 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
         innovations=np.ascontiguousarray(innov.T), innovation_cov=Rt, P_filt=Pf, P_pred=Pp,
         P_filt_history=Phist, K=K, M=M, converged=False, period_converged=None,
         sys=_linearized_record_sys(pb, xf), G=G, unknown_labels=tuple(pb.labels), u=u, y=y)
+
+
+def _offsets(points, n: int, npts: int, ncol: int) -> NDArray | None:
+    """E of the batch ``x + S E``: MerweScaledSigmaPoints' offsets then zero columns (the
+    probes); None for another strategy (its own points, :func:`_sigma_columns`)."""
+    if not isinstance(points, MerweScaledSigmaPoints):
+        return None
+    E = np.zeros((n, ncol))
+    E[:, :npts] = points.offsets(n)
+    return E
+
+
+def _batch_weights(wm: NDArray, sqrt_wc: NDArray | None, ncol: int, nj: int) -> NDArray:
+    """W with one product ``FX @ W`` giving the predicted mean (column 0), the ``nj`` probe
+    differences F(+h) - F(-h) and, when the covariance weights are >= 0 (``sqrt_wc``),
+    Z = (FX - xp 1') diag(sqrt(wc)) with P[k|k-1] = Z Z' + Q (the columns of
+    (I - wm 1') sum to zero: a common shift of the points, such as G d for a linear
+    model, leaves Z unchanged)."""
+    npts = wm.size
+    W = np.zeros((ncol, 1 + nj + (npts if sqrt_wc is not None else 0)))
+    W[:npts, 0] = wm
+    for j in range(nj):
+        W[npts + 2 * j, 1 + j], W[npts + 2 * j + 1, 1 + j] = 1.0, -1.0
+    if sqrt_wc is not None:
+        W[:npts, 1 + nj:] = (np.eye(npts) - wm[:, None]) * sqrt_wc
+    return W
+
+
+def _sigma_columns(points, E: NDArray | None, xf: NDArray, Pf: NDArray, ncol: int,
+                   npts: int) -> NDArray:
+    """The sigma points of (xf, Pf) and the probe columns (at xf): ``xf + S E`` with one
+    LAPACK Cholesky (``E`` the offsets of MerweScaledSigmaPoints), else the strategy's
+    own points."""
+    if E is not None:
+        S, info = _dpotrf(Pf, lower=1, clean=1)  # reads the lower triangle
+        if info:
+            S = robust_cholesky(Pf)  # symmetrize + jitter, or CovarianceError
+        return xf[:, None] + S @ E
+    X = points.points(xf, Pf)
+    return np.concatenate([X] + [xf[:, None]] * (ncol - npts), axis=1)
+
+
+def _probe_inputs(Ubuf: NDArray, urows, dlin, npts: int, h2: NDArray) -> None:
+    """The unknown rows of the batch input at d_lin, with the +-h probes of each unknown
+    input in its two probe columns (central-difference step ``h2 / 2`` in units of d)."""
+    for j, r in enumerate(urows):
+        dj = float(dlin[j])
+        hj = 1e-4 * max(1.0, abs(dj))  # central-difference step, units of d
+        Ubuf[r] = dj
+        Ubuf[r, npts + 2 * j] = dj + hj
+        Ubuf[r, npts + 2 * j + 1] = dj - hj
+        h2[j] = 2 * hj
+
+
+def _batch_update(pb: _Problem, k: int, Xall: NDArray, Ubuf: NDArray, zeros_check: NDArray,
+                  npts: int) -> NDArray:
+    """F on every column at step k (a user function's error chained), checked finite."""
+    try:
+        FX = pb.fun((k - 1) * pb.dt, Xall, Ubuf)
+    except Exception as exc:  # a user function: report where it failed, chain it
+        raise ModelError(f"the state update of {pb.sys.name} failed at step {k} "
+                         f"(time {(k - 1) * pb.dt:g} s) on a sigma point or ensemble "
+                         f"member: {exc}") from exc
+    if not isfinite(zeros_check @ FX.reshape(-1)):  # 0 * (nan or inf) is nan
+        raise _nonfinite_error(pb, k, FX, Xall, npts)
+    return FX
+
+
+def _predicted_covariance(out: NDArray, FX: NDArray, xp: NDArray, wc: NDArray,
+                          sqrt_wc: NDArray | None, nj: int, npts: int, Q: NDArray) -> NDArray:
+    """P[k|k-1]: Z Z' + Q from the batch product, or the weighted sum for negative
+    covariance weights."""
+    if sqrt_wc is not None:
+        Z = out[:, 1 + nj:]
+        return Z @ Z.T + Q
+    dX = FX[:, :npts] - xp[:, None]
+    Pp = (dX * wc) @ dX.T + Q
+    return 0.5 * (Pp + Pp.T)
+
+
+def _innovation_products(Pp, C, R, F, yk, xp, c_eye: bool):
+    """``(Rt, e, Sol, T)``: the innovation covariance and innovation, and one solve
+    ``Sol = Rt^-1 [C Pp, F, e]`` whose product ``T = [C Pp, F, e]' Sol`` holds every term
+    of (8)-(10): K C Pp, K F, K e, F' Rt^-1 F, ... (LU when Rt is not positive definite in
+    floating point, as uikf does)."""
+    if c_eye:
+        CP, Rt, e = Pp, Pp + R, yk - xp
+    else:
+        CP = C @ Pp
+        Rt = CP @ C.T + R
+        e = yk - C @ xp
+    B = np.concatenate((CP, F, e[:, None]), axis=1)
+    _, Sol, info = _dposv(Rt, B, lower=1)
+    if info:  # Rt not positive definite in floating point: LU as uikf does
+        Sol = np.linalg.solve(Rt, B)
+    return Rt, e, Sol, B.T @ Sol
+
+
+def _scalar_d_update(T, xp, Pp, G, dlf: float, n: int, k: int, labels):
+    """``(x^[k|k], P[k|k], Pd, d^[k-1])`` for one unknown input seen at step k, in scalars
+    (fewer numpy calls, the algebra of :func:`_vector_d_update`)."""
+    pd = 1.0 / float(T[n, n])  # (F' Rt^-1 F)^-1
+    dd1 = pd * float(T[n, -1])  # M e
+    dh1 = dlf + dd1  # d^[k-1]
+    if not isfinite(dh1):
+        _check_d(np.array([dh1]), k, labels)
+    GKF = G[:, 0] - T[:n, n]  # G - K F
+    xf = xp + GKF * dd1 + T[:n, -1]  # x^[k|k-1] + G dd + K (e - F dd)
+    Pf = np.multiply.outer(pd * GKF, GKF)  # (G - K F) Pd (G - K F)'
+    Pf -= T[:n, :n]  # - K C Pp
+    Pf += Pp  # lower triangle used only: not symmetrized in the loop
+    return xf, Pf, pd, dh1
+
+
+def _vector_d_update(T, xp, Pp, G, Pd, dlin, n: int, k: int, labels):
+    """``(x^[k|k], P[k|k], Pd, d^[k-1])`` for md > 1 unknown inputs seen at step k, ``Pd``
+    = (F' Rt^-1 F)^-1 (symmetrized here), ``dlin`` d's linearization value."""
+    md = Pd.shape[0]
+    Pd = 0.5 * (Pd + Pd.T)
+    dd = Pd @ T[n:n + md, -1]  # M e
+    dh = dlin + dd
+    if not isfinite(dh @ dh):
+        _check_d(dh, k, labels)
+    GKF = G - T[:n, n:n + md]  # G - K F
+    xf = xp + GKF @ dd + T[:n, -1]  # x^[k|k-1] + G dd + K (e - F dd)
+    # not symmetrized: the next Cholesky reads the lower triangle only
+    Pf = Pp - T[:n, :n] + GKF @ Pd @ GKF.T
+    return xf, Pf, Pd, dh
 
 
 def _points(points):

@@ -685,6 +685,103 @@ def whole_inputs(sys: ct.StateSpace, channel: Channel) -> tuple[int, ...]:
             out.append(j)
     return tuple(out)
 
+def _checked_skip(skip, smooth):
+    """:func:`trace_channel`'s ``skip`` checked (None: the filter's transient) and its
+    ``smooth`` option."""
+    if skip is not None:
+        skip = check_positive(skip, "skip", integer=True, allow_zero=True)
+    if not (isinstance(smooth, (bool, np.bool_)) or smooth == "auto"):
+        raise DataError(f"smooth must be True, False or 'auto'; found {smooth!r}")
+    return skip
+
+
+def _continuous_parts(sys, channel: Channel, model):
+    """``(A, B, G, dt)`` of a continuous nominal and channel (the law may be fitted in
+    continuous time); None for a discrete nominal."""
+    if ct.isdtime(sys, strict=True):
+        return None
+    return (np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
+            np.asarray(channel.G, dtype=float), float(model.dt))
+
+
+def _check_enough(nleft: int, k0: int, nterms: int) -> None:
+    """Refuse a record too short for the law's candidate terms (DataError)."""
+    if nleft <= nterms:
+        raise DataError(f"{nleft} samples left after skipping {k0} cannot fit a law of "
+                        f"{nterms} candidate terms; give more data or a smaller skip")
+
+
+def _estimate_end(est, nsteps: int, nw: int, k0: int) -> int:
+    """One past the last column of d^ that is finite with its ``nw`` aligned x^ columns
+    (a delayed estimate ends in NaN), at least ``k0``."""
+    okd = np.all(np.isfinite(est.d_est), axis=0)
+    okx = np.all(np.isfinite(est.x_filt), axis=0)
+    Ne = nsteps - nw
+    while Ne > k0 and not (okd[Ne - 1] and okx[Ne + nw - 2]):
+        Ne -= 1
+    return Ne
+
+
+def _excess_variance(d, dnoise) -> float:
+    """The variance of d^ over its estimation variance ``dnoise`` (traces), minus 1."""
+    return float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
+        max(float(np.trace(dnoise)), 1e-300) - 1.0
+
+
+def _unobservable(C, Gd, channel: Channel, cond_tol: float) -> str | None:
+    """Why d is not observable in ``channel`` (the rank condition (17), or ``C G`` nearly
+    singular: ``sigma_min(C G) < cond_tol * ||C|| ||G||``); None when it is."""
+    try:
+        check_rank_condition(C, Gd, channel.labels)
+    except RankConditionError as e:
+        return str(e)
+    sv = np.linalg.svd(C @ Gd, compute_uv=False)
+    if sv.min() < cond_tol * np.linalg.norm(C, 2) * np.linalg.norm(Gd, 2):
+        return (f"C G is nearly singular (sigma_min/sigma_max = "
+                f"{sv.min() / max(sv.max(), 1e-300):.2g}); the error "
+                f"would be practically unobservable")
+    return None
+
+
+def _most_correlated_terms(law, d, xw, uw, align) -> list[int]:
+    """Indices of the law's linear terms d^ correlates with most: the ``_OE_CANDIDATES``
+    best per component of d (terms weighted by ``align`` as d^ sees them)."""
+    lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
+    only = set()
+    for c in range(d.shape[0]):
+        tm = aligned(_eval_terms(law.spec, law.eps, xw, uw)[lin], align[c])
+        tm = tm - tm.mean(axis=1, keepdims=True)
+        dm = d[c] - d[c].mean()
+        corr = np.abs(tm @ dm) / (np.linalg.norm(tm, axis=1) * np.linalg.norm(dm) + 1e-300)
+        only |= {lin[q] for q in np.argsort(-corr)[:_OE_CANDIDATES]}
+    return sorted(only)
+
+
+def _static_model(model, sub0, law, labels, Q, R, cont) -> UpdatedModel:
+    """The channel model augmented with the static law; a law in continuous time folded
+    into the continuous nominal ``cont = (A, B, G, dt)`` and discretized exactly (ZOH)."""
+    static_model = augment_model(model, sub0, unknown=labels, Q=Q, R=R)
+    if law.time_base == "continuous":  # fold the law in continuous time, discretize exactly
+        Ac, Bc, Gc, h = cont
+        Ad, Bd = zoh(Ac + Gc @ law.Ddx, Bc + Gc @ law.Ddu, h)
+        s0 = static_model.sys
+        static_model = replace(static_model, sys=named_ss(
+            Ad, Bd, s0.C, s0.D, s0.dt, states=s0.state_labels, inputs=s0.input_labels,
+            outputs=s0.output_labels, name=s0.name))
+    return static_model
+
+
+def _dynamic_fit(res, min_order: int, max_order: int, k0: int) -> Subsystem:
+    """The unstructured dynamic subsystem on the causal r = 1 filter's d^ (its warnings
+    silenced); the order is the state count pbsid returns (md > 1: md * order)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", GreyboxWarning)
+        dyn = identify_subsystem(res, min_order=max(min_order, 1), max_order=max_order,
+                                 skip=k0)
+    if dyn.Ad.shape[0] != dyn.order:  # md > 1: pbsid may return md*order states
+        dyn = replace(dyn, order=dyn.Ad.shape[0])
+    return dyn
+
 
 def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, *,
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
@@ -738,10 +835,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     ChannelTrace
         With status "skipped" and a reason when (17) fails.
     """
-    if skip is not None:
-        skip = check_positive(skip, "skip", integer=True, allow_zero=True)
-    if not (isinstance(smooth, (bool, np.bool_)) or smooth == "auto"):
-        raise DataError(f"smooth must be True, False or 'auto'; found {smooth!r}")
+    skip = _checked_skip(skip, smooth)
     model = channel_model(sys, channel, dt)
     check_discrete(model)
     if channel.kind == "output":
@@ -749,41 +843,24 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     n, m = model.nstates, model.ninputs - channel.md
     Gd = np.asarray(model.B, dtype=float)[:, m:]
     C = np.asarray(model.C, dtype=float)
-    try:
-        check_rank_condition(C, Gd, channel.labels)
-    except RankConditionError as e:
-        return ChannelTrace(channel=channel, status="skipped", reason=str(e), model=model)
-    sv = np.linalg.svd(C @ Gd, compute_uv=False)
-    if sv.min() < cond_tol * np.linalg.norm(C, 2) * np.linalg.norm(Gd, 2):
-        return ChannelTrace(channel=channel, status="skipped", model=model,
-                            reason=f"C G is nearly singular (sigma_min/sigma_max = "
-                                   f"{sv.min() / max(sv.max(), 1e-300):.2g}); the error "
-                                   f"would be practically unobservable")
+    reason = _unobservable(C, Gd, channel, cond_tol)
+    if reason is not None:
+        return ChannelTrace(channel=channel, status="skipped", reason=reason, model=model)
     labels = list(channel.labels)
     res = uikf(model, y, u, unknown=labels, Q=Q, R=R)
     N = y.shape[1] - 1
     k0 = skip if skip is not None else res.settled(20)
     nterms = (4 * n + 1 if nonlinear else n) + m
-    if N - k0 <= nterms:
-        raise DataError(f"{N - k0} samples left after skipping {k0} cannot fit a law of "
-                        f"{nterms} candidate terms; give more data or a smaller skip")
+    _check_enough(N - k0, k0, nterms)
     notes = []
-    cont = None if ct.isdtime(sys, strict=True) else (
-        np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float),
-        np.asarray(channel.G, dtype=float), float(model.dt))
+    cont = _continuous_parts(sys, channel, model)
     est, r, align = _law_estimate(model, labels, y, u, Q, R, res, smooth, notes,
                                   None if cont is None else (cont[0], cont[2]))
     # est.d_est[:, j] estimates sum_i align[:, i] d[j + i]: the law's terms are weighted alike,
     # so x and u carry nw - 1 more columns than d (the last r columns of a delayed d^ are NaN)
     nw = align.shape[1]
-    okd = np.all(np.isfinite(est.d_est), axis=0)
-    okx = np.all(np.isfinite(est.x_filt), axis=0)
-    Ne = y.shape[1] - nw
-    while Ne > k0 and not (okd[Ne - 1] and okx[Ne + nw - 2]):
-        Ne -= 1
-    if Ne - k0 <= nterms:
-        raise DataError(f"{Ne - k0} samples left after skipping {k0} cannot fit a law of "
-                        f"{nterms} candidate terms; give more data or a smaller skip")
+    Ne = _estimate_end(est, y.shape[1], nw, k0)
+    _check_enough(Ne - k0, k0, nterms)
     d = est.d_est[:, k0:Ne]
     xw = est.x_filt[:, k0:Ne + nw - 1]
     uw = u[:, k0:Ne + nw - 1]
@@ -810,8 +887,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     # d^ barely above its own estimation noise: choose the law by output error (r = 1)
     dnoise = np.atleast_2d(est.d_cov) if averaged or not est.smoothed else \
         np.diag(np.mean(est.d_var[:, k0:Ne], axis=1))
-    excess = float(np.trace(np.atleast_2d(np.cov(d, bias=True)))) / \
-        max(float(np.trace(dnoise)), 1e-300) - 1.0
+    excess = _excess_variance(d, dnoise)
     # output error needs a simulation that stays bounded over the record
     oe_ok = not unstable_reason(model, y.shape[1])
     if not oe_ok:
@@ -836,16 +912,9 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         # most (per component of d). Refining a 31-term law term by term cost 72 s of a
         # 200 s run (n = 32, positions only) and ended with no term.
         law0_npar = law.npar
-        lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
-        only = set()
-        for c in range(channel.md):
-            tm = aligned(_eval_terms(law.spec, law.eps, xw, uw)[lin], align[c])
-            tm = tm - tm.mean(axis=1, keepdims=True)
-            dm = d[c] - d[c].mean()
-            corr = np.abs(tm @ dm) / (np.linalg.norm(tm, axis=1) * np.linalg.norm(dm) + 1e-300)
-            only |= {lin[q] for q in np.argsort(-corr)[:_OE_CANDIDATES]}
         law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
-                                channel.units, cont=cont, noise=(Q, R), only=sorted(only))
+                                channel.units, cont=cont, noise=(Q, R),
+                                only=_most_correlated_terms(law, d, xw, uw, align))
         notes.append(f"{'a force whose ' if channel.relative else ''}d^ law is not sparse "
                      f"({law0_npar} terms): static law chosen by output error on y among "
                      f"the terms d^ correlates with most")
@@ -877,23 +946,11 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     else:
         refined_G = None
     sub0 = _static_subsystem(law, replace(res, d_cov=dnoise), d, x, uu)
-    static_model = augment_model(model, sub0, unknown=labels, Q=Q, R=R)
-    if law.time_base == "continuous":  # fold the law in continuous time, discretize exactly
-        Ac, Bc, Gc, h = cont
-        Ad, Bd = zoh(Ac + Gc @ law.Ddx, Bc + Gc @ law.Ddu, h)
-        s0 = static_model.sys
-        static_model = replace(static_model, sys=named_ss(
-            Ad, Bd, s0.C, s0.D, s0.dt, states=s0.state_labels, inputs=s0.input_labels,
-            outputs=s0.output_labels, name=s0.name))
+    static_model = _static_model(model, sub0, law, labels, Q, R, cont)
     dyn, dyn_model = None, None
     if max_order >= max(min_order, 1):
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", GreyboxWarning)
-                dyn = identify_subsystem(res, min_order=max(min_order, 1),
-                                         max_order=max_order, skip=k0)
-            if dyn.Ad.shape[0] != dyn.order:  # md > 1: pbsid may return md*order states
-                dyn = replace(dyn, order=dyn.Ad.shape[0])
+            dyn = _dynamic_fit(res, min_order, max_order, k0)
             dyn_model = augment_model(model, dyn, unknown=labels, Q=Q, R=R)
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"dynamic fit failed: {e}")
