@@ -783,6 +783,64 @@ def _dynamic_fit(res, min_order: int, max_order: int, k0: int) -> Subsystem:
     return dyn
 
 
+def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whitened: bool,
+                 averaged: bool, excess: float, oe_ok: bool, fit_data, at, notes):
+    """The static law fitted on d^, refined by output error on y where that is defined:
+    chosen by output error when d^ is mostly noise or the d^ law is not sparse, its
+    coefficients refined (linear or nonlinear), then its terms kept only where the one
+    criterion supports them (:func:`greybox.trace.oe.prune_by_criterion`). ``fit_data``:
+    ``(d, xw, uw, align)`` of the d^ fit; ``at``: the aligned ``(x, u)``."""
+    d, xw, uw, align = fit_data
+    x, uu = at
+    labels = list(channel.labels)
+    # (a delayed or smoothed d^ is fitted by GLS, whose selection already weighs its coloured
+    # noise: only an empty law sends it to output error; its raw variance is mostly
+    # high-frequency noise that says nothing about the law, and Q may be overstated)
+    low_snr = law.npar == 0 if whitened else excess < _LOW_SNR
+    if low_snr and not averaged and oe_ok:
+        law = _select_static_oe(law, model, channel.md, y, u, x0, k0, labels,
+                                channel.units, cont=cont, noise=noise)
+        notes.append("no term explains the delayed d^: static law chosen by output error on y"
+                     if whitened else f"d^ is mostly estimation noise (variance only "
+                     f"{100 * excess:.2g}% above Pd): static law chosen by output error on y")
+    elif oe_ok and ((channel.relative and (averaged or law.npar > 2 * channel.md)) or
+                    (not law.nonlinear and law.npar > _DENSE_LAW * channel.md)):
+        # a force between bodies whose d^ fit is not sparse (noise-dominated, e.g.
+        # positions only), or any linear d^ law of more than _DENSE_LAW terms per component
+        # of d: choose the law by output error among the linear terms d^ correlates with
+        # most (per component of d). Refining a 31-term law term by term cost 72 s of a
+        # 200 s run (n = 32, positions only) and ended with no term.
+        law0_npar = law.npar
+        law = _select_static_oe(law, model, channel.md, y, u, x0, k0, labels,
+                                channel.units, cont=cont, noise=noise,
+                                only=_most_correlated_terms(law, d, xw, uw, align))
+        notes.append(f"{'a force whose ' if channel.relative else ''}d^ law is not sparse "
+                     f"({law0_npar} terms): static law chosen by output error on y among "
+                     f"the terms d^ correlates with most")
+    elif not law.nonlinear and law.npar and oe_ok:
+        tscale = law.term_scale(x, uu)
+        law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, x0,
+                                            k0, labels, channel.units, tscale, cont, noise)
+        if se_y < se_d:
+            notes.append(f"static law refined by output error on y: estimation SE "
+                         f"{se_d:.3g}% -> {se_y:.3g}%")
+    elif law.nonlinear and oe_ok:  # the same for a nonlinear law (simulated, pruned)
+        law, se_d, se_y = _refine_nonlinear_oe(law, model, channel.md, y, u, x0,
+                                               k0, labels, channel.units, law.term_scale(x, uu),
+                                               noise=noise)
+        if se_y < se_d:
+            notes.append(f"nonlinear static law refined by output error on y: estimation SE "
+                         f"{se_d:.3g}% -> {se_y:.3g}%")
+    # the one criterion: terms only where the data support them (by output error: not for a
+    # model with an integrator, whose simulation drifts; EMPS lost its |v| term so)
+    if oe_ok and law.npar > 1 and not has_marginal_pole(model):
+        law, more = prune_by_criterion(law, model, channel.md, y, u, x0, k0,
+                                       labels, channel.units, law.term_scale(x, uu),
+                                       cont if law.time_base == "continuous" else None, noise)
+        notes += more
+    return law
+
+
 def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, *,
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
                   max_order: int = 2, min_order: int = 1, skip: int | None = None,
@@ -893,52 +951,9 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     if not oe_ok:
         notes.append("the nominal model is unstable: the static law is the least-squares fit "
                      "on d^ (no output-error refinement)")
-    # (a delayed or smoothed d^ is fitted by GLS, whose selection already weighs its coloured
-    # noise: only an empty law sends it to output error; its raw variance is mostly
-    # high-frequency noise that says nothing about the law, and Q may be overstated)
-    whitened = est.smoothed or r >= 2
-    low_snr = law.npar == 0 if whitened else excess < _LOW_SNR
-    if low_snr and not averaged and oe_ok:
-        law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
-                                channel.units, cont=cont, noise=(Q, R))
-        notes.append("no term explains the delayed d^: static law chosen by output error on y"
-                     if whitened else f"d^ is mostly estimation noise (variance only "
-                     f"{100 * excess:.2g}% above Pd): static law chosen by output error on y")
-    elif oe_ok and ((channel.relative and (averaged or law.npar > 2 * channel.md)) or
-                    (not law.nonlinear and law.npar > _DENSE_LAW * channel.md)):
-        # a force between bodies whose d^ fit is not sparse (noise-dominated, e.g.
-        # positions only), or any linear d^ law of more than _DENSE_LAW terms per component
-        # of d: choose the law by output error among the linear terms d^ correlates with
-        # most (per component of d). Refining a 31-term law term by term cost 72 s of a
-        # 200 s run (n = 32, positions only) and ended with no term.
-        law0_npar = law.npar
-        law = _select_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0], k0, labels,
-                                channel.units, cont=cont, noise=(Q, R),
-                                only=_most_correlated_terms(law, d, xw, uw, align))
-        notes.append(f"{'a force whose ' if channel.relative else ''}d^ law is not sparse "
-                     f"({law0_npar} terms): static law chosen by output error on y among "
-                     f"the terms d^ correlates with most")
-    elif not law.nonlinear and law.npar and oe_ok:
-        tscale = law.term_scale(x, uu)
-        law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
-                                            k0, labels, channel.units, tscale, cont, (Q, R))
-        if se_y < se_d:
-            notes.append(f"static law refined by output error on y: estimation SE "
-                         f"{se_d:.3g}% -> {se_y:.3g}%")
-    elif law.nonlinear and oe_ok:  # the same for a nonlinear law (simulated, pruned)
-        law, se_d, se_y = _refine_nonlinear_oe(law, model, channel.md, y, u, res.x_filt[:, 0],
-                                               k0, labels, channel.units, law.term_scale(x, uu),
-                                               noise=(Q, R))
-        if se_y < se_d:
-            notes.append(f"nonlinear static law refined by output error on y: estimation SE "
-                         f"{se_d:.3g}% -> {se_y:.3g}%")
-    # the one criterion: terms only where the data support them (by output error: not for a
-    # model with an integrator, whose simulation drifts; EMPS lost its |v| term so)
-    if oe_ok and law.npar > 1 and not has_marginal_pole(model):
-        law, more = prune_by_criterion(law, model, channel.md, y, u, res.x_filt[:, 0], k0,
-                                       labels, channel.units, law.term_scale(x, uu),
-                                       cont if law.time_base == "continuous" else None, (Q, R))
-        notes += more
+    law = _refined_law(law, model, channel, y, u, res.x_filt[:, 0], k0, cont, (Q, R),
+                       est.smoothed or r >= 2, averaged, excess, oe_ok, (d, xw, uw, align),
+                       (x, uu), notes)
     if channel.kind == "force" and cont is not None and oe_ok and law.npar \
             and not law.nonlinear and law.time_base == "continuous":
         refined_G = _free_direction(sys, channel, model, cont, law, y, u, res.x_filt[:, 0], k0,
