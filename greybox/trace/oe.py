@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
-from .._lti import lti_states
+from .._lti import lti_output, lti_states
 from .intervals import hac_covariance, undetermined
 from .laws import LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction, linear_part
 
@@ -95,8 +95,7 @@ def scaled_output_error(Ad: NDArray, Bd: NDArray, C: NDArray, D: NDArray, y: NDA
     if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
         return np.full(y[:, k0:].size, 1e6)
     with np.errstate(all="ignore"):
-        x = lti_states(Ad, Bd @ u, x0)
-        r = ((y - C @ x - D @ u)[:, k0:] / scale[:, None]).ravel()
+        r = ((y - lti_output(Ad, Bd, C, D, u, x0))[:, k0:] / scale[:, None]).ravel()
     return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
 
 
