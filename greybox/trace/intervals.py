@@ -103,7 +103,12 @@ def residual_colour(r: NDArray) -> float:
     integrates the process noise: a BIC on every sample would take terms that only
     fit its colour).
     """
-    r = r / np.maximum(np.std(r, axis=1, keepdims=True), 1e-300)
+    with np.errstate(over="ignore", invalid="ignore"):
+        sd = np.std(r, axis=1)
+    live = np.isfinite(sd) & (sd > 0)  # a constant row (a diverged trial, clipped) has none
+    if not live.any():
+        return 1.0
+    r = r[live] / sd[live, None]
     T = r.shape[1]
     # long-run variance of the mean residual per output: hac_covariance of a constant fit
     lr = [float(hac_covariance(np.ones((T, 1)), ro, 1)[0, 0]) * T for ro in r]
