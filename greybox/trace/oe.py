@@ -274,7 +274,10 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     unstable. Here the selected coefficients are re-fitted to minimize the
     simulation error of the augmented model on the outputs (in continuous
     time when ``cont`` is given), starting from the d^ fit (shrunk towards
-    zero until the model is stable); terms whose 95 % interval contains 0
+    zero until the model is stable); every term is then checked by the
+    output-error selection's rule (the BIC on the residual's independent samples,
+    :func:`_backward`: a term the d^ regression took where the simulation does
+    not want it is dropped), and terms whose 95 % interval contains 0
     are then dropped one at a time. Returns ``(law, se_before, se_after)``
     with the law's ``ci`` set; the law is unchanged (no intervals) when the
     refinement does not lower the simulation error.
@@ -293,6 +296,13 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     se1 = prob.se(sol.x, sel)
     if not se1 < se0 and cont is None:
         return law, se0, se0
+    if len(sel) >= 2:  # terms chosen on d^ kept only where the output error supports them
+        p = prob.y.shape[0]
+        sel2, theta2 = _backward(prob, sel, sol.x, sol.fun, prob.y[:, k0:].size,
+                                 lambda r: residual_colour(np.asarray(r).reshape(p, -1)),
+                                 len, 1.0, 60)
+        if len(sel2) < len(sel):
+            sel, sol = sel2, prob.fit(sel2, theta2)
     sel, sol, hw = _prune(prob, sel, sol)
     theta = sol.x if sol is not None else np.zeros(0)
     se1 = prob.se(theta, sel)
