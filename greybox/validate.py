@@ -14,7 +14,7 @@ import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ._lti import lti_states
+from ._lti import lti_output
 from ._validation import (
     check_discrete,
     check_positive,
@@ -200,9 +200,8 @@ def simulate_output(sys: ct.StateSpace, u: NDArray, x0: NDArray | None = None) -
     """Noise-free output of a discrete model, shape (noutputs, nsteps)."""
     A, B, C, D = (np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D))
     x0 = np.zeros(A.shape[0]) if x0 is None else x0
-    x = lti_states(A, B @ u, x0)
     with np.errstate(over="ignore", invalid="ignore"):  # diverged: callers check
-        return C @ x + D @ u
+        return lti_output(A, B, C, D, u, x0)
 
 
 def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,

@@ -130,7 +130,7 @@ from .nonlinear import (
 )
 from .progress import ProgressClock
 from .trace import ChannelTrace, resolve_channel_spec
-from .trace.intervals import hac_covariance, undetermined
+from .trace.intervals import hac_covariance, residual_colour, undetermined
 from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
                          hinge_name, linear_part)
 from .trace.oe import _noise_floor, forward_select_oe
@@ -915,20 +915,7 @@ def _oe_likelihood_ratio(model_d, x_start, y, u, C, D, se_nom: float,
     return float(r.size * 2 * np.log(se_nom / se_upd) / colour), colour
 
 
-def _residual_colour(r: NDArray) -> float:
-    """Colour c >= 1 of residuals r (noutputs, nsteps): long-run variance over variance.
-
-    Per output (scaled to unit variance) the long-run variance of its mean
-    (:func:`greybox.trace.intervals.hac_covariance` of a constant fit: the
-    Bartlett-weighted sum of its autocorrelations), averaged over outputs,
-    over the mean square: the residual carries about nsteps / c independent
-    samples per output.
-    """
-    r = r / np.maximum(np.std(r, axis=1, keepdims=True), 1e-300)
-    T = r.shape[1]
-    # long-run variance of the mean residual per output: hac_covariance of a constant fit
-    lr = [float(hac_covariance(np.ones((T, 1)), ro, 1)[0, 0]) * T for ro in r]
-    return max(1.0, float(np.mean(lr)) / float(np.mean(r**2)))
+_residual_colour = residual_colour  # moved to greybox.trace.intervals (the linear trace uses it)
 
 
 def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, align,

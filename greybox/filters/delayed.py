@@ -91,10 +91,16 @@ class RelativeDegree:
 
 
 # --------------------------------------------------------------------------- kernels
+_GONE = "gone"  # G~ has lost rank: so has every later r's (see _shifted_input)
+
+
 def _shifted_input(A, C, G, r):
     """(G~, G_r = A^(r-1) G~) for relative degree r, or None if rank(C G_r) < md.
 
     ``G~ = (I - O^+ O) G`` with ``O = [C; ...; C A^(r-2)]`` (G~ = G for r = 1).
+    ``_GONE`` when G~ itself has lost rank: O only gains rows as r grows, so
+    ``G~_(r+1) = (I - P_(r+1)) G~_r`` (P the projection on O's row space) and no
+    later r can regain it (with every state measured, from r = 2 on).
     """
     n, md = G.shape
     if r == 1:
@@ -110,7 +116,7 @@ def _shifted_input(A, C, G, r):
         return None
     sG = np.linalg.svd(Gt, compute_uv=False)
     if sG[md - 1] <= _RANK_TOL * np.linalg.norm(G, 2):
-        return None
+        return _GONE
     return Gt, Gr
 
 
@@ -135,6 +141,8 @@ def _choose(A, C, G, Q, R, labels, max_degree, switch_ratio, maxiter):
     var = np.full(len(cands), np.nan)
     for i, r in enumerate(cands):
         shifted = _shifted_input(A, C, G, r)
+        if shifted is _GONE:
+            break  # and every later r: each tried cost O(r p n^2), O(p n^4) up to r = n
         if shifted is not None:
             var[i] = _steady_d_var(A, C, shifted[1], Q, R, maxiter)
     if np.all(np.isnan(var)):
@@ -267,7 +275,7 @@ def first_order_hold(Ac: ArrayLike, Gc: ArrayLike, dt: float
 def _weights(A, C, G, r, labels, foh=None):
     n, md = G.shape
     shifted = _shifted_input(A, C, G, r)
-    if shifted is None:
+    if not isinstance(shifted, tuple):  # None or _GONE
         raise RankConditionError(
             f"Unknown input {list(labels)} not observable with relative degree {r}: "
             f"rank(C A^{r - 1} G~) < md = {md}"
@@ -479,7 +487,7 @@ def _delayed_parts(sys, y, u, unknown, Q, R, x0, P0, relative_degree):
     else:
         r = check_positive(relative_degree, "relative_degree", integer=True)
     shifted = _shifted_input(A, C, G, r)
-    if shifted is None:
+    if not isinstance(shifted, tuple):  # None or _GONE
         raise RankConditionError(
             f"Unknown input {list(labels)} not observable with relative degree {r}: "
             f"rank(C A^{r - 1} G~) < md = {G.shape[1]} (G~ = the part of G no output sees "

@@ -6,7 +6,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.fft import next_fast_len
 
-__all__ = ["UNDETERMINED_COND", "hac_covariance", "undetermined"]
+__all__ = ["UNDETERMINED_COND", "hac_covariance", "residual_colour", "undetermined"]
 
 #: The data do not determine a coefficient that weighs on a direction of the fit whose
 #: Jacobian singular value (columns scaled to unit norm) is below the largest over this
@@ -91,3 +91,25 @@ def hac_covariance(jac: NDArray, resid: NDArray, nout: int) -> NDArray[np.float6
     JtJ = jac.T @ jac
     Ji = np.linalg.pinv(JtJ)
     return Ji @ Om @ Ji
+
+
+def residual_colour(r: NDArray) -> float:
+    """Colour c >= 1 of residuals r (noutputs, nsteps): long-run variance over variance.
+
+    Per output (scaled to unit variance) the long-run variance of its mean
+    (:func:`hac_covariance` of a constant fit: the Bartlett-weighted sum of its
+    autocorrelations), averaged over outputs, over the mean square: the residual
+    carries about nsteps / c independent samples per output (an output error
+    integrates the process noise: a BIC on every sample would take terms that only
+    fit its colour).
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        sd = np.std(r, axis=1)
+    live = np.isfinite(sd) & (sd > 0)  # a constant row (a diverged trial, clipped) has none
+    if not live.any():
+        return 1.0
+    r = r[live] / sd[live, None]
+    T = r.shape[1]
+    # long-run variance of the mean residual per output: hac_covariance of a constant fit
+    lr = [float(hac_covariance(np.ones((T, 1)), ro, 1)[0, 0]) * T for ro in r]
+    return max(1.0, float(np.mean(lr)) / float(np.mean(r**2)))
