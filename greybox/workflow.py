@@ -1013,13 +1013,36 @@ class _Pass:
     # ------------------------------------------------------------------ choose
     def choose(self) -> Candidate | None:
         """The lowest estimation SE, and within ``parsimony`` of it the fewest parameters
-        (then the fewest components, then the SE); a force re-traced if it fits better."""
+        (then the fewest components, then the SE); a force re-traced if it fits better;
+        a static law's terms then kept only where the one criterion supports them."""
         finite = [s for s in self.scored if np.isfinite(s.se)]
         if not finite:
             return None
         best_se = min(s.se for s in finite)
         near = [s for s in finite if s.se <= self.S.parsimony * best_se]
-        return self.retraced(min(near, key=lambda s: (s.npar, s.trace.channel.md, s.se)))
+        return self.pruned(self.retraced(min(near, key=lambda s: (s.npar,
+                                                                    s.trace.channel.md, s.se))))
+
+    def pruned(self, pick: Candidate) -> Candidate:
+        """The chosen static law traced again with its terms pruned by the one criterion
+        (:func:`greybox.trace.oe.prune_by_criterion`), scored; ``pick`` itself when no
+        term was dropped or the pruned law cannot be simulated."""
+        law = pick.trace.static
+        if pick.kind != "static" or law is None or law.npar < 2 or law.output is not None:
+            return pick
+        breaks = any(sp[1] in BREAK_KINDS for sp in law.spec)
+        n_before = len(self.scored)
+        try:
+            tr = self._trace(pick.trace.channel, nonlinear=self.S.nonlinear, max_order=0,
+                             breaks=breaks, prune=True)
+        except (GreyboxError, np.linalg.LinAlgError) as e:
+            self.notes.append(f"{pick.trace.channel.name}: criterion prune failed: {e}")
+            return pick
+        if tr.status != "ok" or tr.static is None or tr.static.npar >= law.npar:
+            return pick
+        self.score(tr)
+        new = [s for s in self.scored[n_before:] if s.kind == "static" and np.isfinite(s.se)]
+        return new[0] if new else pick
 
     # ------------------------------------------------------------------ 3. gate
     def judge(self, r: Residual, chosen: Candidate) -> Verdict:

@@ -784,7 +784,8 @@ def _dynamic_fit(res, min_order: int, max_order: int, k0: int) -> Subsystem:
 
 
 def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whitened: bool,
-                 averaged: bool, excess: float, oe_ok: bool, fit_data, at, notes):
+                 averaged: bool, excess: float, oe_ok: bool, fit_data, at, notes,
+                 prune: bool = False):
     """The static law fitted on d^, refined by output error on y where that is defined:
     chosen by output error when d^ is mostly noise or the d^ law is not sparse, its
     coefficients refined (linear or nonlinear), then its terms kept only where the one
@@ -833,7 +834,7 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
                          f"{se_d:.3g}% -> {se_y:.3g}%")
     # the one criterion: terms only where the data support them (by output error: not for a
     # model with an integrator, whose simulation drifts; EMPS lost its |v| term so)
-    if oe_ok and law.npar > 1 and not has_marginal_pole(model):
+    if prune and oe_ok and law.npar > 1 and not has_marginal_pole(model):
         law, more = prune_by_criterion(law, model, channel.md, y, u, x0, k0,
                                        labels, channel.units, law.term_scale(x, uu),
                                        cont if law.time_base == "continuous" else None, noise)
@@ -845,7 +846,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
                   max_order: int = 2, min_order: int = 1, skip: int | None = None,
                   cond_tol: float = 1e-6, smooth: bool | str = "auto",
-                  breaks: bool = False) -> ChannelTrace:
+                  breaks: bool = False, prune: bool = False) -> ChannelTrace:
     """Run the unknown-input filter for one channel and fit static and dynamic laws.
 
     Parameters
@@ -875,6 +876,12 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         whose whole effect passes through this channel (:func:`whole_inputs`;
         :data:`greybox.trace.laws.BREAK_KINDS`). Close the loop traces such
         a channel twice, without and with them, and lets its criterion choose.
+    prune : bool
+        Keep the static law's terms only where the one criterion supports
+        them (:func:`greybox.trace.oe.prune_by_criterion`: each term refitted
+        by output error and dropped while the output-error BIC on effective
+        samples falls). Close the loop asks it for the candidate it chose
+        (pruning every candidate cost 2-6x the trace).
     smooth : bool or "auto"
         Fit the static law on the fixed-interval smoothed d^ and x^
         (:func:`greybox.smooth_uikf`, the whole record is available) rather
@@ -953,7 +960,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                      "on d^ (no output-error refinement)")
     law = _refined_law(law, model, channel, y, u, res.x_filt[:, 0], k0, cont, (Q, R),
                        est.smoothed or r >= 2, averaged, excess, oe_ok, (d, xw, uw, align),
-                       (x, uu), notes)
+                       (x, uu), notes, prune)
     if channel.kind == "force" and cont is not None and oe_ok and law.npar \
             and not law.nonlinear and law.time_base == "continuous":
         refined_G = _free_direction(sys, channel, model, cont, law, y, u, res.x_filt[:, 0], k0,
