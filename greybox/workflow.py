@@ -674,8 +674,7 @@ class _Pass:
                                         res.sys, res.G, tr.static, ys, us, x0, Q=sm.Q, R=sm.R))
             else:
                 se = self.fit_error(sm.sys, sm.Q, sm.R)
-            brk = [sp[0] for j, sp in enumerate(tr.static.spec)
-                   if sp[1] in BREAK_KINDS and np.any(tr.static.coef[:, j])]
+            brk = tr.static.breakpoints
             self.cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok",
                                              f"with {brk[0]}" if brk else ""))
             self.scored.append(Candidate(se, tr.static.npar, tr, "static"))
@@ -731,9 +730,7 @@ class _Pass:
             return None
         if tr_.status != "ok":
             return None
-        if breaks and not (tr_.static is not None and any(
-                sp[1] in BREAK_KINDS and np.any(tr_.static.coef[:, j])
-                for j, sp in enumerate(tr_.static.spec))):
+        if breaks and not (tr_.static is not None and tr_.static.breakpoints):
             self.notes.append(f"{ch_.name}: no input dead zone or saturation selected")
             return None
         self.score(tr_)

@@ -342,6 +342,12 @@ class StaticLaw:
         keep = np.flatnonzero(np.any(self.coef != 0, axis=0))
         return self.coef[:, keep], tuple(self.spec[j] for j in keep)
 
+    @property
+    def breakpoints(self) -> list[str]:
+        """Names of the selected dead-zone and saturation terms (:data:`BREAK_KINDS`)."""
+        return [sp[0] for j, sp in enumerate(self.spec)
+                if sp[1] in BREAK_KINDS and np.any(self.coef[:, j])]
+
     def term_scale(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """RMS of every candidate term on (x (nstates, K), u (ninputs, K)), shape (nterms,)."""
         return np.sqrt(np.mean(_eval_terms(self.spec, self.eps, x, u) ** 2, axis=1))
