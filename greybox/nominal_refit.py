@@ -222,6 +222,63 @@ def law_coordinates(law) -> tuple[NDArray, Callable, list, list]:
     return theta0.astype(float), law_at, sel, hinges
 
 
+@dataclass(frozen=True)
+class _JointProblem:
+    """The output-error problem of :func:`refit_jointly`: the coordinates ``theta`` are the
+    declared parameters ``keys``, the law's coordinates, the spill ratios, the initial state."""
+
+    base: ct.NonlinearIOSystem
+    disc: Callable
+    y: NDArray
+    u: NDArray
+    C: NDArray
+    D: NDArray
+    keys: list
+    th0: NDArray
+    law: object
+    law_at: Callable | None
+    G: NDArray | None
+    max_nfev: int
+    scale: NDArray
+    big: NDArray
+
+    def build(self, theta, sp):
+        """The model, law and law direction at ``theta`` (spill into the states ``sp``)."""
+        keys, th0, law, G, base = self.keys, self.th0, self.law, self.G, self.base
+        kp, nl = len(keys), len(th0)
+        model = with_parameters(base, dict(zip(keys, theta[:kp])))
+        lw, Gt = None, None
+        if law is not None:
+            lw = self.law_at(theta[kp:kp + nl])
+            Gt = G.copy()
+            for q, j in enumerate(sp):
+                Gt[j, 0] = theta[kp + nl + q] * G[np.flatnonzero(G[:, 0])[0], 0]
+            model = add_law(model, Gt, lw.evaluate, name=f"{base.name}_updated")
+        return model, lw, Gt
+
+    def resid_of(self, theta, sp):
+        """Scaled output errors (flat) and the simulation; ``big`` and None if it fails."""
+        y, u, n, big = self.y, self.u, self.base.nstates, self.big
+        model, _, _ = self.build(theta, sp)
+        try:
+            sim = simulate_nonlinear(self.disc(model), u, x0=theta[-n:])
+        except (GreyboxError, FloatingPointError, ValueError):
+            return big, None
+        r = (y - self.C @ sim.x - self.D @ u) / self.scale
+        if not np.all(np.isfinite(r)) or np.max(np.abs(r)) > _BIG:
+            return big, None
+        return r.ravel(), sim
+
+    def fit(self, sp, start):
+        """The least-squares fit from ``start`` (None if it fails)."""
+        try:
+            with np.errstate(all="ignore"):
+                return least_squares(lambda t: self.resid_of(t, sp)[0], start, x_scale="jac",
+                                     max_nfev=self.max_nfev, ftol=1e-6, xtol=1e-6)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+
+
 def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDArray,
                   x_start: NDArray, C: NDArray, D: NDArray, *, law=None,
                   G: NDArray | None = None, spill: bool = True, max_nfev: int = 60,
@@ -267,49 +324,19 @@ def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDA
     keys = list(p0)
     n = base.nstates
     if law is not None:
-        th0, law_at, sel, hinges = law_coordinates(law)
+        th0, law_at, sel, _ = law_coordinates(law)
         G = np.asarray(G, dtype=float).reshape(n, -1)
     else:
-        th0, law_at, sel, hinges = np.zeros(0), None, [], []
+        th0, law_at, sel = np.zeros(0), None, []
     unit = law is not None and G.shape[1] == 1 and np.count_nonzero(G[:, 0]) == 1
     others = [j for j in range(n) if unit and spill and G[j, 0] == 0]
-    scale = np.maximum(np.std(y, axis=1), 1e-300)[:, None]
-    big = np.full(y.size, _BIG)
-
-    def build(theta, sp):
-        kp, nl = len(keys), len(th0)
-        model = with_parameters(base, dict(zip(keys, theta[:kp])))
-        lw, Gt = None, None
-        if law is not None:
-            lw = law_at(theta[kp:kp + nl])
-            Gt = G.copy()
-            for q, j in enumerate(sp):
-                Gt[j, 0] = theta[kp + nl + q] * G[np.flatnonzero(G[:, 0])[0], 0]
-            model = add_law(model, Gt, lw.evaluate, name=f"{base.name}_updated")
-        return model, lw, Gt
-
-    def resid_of(theta, sp):
-        model, _, _ = build(theta, sp)
-        try:
-            sim = simulate_nonlinear(disc(model), u, x0=theta[-n:])
-        except (GreyboxError, FloatingPointError, ValueError):
-            return big, None
-        r = (y - C @ sim.x - D @ u) / scale
-        if not np.all(np.isfinite(r)) or np.max(np.abs(r)) > _BIG:
-            return big, None
-        return r.ravel(), sim
-
-    def fit(sp, start):
-        try:
-            with np.errstate(all="ignore"):
-                return least_squares(lambda t: resid_of(t, sp)[0], start, x_scale="jac",
-                                     max_nfev=max_nfev, ftol=1e-6, xtol=1e-6)
-        except (ValueError, np.linalg.LinAlgError):
-            return None
-
+    jp = _JointProblem(base=base, disc=disc, y=y, u=u, C=C, D=D, keys=keys, th0=th0,
+                       law=law, law_at=law_at, G=G, max_nfev=max_nfev,
+                       scale=np.maximum(np.std(y, axis=1), 1e-300)[:, None],
+                       big=np.full(y.size, _BIG))
     start = np.concatenate([[p0[k] for k in keys], th0, np.zeros(len(others)),
                             np.asarray(x_start, dtype=float)])
-    sol = fit(others, start)
+    sol = jp.fit(others, start)
     if sol is None or not np.all(np.isfinite(sol.x)) or np.all(sol.fun == _BIG):
         return None
     kp, nl = len(keys), len(th0)
@@ -321,7 +348,7 @@ def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDA
             idx = list(range(kp + nl)) + [kp + nl + q for q in keep] + \
                 list(range(len(sol.x) - n, len(sol.x)))
             others = [others[q] for q in keep]
-            sol2 = fit(others, sol.x[idx])
+            sol2 = jp.fit(others, sol.x[idx])
             if sol2 is None or not np.all(np.isfinite(sol2.x)):
                 return None
             sol, half = sol2, _halfwidths(sol2, y.shape[0])
@@ -340,13 +367,13 @@ def refit_jointly(base: ct.NonlinearIOSystem, disc: Callable, y: NDArray, u: NDA
                             G=G, spill=spill, max_nfev=max_nfev, names=tuple(keys))
         return None if out is None else replace(
             out, dropped=out.dropped + tuple(law.spec[j][0] for _, j in twins))
-    r, sim = resid_of(sol.x, others)
+    r, sim = jp.resid_of(sol.x, others)
     if sim is None:
         return None
     lost = tuple(keys[i] for i in flat if i < kp)
     if lost:  # only a combination of them is determined: no interval for each
         half[list(flat)] = np.nan
-    model, lw, Gt = build(sol.x, others)
+    model, lw, Gt = jp.build(sol.x, others)
     if lw is not None:  # the law's 95 % half-widths from the joint covariance
         ci = np.full_like(lw.coef, np.nan)
         for q, (c, j) in enumerate(sel):

@@ -12,6 +12,95 @@ closed-loop (PAPER_NOTES §8.4), so the dynamic candidates are identified with
 output-error separable least squares (regressors are filtered inputs only),
 and the static candidate (order 0) by least squares; see
 :func:`identify_subsystem` for the order choice.
+
+The parallel delta-augmentation baseline, :func:`delta_update`: ``dy = y -
+y_initial`` modelled from ``u`` as a sum of first-order modes with poles from
+N4SID and residues fitted by prediction error. The procedure, in order:
+
+1. **Poles.** N4SID (:func:`greybox.ident.n4sid`, one block-Hankel factor
+   shared by all orders) of every order ``1..max_order`` on the whole
+   record, at horizons 10 and 40 (short horizons suit fast dynamics, long
+   ones slow dynamics on oversampled data), in two variants: "plain"
+   (``u -> W^-1 dy``) and "marginal" (``u -> [P(q) U1^T W^-1 dy; U2^T
+   W^-1 dy]``, the initial model's unit-circle modes differenced out)
+   when ``sys`` has such modes that the outputs see. A candidate with a
+   pole on or outside the unit circle is rejected (not mirrored): it
+   would diverge in simulation (PAPER_NOTES §8.6). Order 0 (no pole) is
+   a candidate too when there are held integrators.
+2. **Held integrators.** When the initial model's eigenvalue 1 is
+   semisimple (integrators, as in the tape drive) and observed, every
+   candidate also gets the term ``U1 R_0 sum u`` with the pole held
+   *exactly* at 1 and its output directions ``U1 = orth(C V)`` (``A V =
+   V``): ``dy`` carries the drift of the initial model's integrators
+   that the truth does not have, which no pole inside the unit circle
+   can follow. ``R_0`` is fitted (zero if the data do not need it), so
+   this nests the structure without them.
+3. **Residues by prediction error.** With the poles fixed the model is
+   linear in the residues, which are fitted by least squares on the
+   one-step prediction errors of the *combined* model under the initial
+   model's noise model: ``e = S^-1/2 L(q) (dy - dy_hat)`` with ``L(q)``
+   the innovation filter of ``sys``'s steady-state Kalman predictor for
+   ``(Q, R)`` and ``S`` its innovation covariance (a prediction-error
+   method with a fixed noise model; consistent whatever that model, and
+   efficient when it is right). This matters on estimation data with
+   process noise: there ``dy`` carries random walks and slow noise that a
+   plain simulation-error fit mistakes for signal. With several inputs
+   the residues are then made rank one, ``R_i = c_i v_i^T`` (one state
+   per pole, as in an order-k state-space model): ``v_i`` is the first
+   right singular vector of the full fit's ``R_i`` and ``c_i`` is
+   refitted the same way. A candidate whose single modes are 1000 times
+   larger than ``dy`` (near-equal poles cancelling) is rejected.
+4. **Order, variant, horizon** by BIC: ``N_eff log det cov(e) + npar log
+   N_eff``, ``npar`` = real coefficients of the poles, the ``c_i``, the
+   ``v_i`` (up to scale) and ``R_0``; ``N_eff = N (1 - r1) / (1 + r1)``
+   with ``r1`` the mean lag-1 autocorrelation of the initial model's
+   whitened errors (an AR(1) correction for oversampled data whose errors
+   the noise model does not whiten; on the tape drive ``N_eff / N`` is
+   a few per cent, without it BIC picks models that fit the noise).
+5. **Pole refinement.** For the ``nrefine`` best candidates the poles
+   are refined by output error on the first ``1 -
+   holdout`` of the variant's own data
+   (:func:`greybox.ident.modal_oe.refine_output_error`, poles kept inside
+   the unit circle) and kept as a further candidate only if, with
+   residues fitted on that part too, they predict the held-out tail
+   better (``log det`` of the whitened errors) than the N4SID poles.
+6. **No improvement**, judged on the estimation record only. The
+   candidates below the initial model's BIC (``dy_hat = 0``) are taken
+   in BIC order (at most five) until one lowers the plain SE (eq. 42) on
+   the record's selection coordinates (the "marginal" differencing when
+   it applies) and, with its residues refitted on the head, does not
+   raise it on the held-out tail (the last ``holdout`` of the record)
+   by more than 1 % (relative; noise: with process noise in the data a
+   random walk dominates every candidate's tail SE, e.g. 63.0-63.6 %
+   against the initial model's 63.2 % on the tape drive, seed 2010): a
+   model that fits the head's noise, or a delta the tail does not have,
+   fails there. If none passes, the initial model is returned with
+   ``improved=False``, order 0 and ``message`` starting "parallel model:
+   no improvement found". The returned model never diverges in
+   simulation.
+
+The one-step prediction errors of the fits, scores and ``r1`` start
+after the predictor's start-up transient (its decay to 1e-8, at most
+``N / 20`` samples): with an initial-state mismatch (``x0`` estimated
+elsewhere, as in :func:`greybox.close_the_loop`) the first whitened
+errors are many standard deviations large and used to decide the order
+(EMPS inside ``close_the_loop``, before this: ``r1`` -0.32 instead of
+0.76, ``N_eff`` 8000 instead of 1075, order 6 instead of 3).
+
+**Realization.** A real pole with a rank-r residue adds r states, a
+complex pair with a rank-r complex residue 2 r states (the rank from the
+residue's SVD, relative cut 1e-9; r = 1 with several inputs):
+``DeltaModel.order`` is their sum, the N4SID order k.
+The held integrator term is not duplicated in the combined model: it
+drives the initial model's own integrators (``B + V M R_0`` with ``C V M
+= U1``), the same input-output behaviour without an unobservable second
+set of integrators (which a Kalman filter or LQ design could not use).
+``DeltaModel.delta`` holds the delta model alone, the held integrators
+as ``nfixed`` states at exactly 1.
+
+Noise of the combined model: ``Q = blockdiag(Q, 0)`` (the delta states
+are deterministic functions of u) and ``R``, the noise model under which
+the residues were fitted.
 """
 
 from __future__ import annotations
@@ -220,6 +309,45 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
     BIC ``N log det(cov(d^ - d_sim)) + npar log N`` of every candidate is
     recorded in ``Subsystem.criterion`` for reference, not used for the choice.
     """
+    prob = _subsystem_problem(result, order, max_order, min_order, feedthrough, method, skip)
+    cands = {}
+    for nd in prob.orders:
+        cand = _fit_candidate(prob, nd, method, feedthrough, starts, horizon, result.sys.dt)
+        if cand is not None:
+            cands[nd] = cand
+    if not cands:
+        raise IdentificationError("no stable subsystem could be identified for orders "
+                                  f"{prob.orders}; check the filter result and the data length")
+    Pd = np.atleast_2d(result.d_cov)
+    best = cands[_parsimonious_order(cands, prob.d, Pd)]
+    m = prob.u.shape[0]
+    Bw, Dw, Re = best.Bw, best.Dw, np.atleast_2d(best.Re)
+    labels_u = tuple(result.sys.input_labels)
+    labels_x = tuple(result.sys.state_labels)
+    return Subsystem(
+        order=best.Ad.shape[0], Ad=best.Ad, Bdu=Bw[:, :m], Bdx=Bw[:, m:], Cd=best.Cd,
+        Ddu=Dw[:, :m], Ddx=Dw[:, m:], K=best.K, innovation_cov=Re, noise_cov=psd_part(Re - Pd),
+        criterion={k: v.bic for k, v in cands.items()}, method=best.method,
+        feedthrough=feedthrough, d_sim=best.d_sim, input_labels=labels_u, state_labels=labels_x,
+        unknown_labels=tuple(result.unknown_labels),
+    )
+
+
+@dataclass(frozen=True)
+class _SubsystemProblem:
+    """The orders :func:`identify_subsystem` tries and its data after the filter transient:
+    inputs ``w = [u; x^]`` and output ``d^``."""
+
+    orders: list
+    u: NDArray[np.float64]
+    x: NDArray[np.float64]
+    d: NDArray[np.float64]
+    w: NDArray[np.float64]
+
+
+def _subsystem_problem(result, order, max_order, min_order, feedthrough, method,
+                       skip) -> _SubsystemProblem:
+    """The checked options of :func:`identify_subsystem` and its aligned data."""
     if not isinstance(result, FilterResult) or result.d_est.shape[0] == 0:
         raise DataError("identify_subsystem needs the FilterResult of greybox.uikf "
                         "(with at least one unknown input)")
@@ -241,68 +369,80 @@ def identify_subsystem(result: FilterResult, *, order: int | None = None,
     u = result.u[:, k0:N]
     x = result.x_filt[:, k0:N]
     d = result.d_est[:, k0:N]
-    w = np.vstack([u, x])
-    m, n, md = u.shape[0], x.shape[0], d.shape[0]
-    nw = m + n
     lo = max(min_order, 0 if feedthrough else 1)
     orders = [order] if order is not None else list(range(lo, max_order + 1))
-    cands = {}
-    for nd in orders:
-        try:
-            if nd == 0:
-                fit = static_least_squares(w, d)
-                Ad, Bw, Cd = np.zeros((0, 0)), np.zeros((0, nw)), np.zeros((md, 0))
-                Dw, K = fit.coef, np.zeros((0, md))
-                Re = fit.residual_cov
-                how = "least squares"
-            elif method == "output-error":
-                oe = output_error(d, w, nd, feedthrough=feedthrough, starts=starts)
-                Ad, Bw, Cd, Dw = oe.A, oe.B, oe.C, oe.D
-                K, Re = np.zeros((Ad.shape[0], md)), oe.residual_cov
-                how = "output-error"
-            else:
-                ident_fn = pbsid if method == "pbsid" else n4sid
-                # an unstable predictor may overflow in the initial-state fit:
-                # such a candidate fails (LinAlgError) and is skipped
-                with warnings.catch_warnings(), np.errstate(all="ignore"):
-                    warnings.simplefilter("ignore", GreyboxWarning)
-                    ident = ident_fn(d, w, order=nd, horizon=horizon or nd + 1,
-                                     feedthrough=feedthrough, dt=float(result.sys.dt))
-                s_ = ident.sys
-                Ad, Bw, Cd, Dw = (np.asarray(a, dtype=float) for a in (s_.A, s_.B, s_.C, s_.D))
-                K, Re = ident.K, ident.innovation_cov
-                how = method
-        except (IdentificationError, np.linalg.LinAlgError):
-            continue
-        if not all(np.all(np.isfinite(M)) for M in (Ad, Bw, Cd, Dw)):
-            continue
-        if nd and np.max(np.abs(np.linalg.eigvals(Ad))) >= 1.0:
-            continue  # unstable subsystem: not a physical candidate (§8.6)
-        dsim = _sim_subsystem(Ad, Bw, Cd, Dw, w)
-        npar = nd * nd + nd * nw + md * nd + (md * nw if feedthrough else 0)
-        cands[nd] = (_bic(d - dsim, npar), Ad, Bw, Cd, Dw, K, Re, how, dsim)
-    if not cands:
-        raise IdentificationError("no stable subsystem could be identified for orders "
-                                  f"{orders}; check the filter result and the data length")
-    Pd = np.atleast_2d(result.d_cov)
-    # Parsimony with the noise floor in mind: the residual of d^ cannot honestly
-    # drop below the filter's own estimation variance Pd; a fit that does is
-    # explaining the filter's algebra (PAPER_NOTES §8.4). Take the lowest order
-    # whose residual is within 5 % of max(best residual, Pd).
-    var = {k: float(np.trace(np.atleast_2d(np.cov(d - v[8], bias=True)))) for k, v in cands.items()}
+    return _SubsystemProblem(orders=orders, u=u, x=x, d=d, w=np.vstack([u, x]))
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """One fitted order of :func:`identify_subsystem`: ``(Ad, Bw, Cd, Dw)`` from ``w = [u; x^]``,
+    the innovation form's K and Re, the BIC and the simulated d^."""
+
+    bic: float
+    Ad: NDArray[np.float64]
+    Bw: NDArray[np.float64]
+    Cd: NDArray[np.float64]
+    Dw: NDArray[np.float64]
+    K: NDArray[np.float64]
+    Re: NDArray[np.float64]
+    method: str
+    d_sim: NDArray[np.float64]
+
+
+def _fit_candidate(prob: _SubsystemProblem, nd: int, method: str, feedthrough: bool,
+                   starts: int, horizon: int | None, dt) -> _Candidate | None:
+    """The order-``nd`` subsystem on ``prob``'s data; None if it fails or is unstable."""
+    d, w = prob.d, prob.w
+    md, nw = d.shape[0], w.shape[0]
+    try:
+        if nd == 0:
+            fit = static_least_squares(w, d)
+            Ad, Bw, Cd = np.zeros((0, 0)), np.zeros((0, nw)), np.zeros((md, 0))
+            Dw, K = fit.coef, np.zeros((0, md))
+            Re = fit.residual_cov
+            how = "least squares"
+        elif method == "output-error":
+            oe = output_error(d, w, nd, feedthrough=feedthrough, starts=starts)
+            Ad, Bw, Cd, Dw = oe.A, oe.B, oe.C, oe.D
+            K, Re = np.zeros((Ad.shape[0], md)), oe.residual_cov
+            how = "output-error"
+        else:
+            ident_fn = pbsid if method == "pbsid" else n4sid
+            # an unstable predictor may overflow in the initial-state fit:
+            # such a candidate fails (LinAlgError) and is skipped
+            with warnings.catch_warnings(), np.errstate(all="ignore"):
+                warnings.simplefilter("ignore", GreyboxWarning)
+                ident = ident_fn(d, w, order=nd, horizon=horizon or nd + 1,
+                                 feedthrough=feedthrough, dt=float(dt))
+            s_ = ident.sys
+            Ad, Bw, Cd, Dw = (np.asarray(a, dtype=float) for a in (s_.A, s_.B, s_.C, s_.D))
+            K, Re = ident.K, ident.innovation_cov
+            how = method
+    except (IdentificationError, np.linalg.LinAlgError):
+        return None
+    if not all(np.all(np.isfinite(M)) for M in (Ad, Bw, Cd, Dw)):
+        return None
+    if nd and np.max(np.abs(np.linalg.eigvals(Ad))) >= 1.0:
+        return None  # unstable subsystem: not a physical candidate (§8.6)
+    dsim = _sim_subsystem(Ad, Bw, Cd, Dw, w)
+    npar = nd * nd + nd * nw + md * nd + (md * nw if feedthrough else 0)
+    return _Candidate(bic=_bic(d - dsim, npar), Ad=Ad, Bw=Bw, Cd=Cd, Dw=Dw, K=K, Re=Re,
+                      method=how, d_sim=dsim)
+
+
+def _parsimonious_order(cands: dict, d: NDArray, Pd: NDArray) -> int:
+    """The lowest order whose residual variance is within 5 % of max(best residual, Pd).
+
+    Parsimony with the noise floor in mind: the residual of d^ cannot honestly drop below
+    the filter's own estimation variance Pd; a fit that does is explaining the filter's
+    algebra (PAPER_NOTES §8.4).
+    """
+    var = {k: float(np.trace(np.atleast_2d(np.cov(d - v.d_sim, bias=True))))
+           for k, v in cands.items()}
     floor = 1.05 * max(min(var.values()), float(np.trace(Pd)))
     ok = [k for k in sorted(cands) if var[k] <= floor]
-    best = ok[0]  # never empty: the best candidate is within the bound
-    _, Ad, Bw, Cd, Dw, K, Re, method, dsim = cands[best]
-    labels_u = tuple(result.sys.input_labels)
-    labels_x = tuple(result.sys.state_labels)
-    return Subsystem(
-        order=Ad.shape[0], Ad=Ad, Bdu=Bw[:, :m], Bdx=Bw[:, m:], Cd=Cd, Ddu=Dw[:, :m], Ddx=Dw[:, m:],
-        K=K, innovation_cov=np.atleast_2d(Re), noise_cov=psd_part(np.atleast_2d(Re) - Pd),
-        criterion={k: v[0] for k, v in cands.items()}, method=method,
-        feedthrough=feedthrough, d_sim=dsim, input_labels=labels_u, state_labels=labels_x,
-        unknown_labels=tuple(result.unknown_labels),
-    )
+    return ok[0]  # never empty: the best candidate is within the bound
 
 
 @dataclass(frozen=True)
@@ -650,92 +790,11 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
 
     with poles ``lambda_i`` from N4SID and residue matrices ``R_i``
     (noutputs x ninputs, complex for complex poles) fitted by prediction
-    error. The procedure, in order:
-
-    1. **Poles.** N4SID (:func:`greybox.ident.n4sid`, one block-Hankel factor
-       shared by all orders) of every order ``1..max_order`` on the whole
-       record, at horizons 10 and 40 (short horizons suit fast dynamics, long
-       ones slow dynamics on oversampled data), in two variants: "plain"
-       (``u -> W^-1 dy``) and "marginal" (``u -> [P(q) U1^T W^-1 dy; U2^T
-       W^-1 dy]``, the initial model's unit-circle modes differenced out)
-       when ``sys`` has such modes that the outputs see. A candidate with a
-       pole on or outside the unit circle is rejected (not mirrored): it
-       would diverge in simulation (PAPER_NOTES §8.6). Order 0 (no pole) is
-       a candidate too when there are held integrators.
-    2. **Held integrators.** When the initial model's eigenvalue 1 is
-       semisimple (integrators, as in the tape drive) and observed, every
-       candidate also gets the term ``U1 R_0 sum u`` with the pole held
-       *exactly* at 1 and its output directions ``U1 = orth(C V)`` (``A V =
-       V``): ``dy`` carries the drift of the initial model's integrators
-       that the truth does not have, which no pole inside the unit circle
-       can follow. ``R_0`` is fitted (zero if the data do not need it), so
-       this nests the structure without them.
-    3. **Residues by prediction error.** With the poles fixed the model is
-       linear in the residues, which are fitted by least squares on the
-       one-step prediction errors of the *combined* model under the initial
-       model's noise model: ``e = S^-1/2 L(q) (dy - dy_hat)`` with ``L(q)``
-       the innovation filter of ``sys``'s steady-state Kalman predictor for
-       ``(Q, R)`` and ``S`` its innovation covariance (a prediction-error
-       method with a fixed noise model; consistent whatever that model, and
-       efficient when it is right). This matters on estimation data with
-       process noise: there ``dy`` carries random walks and slow noise that a
-       plain simulation-error fit mistakes for signal. With several inputs
-       the residues are then made rank one, ``R_i = c_i v_i^T`` (one state
-       per pole, as in an order-k state-space model): ``v_i`` is the first
-       right singular vector of the full fit's ``R_i`` and ``c_i`` is
-       refitted the same way. A candidate whose single modes are 1000 times
-       larger than ``dy`` (near-equal poles cancelling) is rejected.
-    4. **Order, variant, horizon** by BIC: ``N_eff log det cov(e) + npar log
-       N_eff``, ``npar`` = real coefficients of the poles, the ``c_i``, the
-       ``v_i`` (up to scale) and ``R_0``; ``N_eff = N (1 - r1) / (1 + r1)``
-       with ``r1`` the mean lag-1 autocorrelation of the initial model's
-       whitened errors (an AR(1) correction for oversampled data whose errors
-       the noise model does not whiten; on the tape drive ``N_eff / N`` is
-       a few per cent, without it BIC picks models that fit the noise).
-    5. **Pole refinement.** For the ``nrefine`` best candidates the poles
-       are refined by output error on the first ``1 -
-       holdout`` of the variant's own data
-       (:func:`greybox.ident.modal_oe.refine_output_error`, poles kept inside
-       the unit circle) and kept as a further candidate only if, with
-       residues fitted on that part too, they predict the held-out tail
-       better (``log det`` of the whitened errors) than the N4SID poles.
-    6. **No improvement**, judged on the estimation record only. The
-       candidates below the initial model's BIC (``dy_hat = 0``) are taken
-       in BIC order (at most five) until one lowers the plain SE (eq. 42) on
-       the record's selection coordinates (the "marginal" differencing when
-       it applies) and, with its residues refitted on the head, does not
-       raise it on the held-out tail (the last ``holdout`` of the record)
-       by more than 1 % (relative; noise: with process noise in the data a
-       random walk dominates every candidate's tail SE, e.g. 63.0-63.6 %
-       against the initial model's 63.2 % on the tape drive, seed 2010): a
-       model that fits the head's noise, or a delta the tail does not have,
-       fails there. If none passes, the initial model is returned with
-       ``improved=False``, order 0 and ``message`` starting "parallel model:
-       no improvement found". The returned model never diverges in
-       simulation.
-
-    The one-step prediction errors of the fits, scores and ``r1`` start
-    after the predictor's start-up transient (its decay to 1e-8, at most
-    ``N / 20`` samples): with an initial-state mismatch (``x0`` estimated
-    elsewhere, as in :func:`greybox.close_the_loop`) the first whitened
-    errors are many standard deviations large and used to decide the order
-    (EMPS inside ``close_the_loop``, before this: ``r1`` -0.32 instead of
-    0.76, ``N_eff`` 8000 instead of 1075, order 6 instead of 3).
-
-    **Realization.** A real pole with a rank-r residue adds r states, a
-    complex pair with a rank-r complex residue 2 r states (the rank from the
-    residue's SVD, relative cut 1e-9; r = 1 with several inputs):
-    ``DeltaModel.order`` is their sum, the N4SID order k.
-    The held integrator term is not duplicated in the combined model: it
-    drives the initial model's own integrators (``B + V M R_0`` with ``C V M
-    = U1``), the same input-output behaviour without an unobservable second
-    set of integrators (which a Kalman filter or LQ design could not use).
-    ``DeltaModel.delta`` holds the delta model alone, the held integrators
-    as ``nfixed`` states at exactly 1.
-
-    Noise of the combined model: ``Q = blockdiag(Q, 0)`` (the delta states
-    are deterministic functions of u) and ``R``, the noise model under which
-    the residues were fitted.
+    error. The procedure (1. poles, 2. held integrators, 3. residues by
+    prediction error, 4. order, variant and horizon by BIC, 5. pole
+    refinement, 6. the no-improvement judgement), the realization of the
+    delta and the noise of the combined model are written out in the module
+    docstring (:mod:`greybox.update`); the steps below refer to it.
 
     Parameters
     ----------
@@ -808,6 +867,40 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     >>> dm.improved, dm.order, dm.message[:36]
     (False, 0, 'parallel model: no improvement found')
     """
+    dd = _delta_data(sys, y, u, Q, R, order, max_order, x0, marginal, holdout, refine_iter,
+                     nrefine, refine_window)
+    sc = _scored_candidates(sys, dd, horizon, deadline)
+    _refine_best(dd, sc, refine)
+    return _chosen_delta(sys, dd, sc, state_prefix)
+
+
+@dataclass(frozen=True)
+class _DeltaData:
+    """The checked record and options of :func:`delta_update`, the initial model's output
+    ``y0`` and error ``dy``, and the variants' data ``{name: (data, held)}`` (step 1)."""
+
+    y: NDArray[np.float64]
+    u: NDArray[np.float64]
+    Q: NDArray[np.float64]
+    R: NDArray[np.float64]
+    order: int | None
+    orders: list
+    y0: NDArray[np.float64]
+    dy: NDArray[np.float64]
+    w: NDArray[np.float64]
+    factor: tuple | None
+    variants: dict
+    ys_sel: NDArray[np.float64]
+    refine_iter: int
+    nrefine: int
+    refine_window: int | None
+    N: int
+    Ne: int
+
+
+def _delta_data(sys, y, u, Q, R, order, max_order, x0, marginal, holdout, refine_iter,
+                nrefine, refine_window) -> _DeltaData:
+    """The checks of :func:`delta_update`, the initial model's simulation and the variants."""
     check_discrete(sys)
     y = check_signal(y, sys.noutputs, "y", min_steps=200)
     u = check_signal(u, sys.ninputs, "u")
@@ -822,7 +915,6 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     x = lti_states(A, B @ u, np.zeros(n) if x0 is None else check_vector(x0, n, "x0"))
     y0 = C @ x + D @ u
     dy = y - y0
-    p, m = dy.shape[0], u.shape[0]
     w = np.sqrt(np.mean(y**2, axis=1))
     w[w == 0] = 1.0
     dys = dy / w[:, None]
@@ -848,23 +940,47 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
     Ne = N - int(round(holdout * N))
     max_order = max_order if max_order is not None else n + 6
     orders = [order] if order is not None else list(range(1, max_order + 1))
+    return _DeltaData(y=y, u=u, Q=Q, R=R, order=order, orders=orders, y0=y0, dy=dy, w=w,
+                      factor=factor, variants=variants, ys_sel=ys_sel, refine_iter=refine_iter,
+                      nrefine=nrefine, refine_window=refine_window, N=N, Ne=Ne)
 
-    wh = _Whitener(sys, Q, R)
-    wdy = wh.apply(dy)
+
+@dataclass(frozen=True)
+class _Scored:
+    """The scored candidates of :func:`delta_update` (steps 1-4): the score, the samples it
+    uses, the BIC of every key, the candidates ``(bic, k, variant, fit)`` and their origin;
+    ``crit``, ``cands`` and ``origin`` grow with the pole refinement (step 5)."""
+
+    score: _DeltaScore
+    whole: slice
+    head: slice
+    tail: slice
+    crit: dict
+    cands: list
+    origin: dict
+    cut: _Cut
+
+
+def _scored_candidates(sys, dd: _DeltaData, horizon, deadline) -> _Scored:
+    """N4SID poles of every variant, order and horizon, each scored with its residues."""
+    wh = _Whitener(sys, dd.Q, dd.R)
+    wdy = wh.apply(dd.dy)
     # the predictor starts at rest: an initial-state mismatch of the simulation
     # (dy[0] != 0, e.g. with an estimated x0) is a transient of wdy many
     # standard deviations large; it would dominate the fits, the scores and r1
+    N, Ne, u, variants = dd.N, dd.Ne, dd.u, dd.variants
     k0 = wh.settling(N)
     whole, head, tail = slice(k0, N), slice(k0, Ne), slice(Ne, N)
     ew = wdy[:, whole]  # the initial model's whitened errors
     Neff = _effective_samples(ew)
-    score = _DeltaScore(wh=wh, u=u, wdy=wdy, dy=dy, whole=whole, Neff=Neff)
+    score = _DeltaScore(wh=wh, u=u, wdy=wdy, dy=dd.dy, whole=whole, Neff=Neff)
     crit, cands, origin = {("initial", 0): Neff * _logdet(ew)}, [], {}
+    p, m = dd.dy.shape[0], u.shape[0]
     horizons = [horizon] if horizon is not None else _default_horizons(p + m)
     cut = _Cut(deadline)
     for name, (data, hold) in variants.items():
-        held_only = order is None and hold is not None and name == list(variants)[-1]
-        starts = _n4sid_starts(name, data, u, orders, float(sys.dt), horizons, cut, crit,
+        held_only = dd.order is None and hold is not None and name == list(variants)[-1]
+        starts = _n4sid_starts(name, data, u, dd.orders, float(sys.dt), horizons, cut, crit,
                                held_only)
         for key, fABC in starts.items():
             if cut.late("candidate scores"):
@@ -874,37 +990,53 @@ def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike
             if fit is not None:
                 cands.append((crit[key], key[1], name, fit))
                 origin[(name, key)] = (fABC, data, hold)
-    # the poles of N4SID on oversampled, noisy data can be far off: refine the
-    # best candidates' poles by output error (modal form, stable by
-    # construction) on the head of the variant's own data, and keep them
-    # only if, with residues fitted on the head too, they predict the
-    # held-out tail better than N4SID's poles (noise fitting shows there)
+    return _Scored(score=score, whole=whole, head=head, tail=tail, crit=crit, cands=cands,
+                   origin=origin, cut=cut)
+
+
+def _refine_best(dd: _DeltaData, sc: _Scored, refine: bool) -> None:
+    """Step 5: the best candidates' poles refined by output error (added to ``sc``).
+
+    The poles of N4SID on oversampled, noisy data can be far off: they are refined in
+    modal form (stable by construction) on the head of the variant's own data, and kept
+    only if, with residues fitted on the head too, they predict the held-out tail better
+    than N4SID's poles (noise fitting shows there).
+    """
+    crit = sc.crit
     ranked = sorted(((b_, k, name, key) for (name, key), (b_, k) in
-                     ((nk, (crit[nk[1]], nk[1][1])) for nk in origin) if k > 0),
+                     ((nk, (crit[nk[1]], nk[1][1])) for nk in sc.origin) if k > 0),
                     key=lambda c: (c[0], c[1]))
+    Ne, refine_window = dd.Ne, dd.refine_window
     rsl = slice(0, Ne if refine_window is None else min(Ne, refine_window))
-    _refine_poles(ranked[:nrefine if refine else 0], origin, u, rsl, refine_iter, score,
-                  head, tail, crit, cands, cut)
+    _refine_poles(ranked[:dd.nrefine if refine else 0], sc.origin, dd.u, rsl, dd.refine_iter,
+                  sc.score, sc.head, sc.tail, crit, sc.cands, sc.cut)
+
+
+def _chosen_delta(sys, dd: _DeltaData, sc: _Scored, state_prefix: str) -> DeltaModel:
+    """Step 6: the first candidate in BIC order that lowers the SE without raising the
+    held-out tail's, as a DeltaModel; else the initial model ("no improvement found")."""
+    y, u, y0, Q, R, crit, cut = dd.y, dd.u, dd.y0, dd.Q, dd.R, sc.crit, sc.cut
     se = {"initial_estimation": relative_error(y, y0).value}
-    if not cands:
+    if not sc.cands:
         return _no_delta(sys, Q, R, se, crit, cut, "no stable candidate")
-    ranked = sorted(cands, key=lambda c: (c[0], c[1]))
+    ranked = sorted(sc.cands, key=lambda c: (c[0], c[1]))
     if not ranked[0][0] < crit[("initial", 0)]:
         return _no_delta(sys, Q, R, se, crit, cut, f"BIC {ranked[0][0]:.6g} >= initial "
                                                     f"model's {crit[('initial', 0)]:.6g}")
-    sel_error = functools.partial(_sel_error, ys_sel, w, factor)
+    sel_error = functools.partial(_sel_error, dd.ys_sel, dd.w, dd.factor)
     # judged on the estimation record only: the candidates in BIC order (those
     # below the initial model's BIC, at most _TAIL_TRIES) until one lowers the
     # plain SE on the whole record and, with its residues fitted on the head,
     # on the held-out tail (a model that fits the head's noise or feedback
     # fails there; PAPER_NOTES §8.6)
+    whole, tail = sc.whole, sc.tail
     e0_est, e0_tail = sel_error(y0, whole), sel_error(y0, tail)
     se["initial_tail"] = e0_tail
     failed = []
     for bic, k, name, fit in [c for c in ranked if c[0] < crit[("initial", 0)]][:_TAIL_TRIES]:
         yh = y0 + fit.predict(u)
         e_est = sel_error(yh, whole)
-        _, fit_h = score(fit.poles, fit.held, head, tail)
+        _, fit_h = sc.score(fit.poles, fit.held, sc.head, tail)
         e_tail = np.inf if fit_h is None else sel_error(y0 + fit_h.predict(u), tail)
         if e_est < e0_est and e_tail <= (1.0 + _TAIL_SLACK) * e0_tail:
             break

@@ -7,8 +7,9 @@ reproduction of the paper). Imports inside functions count as much as those at
 module level, with one exception: the lazy import of :mod:`greybox.plotting` inside
 ``.plot()`` methods, which delegate to the plotting module as STYLE.md asks. Only
 plotting may import matplotlib, and only lazily. No function over ``MAX_LINES``
-lines, except the debts listed in ``LONG_FUNCTIONS`` (which may only shrink);
-imports of another sub-package's ``_private`` names may only become fewer.
+lines (from ``def`` to the end of its body, docstring included), except the debts
+listed in ``LONG_FUNCTIONS`` (which may only shrink); imports of another
+sub-package's ``_private`` names may only become fewer.
 """
 
 from __future__ import annotations
@@ -181,19 +182,19 @@ def test_the_circle_check_can_fail():
 # ------------------------------------------------------------------ function length
 MAX_LINES = 120
 # The debts: functions over MAX_LINES today, with their length (lines from ``def`` to
-# the last line of the body, the docstring left out); an entry may only shrink or go.
-# The pipeline rebuild (named stages, linear and nonlinear) paid the last of them.
+# the last line of the body, the docstring included); an entry may only shrink or go.
+# The pipeline rebuild (named stages, linear and nonlinear) paid the last of them by the
+# old count (docstring left out); the split of the long public functions into named steps
+# (their derivations moved to the module docstrings) paid those of the full count.
 LONG_FUNCTIONS: dict[str, int] = {}
 
 
 def _code_lines(fn) -> int:
-    """Lines from ``def`` to the end of the body, the docstring left out (numpydoc
-    docstrings are long by design: Parameters, Returns, Notes, Examples)."""
-    body = fn.body
-    doc = (body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
-           and isinstance(body[0].value.value, str))
-    skipped = body[0].end_lineno - body[0].lineno + 1 if doc else 0
-    return fn.end_lineno - fn.lineno + 1 - skipped
+    """Lines from ``def`` to the end of the body, the docstring included: a numpydoc
+    docstring is long by design (Parameters, Returns, Examples), so a function that
+    needs one has that much less room for code; long derivations go to the module
+    docstring."""
+    return fn.end_lineno - fn.lineno + 1
 
 
 def _long_functions() -> dict[str, int]:

@@ -229,14 +229,7 @@ def delayed_ui_ukf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
     pts = _points(points)
     if isinstance(sys, ct.StateSpace):
         sys = as_nonlinear(sys)
-    if isinstance(relative_degree, str):
-        if relative_degree != "auto":
-            raise GreyboxError(f"relative_degree must be 'auto', 1 or 2; found "
-                               f"{relative_degree!r}")
-    elif (not isinstance(relative_degree, (int, np.integer)) or isinstance(relative_degree, bool)
-          or relative_degree not in (1, 2)):
-        raise GreyboxError(f"relative_degree must be 'auto', 1 or 2 (the nonlinear shift is "
-                           f"exact for r = 2 only); found {relative_degree!r}")
+    _check_degree(relative_degree)
     pb = _prepare_nl(sys, y, u, unknown, Q, R, x0, P0, G, allow_no_unknown=False,
                      check_rank=True)
     G0 = _initial_G(pb)
@@ -247,6 +240,23 @@ def delayed_ui_ukf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
         check_rank_condition(pb.C, G0, pb.labels)
         return replace(_run_ukf(pb, pts, level=level, store_covariances=store_covariances),
                        relative_degree=1)
+    return _run_shifted(pb, G0, pts, level, store_covariances)
+
+
+def _check_degree(relative_degree) -> None:
+    """GreyboxError unless ``relative_degree`` is "auto", 1 or 2."""
+    if isinstance(relative_degree, str):
+        if relative_degree != "auto":
+            raise GreyboxError(f"relative_degree must be 'auto', 1 or 2; found "
+                               f"{relative_degree!r}")
+    elif (not isinstance(relative_degree, (int, np.integer)) or isinstance(relative_degree, bool)
+          or relative_degree not in (1, 2)):
+        raise GreyboxError(f"relative_degree must be 'auto', 1 or 2 (the nonlinear shift is "
+                           f"exact for r = 2 only); found {relative_degree!r}")
+
+
+def _run_shifted(pb, G0: NDArray, pts, level: float, store_covariances: bool) -> FilterResult:
+    """The r = 2 filter: ui_ukf's loop on ``z = x - G~ d[k-1]``, its record mapped back to x."""
     pbz, Gt = _shifted_problem(pb, G0)
     try:
         check_rank_condition(pb.C, _initial_G(pbz), pb.labels)

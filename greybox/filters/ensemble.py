@@ -22,10 +22,12 @@ reproducible: all draws come from ``rng``.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .._validation import check_positive
 from ..exceptions import DataError
@@ -105,54 +107,32 @@ def ensemble_uikf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
     (1, 100)
     """
     level, _, _ = _check_options(level, "auto", 1.0)
-    ne = check_positive(nmembers, "nmembers", integer=True)
-    if ne < 2:
-        raise DataError(f"nmembers must be at least 2 (a sample covariance needs two "
-                        f"members); found {ne}")
+    ne = _check_members(nmembers)
     g = _rng(rng)
     pb = _prepare_nl(sys, y, u, unknown, Q, R, x0, P0, G, allow_no_unknown=False,
                      check_rank=True)
     Gk = _initial_G(pb)
     check_rank_condition(pb.C, Gk, pb.labels)
     n, N = pb.x0.size, pb.y.shape[1]
-    C, D, Qm, Rm, yv, uv = pb.C, pb.D, pb.Q, pb.R, pb.y, pb.u
+    C, D, Rm, yv, uv = pb.C, pb.D, pb.R, pb.y, pb.u
     p, m, md = C.shape[0], uv.shape[0], len(pb.unknown)
     has_D = m > 0 and bool(np.any(D))
-    x_filt, x_pred = np.empty((n, N)), np.empty((n, N))
-    innov = np.empty((p, N))
-    d_est, d_var = np.full((md, N), np.nan), np.full((md, N), np.nan)
-    Phist = np.empty((n, n, N)) if store_covariances else None
+    rec = _Record.empty(n, p, md, N, store_covariances)
     jac = pb.G is None
     scale = 1.0 / (ne - 1)
-
-    def centred(S):
-        V = _draws(S, (S.shape[0], ne), g)
-        return V - V.mean(axis=1, keepdims=True)
-
+    centred = functools.partial(_centred_draws, ne=ne, g=g)
     # k = 0: members from the prior, perturbed-observation update
-    E = pb.x0[:, None] + centred(pb.P0)
-    K, _, _, Rt, Pf = _measurement_gains(pb.P0, C, np.zeros((n, 0)), Rm)
     yk = yv[:, 0] - D @ uv[:, 0] if has_D else yv[:, 0]
-    e = yk - C @ pb.x0
-    x_pred[:, 0], innov[:, 0] = pb.x0, e
-    xf = pb.x0 + K @ e
-    A = E - pb.x0[:, None]
-    A = A + K @ (centred(Rm) - C @ A)
-    E = xf[:, None] + A
-    x_filt[:, 0] = xf
-    if Phist is not None:
-        Phist[:, :, 0] = Pf
+    s0 = _ensemble_prior(pb, yk, centred)
+    E, A, xf, K, Rt, Pf = s0.E, s0.A, s0.xf, s0.K, s0.Rt, s0.Pf
+    rec.store(0, pb.x0, s0.e, xf, Pf)
     M, Pd, Pp = np.zeros((md, p)), np.zeros((md, md)), pb.P0
     dlin = np.zeros(md)
     for k in range(1, N):
-        FE, Gn = _propagate(pb, k, E, uv[:, k - 1], dlin, xf, jac)
-        if Gn is not None:
-            Gk = Gn
-        FE = FE + centred(Qm)
-        xp = FE.mean(axis=1)
-        A = FE - xp[:, None]
-        Pp = scale * (A @ A.T)
-        Pp = 0.5 * (Pp + Pp.T)
+        fc = _forecast(pb, k, E, uv[:, k - 1], dlin, xf, jac, centred, scale)
+        if fc.G is not None:
+            Gk = fc.G
+        xp, A, Pp = fc.xp, fc.A, fc.Pp
         K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, Gk, Rm)
         F = C @ Gk
         L = Gk @ M + K - K @ F @ M
@@ -162,22 +142,106 @@ def ensemble_uikf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
             dd = M @ e
             dh = dlin + dd
         _check_d(dh, k, pb.labels)
-        d_est[:, k - 1] = dh
-        d_var[:, k - 1] = Pd.diagonal()
+        rec.d_est[:, k - 1] = dh
+        rec.d_var[:, k - 1] = Pd.diagonal()
         xf = xp + L @ e
         A = A + L @ (centred(Rm) - C @ A)
         E = xf[:, None] + A
         x0pred = xp - Gk @ dlin
-        x_pred[:, k] = x0pred
-        innov[:, k] = yk - C @ x0pred
-        x_filt[:, k] = xf
-        if Phist is not None:
-            Phist[:, :, k] = Pf
+        rec.store(k, x0pred, yk - C @ x0pred, xf, Pf)
         dlin = dh
     Pens = scale * (A @ A.T)
     return FilterResult(
-        t=np.arange(N) * pb.dt, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var,
-        d_cov=Pd, level=level, innovations=innov, innovation_cov=Rt,
-        P_filt=0.5 * (Pens + Pens.T), P_pred=Pp, P_filt_history=Phist, K=K, M=M,
+        t=np.arange(N) * pb.dt, x_filt=rec.x_filt, x_pred=rec.x_pred, d_est=rec.d_est,
+        d_var=rec.d_var, d_cov=Pd, level=level, innovations=rec.innov, innovation_cov=Rt,
+        P_filt=0.5 * (Pens + Pens.T), P_pred=Pp, P_filt_history=rec.Phist, K=K, M=M,
         converged=False, period_converged=None, sys=_linearized_record_sys(pb, xf), G=Gk,
         unknown_labels=tuple(pb.labels), u=uv, y=yv)
+
+
+def _check_members(nmembers) -> int:
+    """The ensemble size, an integer >= 2 (DataError otherwise)."""
+    ne = check_positive(nmembers, "nmembers", integer=True)
+    if ne < 2:
+        raise DataError(f"nmembers must be at least 2 (a sample covariance needs two "
+                        f"members); found {ne}")
+    return ne
+
+
+def _centred_draws(S, *, ne: int, g):
+    """``ne`` draws of covariance S with their sample mean removed, shape (n, ne)."""
+    V = _draws(S, (S.shape[0], ne), g)
+    return V - V.mean(axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class _Record:
+    """The per-step outputs of :func:`ensemble_uikf` (arrays filled in place)."""
+
+    x_filt: NDArray[np.float64]
+    x_pred: NDArray[np.float64]
+    innov: NDArray[np.float64]
+    d_est: NDArray[np.float64]
+    d_var: NDArray[np.float64]
+    Phist: NDArray[np.float64] | None
+
+    @classmethod
+    def empty(cls, n: int, p: int, md: int, N: int, store_covariances: bool) -> _Record:
+        """Buffers for N steps (d^ NaN until estimated; P[k|k] kept if asked)."""
+        return cls(x_filt=np.empty((n, N)), x_pred=np.empty((n, N)), innov=np.empty((p, N)),
+                   d_est=np.full((md, N), np.nan), d_var=np.full((md, N), np.nan),
+                   Phist=np.empty((n, n, N)) if store_covariances else None)
+
+    def store(self, k: int, x_pred, innov, x_filt, Pf) -> None:
+        """Step k's predicted state (without d), innovation, filtered state and P[k|k]."""
+        self.x_pred[:, k] = x_pred
+        self.innov[:, k] = innov
+        self.x_filt[:, k] = x_filt
+        if self.Phist is not None:
+            self.Phist[:, :, k] = Pf
+
+
+@dataclass(frozen=True)
+class _Prior:
+    """The k = 0 update of :func:`ensemble_uikf`: members ``E = xf + A``, gains, innovation."""
+
+    E: NDArray[np.float64]
+    A: NDArray[np.float64]
+    xf: NDArray[np.float64]
+    e: NDArray[np.float64]
+    K: NDArray[np.float64]
+    Rt: NDArray[np.float64]
+    Pf: NDArray[np.float64]
+
+
+def _ensemble_prior(pb, yk, centred) -> _Prior:
+    """Members drawn from the prior, then the perturbed-observation update with y[0]."""
+    n, C, Rm = pb.x0.size, pb.C, pb.R
+    E = pb.x0[:, None] + centred(pb.P0)
+    K, _, _, Rt, Pf = _measurement_gains(pb.P0, C, np.zeros((n, 0)), Rm)
+    e = yk - C @ pb.x0
+    xf = pb.x0 + K @ e
+    A = E - pb.x0[:, None]
+    A = A + K @ (centred(Rm) - C @ A)
+    return _Prior(E=xf[:, None] + A, A=A, xf=xf, e=e, K=K, Rt=Rt, Pf=Pf)
+
+
+@dataclass(frozen=True)
+class _Forecast:
+    """The members propagated to step k with process noise: dF/dd (None unless
+    linearized), mean, deviations ``A`` and sample covariance ``Pp``."""
+
+    G: NDArray[np.float64] | None
+    xp: NDArray[np.float64]
+    A: NDArray[np.float64]
+    Pp: NDArray[np.float64]
+
+
+def _forecast(pb, k: int, E, uk, dlin, xf, jac: bool, centred, scale: float) -> _Forecast:
+    """Every member through F with d at ``dlin``, plus a process-noise draw."""
+    FE, Gn = _propagate(pb, k, E, uk, dlin, xf, jac)
+    FE = FE + centred(pb.Q)
+    xp = FE.mean(axis=1)
+    A = FE - xp[:, None]
+    Pp = scale * (A @ A.T)
+    return _Forecast(G=Gn, xp=xp, A=A, Pp=0.5 * (Pp + Pp.T))

@@ -299,12 +299,10 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
     zeros_check = np.zeros(n * ncol)
     # rows per sample, transposed at the end; x_pred = xp - G d_lin and the innovations
     # e + C G d_lin are formed after the loop from the rows xp, e and G d_lin
-    x_filt, xp_rows, e_rows = np.empty((N, n)), np.empty((N, n)), np.empty((N, p))
-    gd_rows, g_rows = (np.zeros((N, n)) if md else None), (np.zeros((N, n)) if md == 1 else None)
-    dl_rows = np.zeros(N)  # d_lin used at each step (md = 1)
+    rows = _Rows.empty(N, n, p, md, store_covariances)
+    x_filt, xp_rows, e_rows, Phist = rows.x_filt, rows.xp, rows.e, rows.Phist
+    gd_rows, g_rows, dl_rows, d_est, d_var = rows.gd, rows.g, rows.dl, rows.d_est, rows.d_var
     pd = np.inf  # Pd when md = 1 (stays inf if d is never seen)
-    d_est, d_var = np.full((N, md), np.nan), np.full((N, md), np.nan)
-    Phist = np.empty((n, n, N)) if store_covariances else None
     y, u, has_D = pb.y, pb.u, m > 0 and bool(np.any(D))
     yT = np.ascontiguousarray(((y - D @ u) if has_D else y).T)  # y - D u, a row per sample
     # k = 0: measurement update of the prior
@@ -377,11 +375,45 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
             x_filt[k] = xf
             if Phist is not None:
                 Phist[:, :, k] = 0.5 * (Pf + Pf.T)
+    return _ukf_record(pb, rows, level, Pf, Pp, Rt, K, M, Pd, pd, Sol, G, xf)
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """The per-sample rows of :func:`_run_ukf` (filled in place, transposed at the end):
+    filtered and predicted states, innovations, ``G d_lin`` (or, for md = 1, G and d_lin
+    apart), d^ and its variance, and P[k|k] when kept."""
+
+    x_filt: NDArray[np.float64]
+    xp: NDArray[np.float64]
+    e: NDArray[np.float64]
+    gd: NDArray[np.float64] | None
+    g: NDArray[np.float64] | None
+    dl: NDArray[np.float64]
+    d_est: NDArray[np.float64]
+    d_var: NDArray[np.float64]
+    Phist: NDArray[np.float64] | None
+
+    @classmethod
+    def empty(cls, N: int, n: int, p: int, md: int, store_covariances: bool) -> _Rows:
+        """Rows for N samples (d^ NaN until estimated; ``dl``: d_lin at each step, md = 1)."""
+        return cls(x_filt=np.empty((N, n)), xp=np.empty((N, n)), e=np.empty((N, p)),
+                   gd=np.zeros((N, n)) if md else None, g=np.zeros((N, n)) if md == 1 else None,
+                   dl=np.zeros(N), d_est=np.full((N, md), np.nan),
+                   d_var=np.full((N, md), np.nan),
+                   Phist=np.empty((n, n, N)) if store_covariances else None)
+
+
+def _ukf_record(pb: _Problem, rows: _Rows, level: float, Pf, Pp, Rt, K, M, Pd, pd, Sol, G,
+                xf) -> FilterResult:
+    """The FilterResult of :func:`_run_ukf` from its rows and its last step's matrices."""
+    n, N, md, C = pb.x0.size, pb.y.shape[1], len(pb.unknown), pb.C
+    y, u, gd_rows = pb.y, pb.u, rows.gd
     Pf = 0.5 * (Pf + Pf.T)
     if md == 1:  # d_lin at step k (d^[k-2], or 0 after a step where d was not seen)
-        gd_rows = g_rows * dl_rows[:, None]
-    x_pred = xp_rows - gd_rows if md else xp_rows  # f(x, u) without d, as uikf's x_pred
-    innov = e_rows + gd_rows @ C.T if md else e_rows
+        gd_rows = rows.g * rows.dl[:, None]
+    x_pred = rows.xp - gd_rows if md else rows.xp  # f(x, u) without d, as uikf's x_pred
+    innov = rows.e + gd_rows @ C.T if md else rows.e
     if Sol is not None:  # the gains of the last step, for the record
         K = Sol[:, :n].T
         if md == 1:
@@ -390,11 +422,11 @@ def _run_ukf(pb: _Problem, points, *, level: float, store_covariances: bool,
             M = Pd @ Sol[:, n:n + md].T
     Rt = 0.5 * (Rt + Rt.T)
     return FilterResult(
-        t=np.arange(N) * pb.dt, x_filt=np.ascontiguousarray(x_filt.T),
-        x_pred=np.ascontiguousarray(x_pred.T), d_est=np.ascontiguousarray(d_est.T),
-        d_var=np.ascontiguousarray(d_var.T), d_cov=Pd, level=level,
+        t=np.arange(N) * pb.dt, x_filt=np.ascontiguousarray(rows.x_filt.T),
+        x_pred=np.ascontiguousarray(x_pred.T), d_est=np.ascontiguousarray(rows.d_est.T),
+        d_var=np.ascontiguousarray(rows.d_var.T), d_cov=Pd, level=level,
         innovations=np.ascontiguousarray(innov.T), innovation_cov=Rt, P_filt=Pf, P_pred=Pp,
-        P_filt_history=Phist, K=K, M=M, converged=False, period_converged=None,
+        P_filt_history=rows.Phist, K=K, M=M, converged=False, period_converged=None,
         sys=_linearized_record_sys(pb, xf), G=G, unknown_labels=tuple(pb.labels), u=u, y=y)
 
 

@@ -2,6 +2,17 @@
 
 Public: :func:`pbsid`, returning the same :class:`~greybox.ident.N4SIDResult`
 as :func:`~greybox.ident.n4sid`.
+
+The algorithm of :func:`pbsid` (PBSID_opt, Chiuso 2007, Sec. 4). Predictor form:
+:math:`x[k+1] = \\bar A x[k] + \\bar B u[k] + K y[k]` with :math:`\\bar A = A - K C`,
+:math:`\\bar B = B - K D`. With :math:`z = [u; y]` and :math:`\\tilde B = [\\bar B, K]`,
+:math:`x[k] = \\sum_{j=1}^{p} \\bar A^{j-1} \\tilde B z[k-j] + \\bar A^p x[k-p]`, so
+:math:`y[k] = \\sum_j \\Xi_j z[k-j] + D u[k] + e[k]` with
+:math:`\\Xi_j = C \\bar A^{j-1} \\tilde B` (VARX). The matrix with block (a, j) equal
+to :math:`\\Xi_{a+j}` (zero beyond ``p``) estimates :math:`\\Gamma_f \\mathcal{K}_p`;
+the SVD of it times the past data gives the states ``X_k`` and, with the same map on the
+shifted window, ``X_{k+1}``. Then ``y_k = C X_k + D u_k + e_k`` and
+``X_{k+1} = A X_k + B u_k + K e_k`` by least squares.
 """
 
 from __future__ import annotations
@@ -17,6 +28,8 @@ from ._hankel import hankel_r, small_blas
 from .n4sid import (
     DEFAULT_RTOL,
     N4SIDResult,
+    _Setup,
+    _check_choice,
     _check_pe,
     _choose_horizon,
     _common_setup,
@@ -116,19 +129,9 @@ def pbsid(
 
     Notes
     -----
-    Predictor form: :math:`x[k+1] = \\bar A x[k] + \\bar B u[k] + K y[k]`
-    with :math:`\\bar A = A - K C`, :math:`\\bar B = B - K D`. With
-    :math:`z = [u; y]` and :math:`\\tilde B = [\\bar B, K]`,
-    :math:`x[k] = \\sum_{j=1}^{p} \\bar A^{j-1} \\tilde B z[k-j] + \\bar A^p x[k-p]`,
-    so :math:`y[k] = \\sum_j \\Xi_j z[k-j] + D u[k] + e[k]` with
-    :math:`\\Xi_j = C \\bar A^{j-1} \\tilde B` (VARX). The matrix with
-    block (a, j) equal to :math:`\\Xi_{a+j}` (zero beyond ``p``) estimates
-    :math:`\\Gamma_f \\mathcal{K}_p`; the SVD of it times the past data gives
-    the states ``X_k`` and, with the same map on the shifted window,
-    ``X_{k+1}``. Then ``y_k = C X_k + D u_k + e_k`` and
-    ``X_{k+1} = A X_k + B u_k + K e_k`` by least squares. As in
-    :func:`n4sid`, everything uses the chunk-accumulated R factor of the
-    ``p + 1`` block-row Hankel matrix of ``[u; y]``.
+    The predictor form, the VARX regression and the states are written out in the module
+    docstring (:mod:`greybox.ident.closedloop`). As in :func:`n4sid`, everything uses the
+    chunk-accumulated R factor of the ``p + 1`` block-row Hankel matrix of ``[u; y]``.
 
     References
     ----------
@@ -154,13 +157,16 @@ def pbsid(
     >>> round(float(res.sys.poles()[0].real), 2)
     0.9
     """
-    if criterion not in ("bic", "aic"):
-        raise DimensionError(f"criterion={criterion!r} is unknown; expected 'bic' or 'aic'")
-    (ys, us, l, m, dt, input_labels, output_labels, fed, order, max_order, rtol, sy,
-     su) = _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max_order,
-                         rtol)
-    lengths = [a.shape[1] for a in ys]
-    p = _choose_horizon(horizon, order, lengths, m, l, max_order, lambda k: k + 1, default=20)
+    _check_choice("criterion", criterion, ("bic", "aic"))
+    s = _Setup(*_common_setup(y, u, dt, input_labels, output_labels, feedthrough, order,
+                              max_order, rtol))
+    return _pbsid_run(s, horizon, future, chunk_size, criterion, state_prefix)
+
+
+def _pbsid_run(s: _Setup, horizon, future, chunk_size, criterion, state_prefix):
+    """The horizons, block-Hankel factor and model of :func:`pbsid` from its checked setup."""
+    p = _choose_horizon(horizon, s.order, s.lengths, s.m, s.l, s.max_order, lambda k: k + 1,
+                        default=20)
     if future is None:
         f = p
     else:
@@ -169,10 +175,11 @@ def pbsid(
         f = check_positive(future, "future", integer=True)
         if f > p:
             raise DimensionError(f"future={f} exceeds the past horizon {p}; expected future <= horizon")
-    h = hankel_r(ys, us, sy, su, p + 1, chunk_size=chunk_size)
+    h = hankel_r(s.ys, s.us, s.sy, s.su, p + 1, chunk_size=chunk_size)
     with small_blas():
-        return _pbsid_from_factor(h, p, f, ys, us, l, m, dt, input_labels, output_labels, fed,
-                                  order, max_order, rtol, sy, su, criterion, state_prefix)
+        return _pbsid_from_factor(h, p, f, s.ys, s.us, s.l, s.m, s.dt, s.input_labels,
+                                  s.output_labels, s.fed, s.order, s.max_order, s.rtol, s.sy,
+                                  s.su, criterion, state_prefix)
 
 
 def _pbsid_from_factor(h, p, f, ys, us, l, m, dt, input_labels, output_labels, fed, order,

@@ -7,6 +7,27 @@ model-completion helpers here are shared with the closed-loop method in
 Every step works on the triangular factor of the block Hankel matrix, which
 is accumulated in chunks (:mod:`greybox.ident._hankel`), so memory does not
 grow with the number of samples.
+
+The algorithm of :func:`n4sid` (robust combined variant, Van Overschee & De Moor
+1996, Fig. 4.8). Let ``W_p = [U_p; Y_p]`` be the past and ``U_f, Y_f`` the future
+block Hankel matrices (``i`` block rows each). With the oblique projection
+:math:`O_i = Y_f /_{U_f} W_p` and the SVD
+:math:`W_1 O_i W_2 = U_1 S_1 V_1^T + U_2 S_2 V_2^T`, the observability
+matrix is :math:`\\Gamma_i = W_1^{-1} U_1 S_1^{1/2}`. Weights:
+N4SID ``W1 = I, W2 = I``; MOESP ``W1 = I, W2 = Pi_{U_f^perp}``; CVA
+``W1 = ((Y_f/U_f^perp)(Y_f/U_f^perp)^T)^{-1/2}, W2 = Pi_{U_f^perp}``.
+A and C follow from :math:`\\underline{\\Gamma_i} A = \\overline{\\Gamma_i}`;
+then :math:`\\Gamma_i, \\Gamma_{i-1}` are recomputed from (A, C) and B, D
+solve the linear least-squares problem
+
+.. math::
+
+    \\begin{bmatrix} \\Gamma_{i-1}^\\dagger Z_{i+1} \\\\ Y_{i|i} \\end{bmatrix}
+    - \\begin{bmatrix} A \\\\ C \\end{bmatrix} \\Gamma_i^\\dagger Z_i
+    = \\mathcal{K}(B, D)\\, U_f + \\begin{bmatrix} \\rho_w \\\\ \\rho_v \\end{bmatrix},
+
+whose residual covariance gives Q, S, R; K follows from the Riccati
+equation.
 """
 
 from __future__ import annotations
@@ -432,6 +453,31 @@ def _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max
     return ys, us, l, m, dt, input_labels, output_labels, fed, order, max_order, rtol, sy, su
 
 
+@dataclass(frozen=True)
+class _Setup:
+    """The checked data and options of :func:`n4sid` and :func:`~greybox.ident.pbsid`
+    (:func:`_common_setup`): experiments, sizes, labels and channel scales."""
+
+    ys: list
+    us: list
+    l: int
+    m: int
+    dt: float
+    input_labels: Sequence[str] | None
+    output_labels: Sequence[str] | None
+    fed: tuple[int, ...]
+    order: int | None
+    max_order: int | None
+    rtol: float
+    sy: NDArray[np.float64]
+    su: NDArray[np.float64]
+
+    @property
+    def lengths(self) -> list[int]:
+        """Samples of each experiment."""
+        return [a.shape[1] for a in self.ys]
+
+
 # ---------------------------------------------------------------------------
 # N4SID
 # ---------------------------------------------------------------------------
@@ -526,29 +572,12 @@ def n4sid(
 
     Notes
     -----
-    Let ``W_p = [U_p; Y_p]`` be the past and ``U_f, Y_f`` the future block
-    Hankel matrices (``i`` block rows each). With the oblique projection
-    :math:`O_i = Y_f /_{U_f} W_p` and the SVD
-    :math:`W_1 O_i W_2 = U_1 S_1 V_1^T + U_2 S_2 V_2^T`, the observability
-    matrix is :math:`\\Gamma_i = W_1^{-1} U_1 S_1^{1/2}`. Weights:
-    N4SID ``W1 = I, W2 = I``; MOESP ``W1 = I, W2 = Pi_{U_f^perp}``; CVA
-    ``W1 = ((Y_f/U_f^perp)(Y_f/U_f^perp)^T)^{-1/2}, W2 = Pi_{U_f^perp}``.
-    A and C follow from :math:`\\underline{\\Gamma_i} A = \\overline{\\Gamma_i}`;
-    then :math:`\\Gamma_i, \\Gamma_{i-1}` are recomputed from (A, C) and B, D
-    solve the linear least-squares problem
-
-    .. math::
-
-        \\begin{bmatrix} \\Gamma_{i-1}^\\dagger Z_{i+1} \\\\ Y_{i|i} \\end{bmatrix}
-        - \\begin{bmatrix} A \\\\ C \\end{bmatrix} \\Gamma_i^\\dagger Z_i
-        = \\mathcal{K}(B, D)\\, U_f + \\begin{bmatrix} \\rho_w \\\\ \\rho_v \\end{bmatrix},
-
-    whose residual covariance gives Q, S, R; K follows from the Riccati
-    equation. All projections are computed from the lower factor ``L`` of
-    ``H H^T / ncols = L L^T`` of the scaled block Hankel matrix ``H``
-    (2 i block rows), accumulated over chunks of columns, so memory is
-    ``O((2 i (ninputs + noutputs))^2)`` whatever ``nsteps``. The data are
-    not detrended: remove means or trends first if needed.
+    The oblique projection, its weights and the least-squares steps for (A, C), (B, D)
+    and the noise covariances are in the module docstring (:mod:`greybox.ident.n4sid`).
+    All projections are computed from the lower factor ``L`` of ``H H^T / ncols = L L^T``
+    of the scaled block Hankel matrix ``H`` (2 i block rows), accumulated over chunks of
+    columns, so memory is ``O((2 i (ninputs + noutputs))^2)`` whatever ``nsteps``. The
+    data are not detrended: remove means or trends first if needed.
 
     References
     ----------
@@ -569,22 +598,28 @@ def n4sid(
     >>> np.round(np.sort(res.sys.poles().real), 2)
     array([0.5, 0.8])
     """
-    if weighting not in ("N4SID", "MOESP", "CVA"):
-        raise DimensionError(
-            f"weighting={weighting!r} is unknown; expected 'N4SID', 'MOESP' or 'CVA'"
-        )
-    if criterion not in ("bic", "aic"):
-        raise DimensionError(f"criterion={criterion!r} is unknown; expected 'bic' or 'aic'")
-    (ys, us, l, m, dt, input_labels, output_labels, fed, order, max_order, rtol, sy,
-     su) = _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max_order,
-                         rtol)
-    lengths = [a.shape[1] for a in ys]
-    i = _choose_horizon(horizon, order, lengths, m, l, max_order, lambda k: 2 * k)
-    h = hankel_r(ys, us, sy, su, 2 * i, chunk_size=chunk_size)
+    _check_choice("weighting", weighting, ("N4SID", "MOESP", "CVA"))
+    _check_choice("criterion", criterion, ("bic", "aic"))
+    s = _Setup(*_common_setup(y, u, dt, input_labels, output_labels, feedthrough, order,
+                              max_order, rtol))
+    return _n4sid_run(s, horizon, chunk_size, weighting, criterion, state_prefix)
+
+
+def _check_choice(name: str, value, allowed: tuple[str, ...]) -> None:
+    """DimensionError unless ``value`` is one of ``allowed`` (an option's name)."""
+    if value not in allowed:
+        expected = ", ".join(repr(a) for a in allowed[:-1]) + f" or {allowed[-1]!r}"
+        raise DimensionError(f"{name}={value!r} is unknown; expected {expected}")
+
+
+def _n4sid_run(s: _Setup, horizon, chunk_size, weighting, criterion, state_prefix):
+    """The horizon, block-Hankel factor and model of :func:`n4sid` from its checked setup."""
+    i = _choose_horizon(horizon, s.order, s.lengths, s.m, s.l, s.max_order, lambda k: 2 * k)
+    h = hankel_r(s.ys, s.us, s.sy, s.su, 2 * i, chunk_size=chunk_size)
     with small_blas():
-        return _n4sid_from_factor(h, i, ys, us, l, m, dt, input_labels, output_labels, fed,
-                                  order, max_order, rtol, sy, su, weighting, criterion,
-                                  state_prefix)
+        return _n4sid_from_factor(h, i, s.ys, s.us, s.l, s.m, s.dt, s.input_labels,
+                                  s.output_labels, s.fed, s.order, s.max_order, s.rtol, s.sy,
+                                  s.su, weighting, criterion, state_prefix)
 
 
 def _fit_orders(order, max_order, nmax, too_large, fit, residual_cov, criterion, l, m, nfed,

@@ -921,25 +921,8 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     cont = _continuous_parts(sys, channel, model)
     est, r, align = _law_estimate(model, labels, y, u, Q, R, res, smooth, notes,
                                   None if cont is None else (cont[0], cont[2]))
-    # est.d_est[:, j] estimates sum_i align[:, i] d[j + i]: the law's terms are weighted alike,
-    # so x and u carry nw - 1 more columns than d (the last r columns of a delayed d^ are NaN)
-    nw = align.shape[1]
-    Ne = _estimate_end(est, y.shape[1], nw, k0)
-    _check_enough(Ne - k0, k0, nterms)
-    d = est.d_est[:, k0:Ne]
-    xw = est.x_filt[:, k0:Ne + nw - 1]
-    uw = u[:, k0:Ne + nw - 1]
-    averaged = False
-    if r == 1 and not est.smoothed:
-        # the r = 1 filter kept (the delayed one was not better): d^ may still alternate in
-        # sign (a ZOH zero near z = -1); then it estimates about the mean of two samples
-        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
-        if r1 < _ALTERNATING:
-            align = np.full((channel.md, 2), 0.5)
-            d = 0.5 * (d[:, 1:] + d[:, :-1])
-            averaged = True
-            notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
-                         f"is fitted on terms averaged over consecutive samples")
+    ld = _law_data(est, u, y.shape[1], k0, nterms, align, r, channel.md, notes)
+    d, xw, uw, align, averaged, Ne = ld.d, ld.xw, ld.uw, ld.align, ld.averaged, ld.Ne
     law = _fit_static(d, xw, uw, res.sys, nonlinear, labels, channel.units,
                       None if align.shape[1] == 1 and np.allclose(align, 1.0) else align,
                       channel.relative, whiten=est.smoothed or r >= 2,
@@ -979,3 +962,42 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
                         law_estimate=est, relative_degree=r, static=law, static_model=static_model, dynamic=dyn,
                         dynamic_model=dyn_model, notes=tuple(notes), refined_G=refined_G)
+
+
+@dataclass(frozen=True)
+class _LawData:
+    """The samples of :func:`trace_channel`'s static law: d^ on ``k0:Ne`` (``averaged`` over
+    consecutive samples when it alternates), the states ``xw`` and inputs ``uw`` its terms
+    are formed from, and the weights ``align`` of d^ over ``d[j], d[j+1], ...``."""
+
+    d: NDArray[np.float64]
+    xw: NDArray[np.float64]
+    uw: NDArray[np.float64]
+    align: NDArray[np.float64]
+    averaged: bool
+    Ne: int
+
+
+def _law_data(est, u, nsteps: int, k0: int, nterms: int, align, r: int, md: int,
+              notes: list) -> _LawData:
+    """The static law's window of the estimate ``est`` of ``nsteps`` samples (enough checked)."""
+    # est.d_est[:, j] estimates sum_i align[:, i] d[j + i]: the law's terms are weighted alike,
+    # so x and u carry nw - 1 more columns than d (the last r columns of a delayed d^ are NaN)
+    nw = align.shape[1]
+    Ne = _estimate_end(est, nsteps, nw, k0)
+    _check_enough(Ne - k0, k0, nterms)
+    d = est.d_est[:, k0:Ne]
+    xw = est.x_filt[:, k0:Ne + nw - 1]
+    uw = u[:, k0:Ne + nw - 1]
+    averaged = False
+    if r == 1 and not est.smoothed:
+        # the r = 1 filter kept (the delayed one was not better): d^ may still alternate in
+        # sign (a ZOH zero near z = -1); then it estimates about the mean of two samples
+        r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if d.shape[1] > 2 else 0.0
+        if r1 < _ALTERNATING:
+            align = np.full((md, 2), 0.5)
+            d = 0.5 * (d[:, 1:] + d[:, :-1])
+            averaged = True
+            notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
+                         f"is fitted on terms averaged over consecutive samples")
+    return _LawData(d=d, xw=xw, uw=uw, align=align, averaged=averaged, Ne=Ne)
