@@ -25,7 +25,11 @@ __all__ = [
     "WhitenessTest",
     "whiteness_test",
     "effective_samples",
+    "independent_samples",
     "oe_criterion",
+    "OutputFit",
+    "output_fit",
+    "criterion_scores",
 ]
 
 
@@ -284,11 +288,42 @@ def effective_samples(e: ArrayLike) -> NDArray[np.float64]:
     return out
 
 
+def independent_samples(e: ArrayLike) -> NDArray[np.float64]:
+    """Effective samples of each output's error, shared out over correlated outputs.
+
+    :func:`effective_samples` counts the independent samples in time of each
+    output alone; outputs driven by the same error (a chain's positions all
+    carry one missing force) repeat one another, and summing their
+    log-likelihoods would count that information once per output. Each
+    count is scaled by ``m_eff / m``, ``m_eff = m^2 / sum(lambda^2)`` the
+    participation ratio of the eigenvalues of the outputs' error correlation
+    matrix (m for uncorrelated outputs, 1 for outputs that repeat one error).
+
+    Parameters
+    ----------
+    e : array_like, shape (noutputs, nsteps)
+
+    Returns
+    -------
+    ndarray, shape (noutputs,)
+    """
+    e = np.atleast_2d(np.asarray(e, dtype=float))
+    n = effective_samples(e)
+    m = e.shape[0]
+    live = np.std(e, axis=1) > 0
+    if m < 2 or live.sum() < 2:
+        return n
+    lam = np.linalg.eigvalsh(np.corrcoef(e[live]))
+    k = int(live.sum())
+    m_eff = float(np.clip(k * k / max(float(np.sum(lam ** 2)), 1e-300), 1.0, k))
+    return np.maximum(n * (m_eff + (m - k)) / m, 1.0)
+
+
 def oe_criterion(e: ArrayLike, npar: int, n_eff: ArrayLike) -> float:
     """The one selection criterion of greybox: an output-error BIC on effective samples.
 
     ``sum_i n_i log(mean(e_i^2)) + npar log(sum_i n_i)`` with ``n_i`` the
-    effective samples of output i (:func:`effective_samples`, taken once,
+    effective samples of output i (:func:`independent_samples`, taken once,
     from the residual of the largest candidate, so that every candidate of a
     comparison is scored on the same count). Lower is better. A term is
     worth its parameter only where it lowers the output error by more than
@@ -307,6 +342,106 @@ def oe_criterion(e: ArrayLike, npar: int, n_eff: ArrayLike) -> float:
     float
     """
     e = np.atleast_2d(np.asarray(e, dtype=float))
+    return _criterion(np.mean(e ** 2, axis=1), npar, n_eff)
+
+
+def _criterion(mse, npar: int, n_eff) -> float:
+    """``sum_i n_i log(mse_i) + npar log(sum_i n_i)`` (see :func:`oe_criterion`)."""
     n = np.asarray(n_eff, dtype=float).reshape(-1)
-    mse = np.maximum(np.mean(e ** 2, axis=1), 1e-300)
+    mse = np.maximum(np.asarray(mse, dtype=float).reshape(-1), 1e-300)
     return float(n @ np.log(mse) + npar * np.log(max(float(n.sum()), 2.0)))
+
+
+@dataclass(frozen=True)
+class OutputFit:
+    """How a candidate model's output follows the measured one on the estimation record.
+
+    Attributes
+    ----------
+    se : float
+        SE (eq. 42) [%]; inf when the model's output diverged.
+    per_output : ndarray, shape (noutputs,)
+        SE of each output [%] (its square is the output's mean squared error
+        over its mean square: the criterion's scale cancels between candidates).
+    n_eff : ndarray, shape (noutputs,)
+        Effective independent samples of each output's error, shared out
+        over correlated outputs (:func:`independent_samples`).
+    """
+
+    se: float
+    per_output: NDArray[np.float64]
+    n_eff: NDArray[np.float64]
+
+
+def output_fit(y: ArrayLike, y_hat: ArrayLike, *, skip: int = 0) -> OutputFit:
+    """The :class:`OutputFit` of ``y_hat`` (simulated or one-step predicted) against ``y``.
+
+    Parameters
+    ----------
+    y, y_hat : array_like, shape (noutputs, nsteps)
+    skip : int
+        Leading samples left out (the filters' or the simulation's transient).
+
+    Returns
+    -------
+    OutputFit
+        ``se = inf`` (and ``per_output`` inf) when ``y_hat`` is not finite or
+        beyond the magnitude the metrics accept.
+    """
+    y, y_hat = np.atleast_2d(np.asarray(y, dtype=float)), np.atleast_2d(
+        np.asarray(y_hat, dtype=float))
+    ny = y.shape[0]
+    bad = OutputFit(se=np.inf, per_output=np.full(ny, np.inf), n_eff=np.ones(ny))
+    if not np.all(np.isfinite(y_hat)):
+        return bad
+    try:
+        re = relative_error(y, y_hat, skip=skip)
+    except DataError:  # values beyond the magnitude check (1e252 from a diverged candidate)
+        return bad
+    if not np.isfinite(re.value):
+        return bad
+    return OutputFit(se=re.value, per_output=re.per_output,
+                     n_eff=independent_samples(y[:, skip:] - y_hat[:, skip:]))
+
+
+def criterion_scores(fits, npars, n_eff: ArrayLike | None = None) -> NDArray[np.float64]:
+    """Every candidate's :func:`oe_criterion` on one effective sample count.
+
+    The count is the effective samples of the best-fitting candidate (the
+    lowest SE: its error is the closest to the noise alone), so that every
+    candidate of one choice is scored on the same ``n``; a candidate that
+    does not fit (``se`` inf) scores inf. Lower is better.
+
+    Not yet the choice of :func:`greybox.close_the_loop` (which keeps its
+    SE-parsimony rule): tried there, it named an input gain error as a pair
+    of equations' law (2 parameters against 1, SE 0.114 % against 0.115 %,
+    a likelihood ratio of 44 on 2189 effective samples) in
+    ``tests/test_trace_actuator.py``: the simulation error of a plant under
+    process noise is slow, and its effective sample count, estimated from
+    4000 samples, is too large for nested candidates of near-equal fit.
+
+    Parameters
+    ----------
+    fits : sequence of OutputFit
+    npars : sequence of int
+        Parameters each candidate adds (a breakpoint, a pole, a level counts
+        as one).
+    n_eff : array_like, shape (noutputs,), optional
+        The effective sample count to score on (to score later candidates of
+        the same choice on the same count); default: the best-fitting one's.
+
+    Returns
+    -------
+    ndarray, shape (ncandidates,)
+    """
+    fits, npars = list(fits), list(npars)
+    if len(fits) != len(npars):
+        raise DataError(f"{len(fits)} fits but {len(npars)} parameter counts")
+    out = np.full(len(fits), np.inf)
+    finite = [i for i, f in enumerate(fits) if np.isfinite(f.se)]
+    if not finite:
+        return out
+    n = fits[min(finite, key=lambda i: fits[i].se)].n_eff if n_eff is None else n_eff
+    for i in finite:
+        out[i] = _criterion((fits[i].per_output / 100.0) ** 2, int(npars[i]), n)
+    return out

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from greybox import DataError, DimensionError
+from greybox import DataError, DimensionError, metrics
 from greybox.metrics import (
     autocorrelation,
     correlation_band,
@@ -89,3 +89,86 @@ def test_whiteness_test_size_and_power():
 def test_whiteness_needs_enough_samples():
     with pytest.raises(DataError, match="needs at least 41 samples"):
         whiteness_test(np.zeros((1, 30)), 20)
+
+
+# ------------------------------------------------------------------ the selection criterion
+def _ar1(rng, n, a):
+    """Unit-variance AR(1) noise, pole a (coloured like an output error under process noise)."""
+    w = rng.standard_normal(n + 200)
+    e = np.empty_like(w)
+    e[0] = w[0]
+    for k in range(1, len(w)):
+        e[k] = a * e[k - 1] + np.sqrt(1 - a * a) * w[k]
+    return e[200:]
+
+
+def _candidates(rng, n, extra_coef):
+    """y = x1 + extra_coef x2 + coloured noise; least-squares fits with x1 alone (1 par),
+    x1 and x2 (2 par) and x1, x2 and four spurious slow signals (6 par)."""
+    X = np.vstack([_ar1(rng, n, 0.95) for _ in range(6)])
+    y = X[0] + extra_coef * X[1] + 0.3 * _ar1(rng, n, 0.9)
+    fits, npars = [], []
+    for k in (1, 2, 6):
+        beta = np.linalg.lstsq(X[:k].T, y, rcond=None)[0]
+        fits.append(metrics.output_fit(y[None], (beta @ X[:k])[None]))
+        npars.append(k)
+    return fits, npars
+
+
+def test_criterion_keeps_only_the_terms_the_data_support():
+    """Over 40 seeds of coloured noise, the criterion picks the true structure: the
+    one-term model when the second regressor is absent (the larger fits only chase the
+    noise: their SE is lower, never by much), the two-term one when it is there at a
+    tenth of the first. 90 %: the penalty is a BIC's, whose false-inclusion rate on
+    effective samples is a few % per term at these sizes, not zero."""
+    rng = np.random.default_rng(20261126)
+    picks_absent, picks_present = [], []
+    for _ in range(40):
+        fits, npars = _candidates(rng, 2000, 0.0)
+        assert fits[2].se <= fits[0].se  # the larger fit is never worse on its own data
+        picks_absent.append(int(np.argmin(metrics.criterion_scores(fits, npars))))
+        fits, npars = _candidates(rng, 2000, 0.1)
+        picks_present.append(int(np.argmin(metrics.criterion_scores(fits, npars))))
+    assert np.mean(np.array(picks_absent) == 0) >= 0.9, picks_absent
+    assert np.mean(np.array(picks_present) == 1) >= 0.9, picks_present
+
+
+def test_criterion_on_all_samples_would_overfit_coloured_noise():
+    """The effective sample count is what keeps the spurious terms out: scored on all N
+    samples (as if the error were white) the six-term fit wins far more often. The
+    criterion's n_eff is the best-fitting candidate's, below N for coloured errors."""
+    rng = np.random.default_rng(7)
+    naive = honest = 0
+    for _ in range(30):
+        fits, npars = _candidates(rng, 2000, 0.0)
+        assert fits[2].n_eff[0] < 0.5 * 2000
+        honest += int(np.argmin(metrics.criterion_scores(fits, npars)) == 2)
+        naive += int(np.argmin(metrics.criterion_scores(fits, npars, n_eff=[2000.0])) == 2)
+    assert naive >= honest + 5, (naive, honest)
+
+
+def test_output_fit_of_a_diverged_candidate_loses():
+    y = np.vstack([np.sin(np.arange(100) / 5.0)])
+    bad = metrics.output_fit(y, np.full_like(y, np.nan))
+    good = metrics.output_fit(y, y + 0.01)
+    assert bad.se == np.inf
+    scores = metrics.criterion_scores([bad, good], [1, 3])
+    assert scores[0] == np.inf and np.isfinite(scores[1])
+    with pytest.raises(DataError, match="parameter counts"):
+        metrics.criterion_scores([good], [1, 2])
+
+
+def test_independent_samples_count_a_repeated_error_once():
+    """Two outputs that carry the same error hold the information of one: their counts
+    are halved (participation ratio 1 of 2); two independent errors keep theirs (within
+    the sampling spread of the correlation matrix, ~1/sqrt(N) = 1.4 %)."""
+    rng = np.random.default_rng(3)
+    a, b = _ar1(rng, 5000, 0.5), _ar1(rng, 5000, 0.5)
+    alone = metrics.effective_samples(np.vstack([a, b]))
+    same = metrics.independent_samples(np.vstack([a, a]))
+    apart = metrics.independent_samples(np.vstack([a, b]))
+    np.testing.assert_allclose(same, metrics.effective_samples(np.vstack([a, a])) / 2,
+                               rtol=1e-9)
+    np.testing.assert_allclose(apart, alone, rtol=0.02)
+    # one output: nothing to share
+    np.testing.assert_allclose(metrics.independent_samples(a[None]), alone[:1])
