@@ -44,6 +44,9 @@ class Candidate:
         (the sparse or shared dynamic law in ``law``).
     law : DynamicLaw or SharedLaw or SharedLaw2 or None
         The sparse or shared dynamic law of a "sparse" candidate.
+    fit : OutputFit or None
+        Its output fit on the search window (SE per output, effective samples):
+        what the selection criterion reads (:func:`greybox.metrics.criterion_scores`).
     """
 
     se: float
@@ -51,6 +54,7 @@ class Candidate:
     trace: ChannelTrace = field(repr=False)
     kind: str
     law: object = field(default=None, repr=False)
+    fit: object = field(default=None, repr=False)
 
     @property
     def channel(self):
@@ -58,11 +62,14 @@ class Candidate:
         return self.trace.channel
 
 
-CRITERION = ("lowest simulation error (eq. 42) of the augmented model on the estimation data; "
-             "among candidates within {pct:.0f}% of the lowest, the fewest parameters")
-CRITERION_PE = ("lowest one-step prediction error PE (eq. 42) of the augmented model on the "
-                "estimation data (the nominal model is unstable, so SE is undefined); among "
-                "candidates within {pct:.0f}% of the lowest, the fewest parameters")
+CRITERION = ("lowest output-error criterion of the augmented model on the estimation data: "
+             "sum over outputs of n_eff log(mean squared simulation error) + bic_factor "
+             "(parameters) log(n_eff), n_eff the effective independent samples of the "
+             "best-fitting candidate's error")
+CRITERION_PE = ("lowest output-error criterion of the augmented model on the estimation data, "
+                "on one-step prediction errors (the nominal model is unstable, so SE is "
+                "undefined): sum over outputs of n_eff log(mean squared PE) + bic_factor "
+                "(parameters) log(n_eff)")
 
 
 @dataclass(frozen=True)

@@ -9,9 +9,11 @@ an estimation record and a validation record, and returns a
 2. **Trace.** For every candidate channel (default: each state equation,
    and pairs of equations where p allows) :func:`greybox.trace.trace_channel`
    estimates d^ and fits a static law and a dynamic subsystem.
-3. **Choose.** Stated criterion: the simulation error SE (eq. 42) of each
-   augmented model on the *estimation* data; among the candidates within
-   ``parsimony`` (10 %) of the lowest SE, the one with fewest parameters.
+3. **Choose.** One criterion for every candidate: the output-error BIC of
+   each augmented model on the *estimation* data (each output's log mean
+   squared simulation error on its effective independent samples, plus
+   ``bic_factor log n`` per parameter; :func:`greybox.metrics.criterion_scores`);
+   lowest wins.
 4. **Gate** (PAPER_NOTES §9.1): the model is changed only if all of: some
    output rejects whiteness (p < alpha), the chosen law's BIC gain on d^ is
    more than ``bic_factor`` times its penalty ``npar log N``, and the
@@ -46,8 +48,11 @@ from .filters import feedthrough_uikf, kalman_filter, uikf
 from .metrics import (
     WhitenessTest,
     autocorrelation,
+    OutputFit,
     correlation_band,
+    criterion_scores,
     cross_correlation,
+    output_fit,
     relative_error,
     whiteness_test,
 )
@@ -302,8 +307,10 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         Highest order of the delta baseline; default n + 6 (that of
         :func:`greybox.update.delta_update`), at most ``DELTA_MAX_ORDER`` = 16.
     parsimony : float
-        Candidates with estimation SE within this factor of the best count
-        as equally good; the one with fewest parameters wins.
+        For a ``NonlinearIOSystem`` only: candidates with estimation SE within
+        this factor of the best count as equally good, the one with fewest
+        parameters wins. A ``StateSpace`` model's candidates are compared by
+        the prediction-error criterion (``records.CRITERION``).
     min_se_drop : float
         The update must bring the estimation SE below this fraction of the
         nominal SE.
@@ -601,14 +608,21 @@ class _Pass:
         return self.report(r, chosen.trace, v, table)
 
     # ------------------------------------------------------------------ helpers
-    def fit_error(self, sys_, Q_, R_, ysim=None, ypred=None) -> float:
-        """SE (or PE, for an unstable nominal) of a model on the search window [%]."""
+    def fit_error(self, sys_, Q_, R_, ysim=None, ypred=None) -> OutputFit:
+        """How a model follows y on the search window: its SE (or PE, for an unstable
+        nominal) [%] per output and the effective samples of its error
+        (:class:`greybox.metrics.OutputFit`: what the criterion reads)."""
         ys, us = self.P.ys, self.P.us
         if not self.unstable:
-            return _se(ys, ysim() if ysim is not None else
-                       simulate_output(sys_, us, estimate_initial_state(sys_, ys, us)), self.SKIP)
-        yp = ypred() if ypred is not None else kalman_filter(sys_, ys, us, Q=Q_, R=R_).y_pred
-        return _se(ys, yp, self.SKIP)
+            return output_fit(ys, ysim() if ysim is not None else simulate_output(
+                sys_, us, estimate_initial_state(sys_, ys, us)), skip=self.SKIP)
+        try:
+            with np.errstate(all="ignore"):  # a diverging predictor loses, it does not warn
+                yp = ypred() if ypred is not None else kalman_filter(
+                    sys_, ys, us, Q=Q_, R=R_).y_pred
+        except (GreyboxError, np.linalg.LinAlgError, ValueError, FloatingPointError):
+            yp = np.full(ys.shape, np.nan)
+        return output_fit(ys, yp[:, :ys.shape[1]], skip=self.SKIP)
 
     def _trace(self, ch, **kw):
         P = self.P
@@ -628,8 +642,7 @@ class _Pass:
         """1. The nominal model's one-step residual, its SE and its validation row."""
         P, S, nominal, skip = self.P, self.S, self.nominal, self.SKIP
         t_pass = time.monotonic()  # the delta baseline's budget: this pass's time
-        crit = (CRITERION_PE if self.unstable else CRITERION).format(
-            pct=100 * (S.parsimony - 1))
+        crit = CRITERION_PE if self.unstable else CRITERION
         P.tick("residual of the nominal model", 0, 1)
         kf = kalman_filter(nominal, P.y, P.u, Q=self.Q, R=P.R)
         k0 = kf.settled(skip)
@@ -668,23 +681,25 @@ class _Pass:
             if tr.static.nonlinear:
                 res = tr.filter_result
                 x0 = estimate_initial_state(sm.sys, ys, us, slow_modes=False)
-                se = self.fit_error(sm.sys, sm.Q, sm.R,
-                                    ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us, x0),
-                                    ypred=lambda: ekf_predict_with_law(
-                                        res.sys, res.G, tr.static, ys, us, x0, Q=sm.Q, R=sm.R))
+                fit = self.fit_error(sm.sys, sm.Q, sm.R,
+                                     ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us,
+                                                                x0),
+                                     ypred=lambda: ekf_predict_with_law(
+                                         res.sys, res.G, tr.static, ys, us, x0, Q=sm.Q,
+                                         R=sm.R))
             else:
-                se = self.fit_error(sm.sys, sm.Q, sm.R)
+                fit = self.fit_error(sm.sys, sm.Q, sm.R)
             brk = tr.static.breakpoints
-            self.cands.append(CandidateScore(ch.name, "static", 0, se, tr.static.npar, "ok",
+            self.cands.append(CandidateScore(ch.name, "static", 0, fit.se, tr.static.npar, "ok",
                                              f"with {brk[0]}" if brk else ""))
-            self.scored.append(Candidate(se, tr.static.npar, tr, "static"))
+            self.scored.append(Candidate(fit.se, tr.static.npar, tr, "static", fit=fit))
         if tr.dynamic_model is not None:
             dm, sub = tr.dynamic_model, tr.dynamic
-            se = self.fit_error(dm.sys, dm.Q, dm.R)
+            fit = self.fit_error(dm.sys, dm.Q, dm.R)
             nw, md = self.nominal.nstates + self.nominal.ninputs, ch.md
             npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
-            self.cands.append(CandidateScore(ch.name, "dynamic", sub.order, se, npar, "ok"))
-            self.scored.append(Candidate(se, npar, tr, "dynamic"))
+            self.cands.append(CandidateScore(ch.name, "dynamic", sub.order, fit.se, npar, "ok"))
+            self.scored.append(Candidate(fit.se, npar, tr, "dynamic", fit=fit))
 
     def trace_channels(self) -> None:
         """2. Trace every candidate channel: static laws and order-1 dynamics."""
@@ -738,10 +753,10 @@ class _Pass:
 
     def retraced(self, pick: Candidate) -> Candidate:
         """The Candidate ``pick``, or the force traced again along its refitted direction
-        if that fits better (or as well with fewer terms), up to _MAX_RETRACE."""
-        se_c, npar, tr, kind = pick.se, pick.npar, pick.trace, pick.kind
+        if that scores better by the criterion, up to _MAX_RETRACE."""
         for _ in range(_MAX_RETRACE):
-            if not (kind == "static" and tr.refined_G is not None):
+            tr = pick.trace
+            if not (pick.kind == "static" and tr.refined_G is not None):
                 break
             # the force's law contradicts its direction (taken from a noisy pair law):
             # trace it again along the refitted one (law, filter and model then agree);
@@ -755,12 +770,12 @@ class _Pass:
                     self.score(rtr)
             except (GreyboxError, np.linalg.LinAlgError) as e:
                 self.notes.append(f"{tr.channel.name} along its refitted direction: {e}")
-            better = [s for s in self.scored[n_before:] if s.kind == "static" and (
-                s.se < se_c or (s.se <= self.S.parsimony * se_c and s.npar < npar))]
+            new = [c for c in self.scored[n_before:] if c.kind == "static" and c.fit is not None]
+            crit = self._criterion([pick, *new]) if new else []
+            better = [c for c, k in zip(new, crit[1:]) if k < crit[0]]
             if not better:
                 break
             pick = better[0]
-            se_c, npar, tr, kind = pick.se, pick.npar, pick.trace, pick.kind
         return pick
 
     def forces(self) -> None:
@@ -884,9 +899,9 @@ class _Pass:
             return
         if dl is None:
             return
-        se = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
-        self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
-        self.scored.append(Candidate(se, dl.npar, tr_, "sparse", dl))
+        fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+        self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, fit.se, dl.npar, "ok"))
+        self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
 
     def _shared(self, tr_, r: Residual) -> bool:
         """2c. Fit one shared state for the channel of ``tr_``; False if the fit failed."""
@@ -896,8 +911,8 @@ class _Pass:
             dl = fit_shared_dynamic(self.sys, ch, res_.x_filt[:, k0s:Ns], res_.d_est[:, k0s:Ns],
                                     P.y, P.u, Q=self.Q, R=P.R, dt=P.dt, x0=res_.x_filt[:, 0],
                                     k0=k0s, pole=pole0)
-            se = np.inf if dl is None else self.fit_error(dl.model.sys, dl.model.Q,
-                                                          dl.model.R)
+            fit = None if dl is None else self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+            se = np.inf if fit is None else fit.se
         except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
             self.notes.append(f"{ch.name}: shared-state law failed: {e}")
             return False
@@ -910,7 +925,7 @@ class _Pass:
             self._force_along(dl, se, ch)
         elif dl is not None:
             self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, se, dl.npar, "ok"))
-            self.scored.append(Candidate(se, dl.npar, tr_, "sparse", dl))
+            self.scored.append(Candidate(se, dl.npar, tr_, "sparse", dl, fit=fit))
             # a second order only where the first leaves coloured innovations, and no
             # earlier group's shared law left white ones (on a first-order hidden
             # mass, the order-2 fits cost 18 s of 41 s)
@@ -943,8 +958,9 @@ class _Pass:
         try:
             dl2 = fit_shared_order2(self.sys, ch, dl, P.y, P.u, Q=self.Q, R=P.R, dt=P.dt,
                                     x0=res_.x_filt[:, 0], k0=k0s)
-            se2 = np.inf if dl2 is None else self.fit_error(dl2.model.sys, dl2.model.Q,
-                                                            dl2.model.R)
+            fit2 = None if dl2 is None else self.fit_error(dl2.model.sys, dl2.model.Q,
+                                                           dl2.model.R)
+            se2 = np.inf if fit2 is None else fit2.se
         except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
             self.notes.append(f"{ch.name}: {word}-order shared law failed: {e}")
             return
@@ -955,7 +971,7 @@ class _Pass:
         self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", dl2.order, se2,
                                          dl2.npar, "ok"))
         tr2 = replace(tr_)  # its own trace (the lower order keeps tr_)
-        self.scored.append(Candidate(se2, dl2.npar, tr2, "sparse", dl2))
+        self.scored.append(Candidate(se2, dl2.npar, tr2, "sparse", dl2, fit=fit2))
         if dl2.order >= MAX_SHARED_ORDER:
             return
         others = [t.se for t in self.scored[:-1] if np.isfinite(t.se)]
@@ -1001,24 +1017,41 @@ class _Pass:
             return
         if fl is None:
             return
-        fse = self.fit_error(fl.model.sys, fl.model.Q, fl.model.R)
+        ffit = self.fit_error(fl.model.sys, fl.model.Q, fl.model.R)
+        fse = ffit.se
         self.cands.append(CandidateScore(fch.name, "dynamic (sparse)", 1, fse, fl.npar, "ok",
                                          "along the shared-state law's direction "
                                          f"{np.array2string(dl.k, precision=3)}"))
-        self.scored.append(Candidate(fse, fl.npar, ftr, "sparse", fl))
+        self.scored.append(Candidate(fse, fl.npar, ftr, "sparse", fl, fit=ffit))
 
     # ------------------------------------------------------------------ choose
     def choose(self) -> Candidate | None:
-        """The lowest estimation SE, and within ``parsimony`` of it the fewest parameters
-        (then the fewest components, then the SE); a force re-traced if it fits better;
-        a static law's terms then kept only where the one criterion supports them."""
-        finite = [s for s in self.scored if np.isfinite(s.se)]
+        """The lowest output-error criterion (:func:`greybox.metrics.criterion_scores`: each
+        output's log mean squared simulation error on its effective samples, plus
+        ``bic_factor log n`` per parameter: the evidence the gate asks of a law, asked of
+        each parameter, since the candidates' laws are fitted on d^ or by output error,
+        not for this likelihood), every candidate on the effective samples of the
+        best-fitting one; ties go to the fewest parameters, then components. A force
+        re-traced if it scores better; a static law's terms then kept only where the
+        criterion supports them."""
+        finite = [s for s in self.scored if np.isfinite(s.se) and s.fit is not None]
         if not finite:
             return None
-        best_se = min(s.se for s in finite)
-        near = [s for s in finite if s.se <= self.S.parsimony * best_se]
-        return self.pruned(self.retraced(min(near, key=lambda s: (s.npar,
-                                                                    s.trace.channel.md, s.se))))
+        self.n_eff = min(finite, key=lambda s: s.se).fit.n_eff
+        crit = self._criterion(finite)
+        order = sorted(range(len(finite)), key=lambda i: (crit[i], finite[i].npar,
+                                                          finite[i].trace.channel.md,
+                                                          finite[i].se))
+        self.notes.append(_choice_note(finite, crit, order, self.n_eff, self.S.bic_factor))
+        return self.pruned(self.retraced(finite[order[0]]))
+
+    def _criterion(self, cands) -> np.ndarray:
+        """The criterion of each candidate of ``cands`` on the choice's effective samples."""
+        n_eff = getattr(self, "n_eff", None)
+        if n_eff is None:
+            n_eff = min(cands, key=lambda s: s.se).fit.n_eff
+        return criterion_scores([c.fit for c in cands], [c.npar for c in cands],
+                                n_eff=n_eff, factor=self.S.bic_factor)
 
     def pruned(self, pick: Candidate) -> Candidate:
         """The chosen static law traced again with its terms pruned by the one criterion
@@ -1156,6 +1189,18 @@ class _Pass:
                           candidates=tuple(self.cands), gate=self.gate, criterion=r.crit,
                           nominal=self.nominal, model=v.model, table=table, trace=tr,
                           notes=tuple(self.notes))
+
+
+def _choice_note(cands, crit, order, n_eff, factor: float, shown: int = 4) -> str:
+    """The decision record of :meth:`_Pass.choose`: the leading candidates' criterion."""
+    best = crit[order[0]]
+    rows = "; ".join(f"{cands[i].trace.channel.name} {cands[i].kind} ({cands[i].npar} par, "
+                     f"SE {cands[i].se:.3g} %): "
+                     + ("best" if i == order[0] else f"+{crit[i] - best:.1f}")
+                     for i in order[:shown])
+    return (f"choose: output-error criterion (each output's n_eff log(mean squared "
+            f"simulation error) + {factor:g} log(n_eff) per parameter, on "
+            f"{np.sum(n_eff):.0f} effective samples; lower is better): {rows}")
 
 
 def _logdet_gain(d, r) -> float:

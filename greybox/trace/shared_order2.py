@@ -35,8 +35,8 @@ numerators by ``(s + p3)`` (an exact cancellation), a third pole five times
 slower than the slowest, between the two, or five times faster than the
 fastest. The workflow offers order 2 beside the first-order law, and order 3
 beside order 2 where order 2 still leaves coloured innovations, and chooses
-with the same rule as between all candidates (the fewest parameters within the
-parsimony margin of the lowest estimation SE).
+with the same criterion as between all candidates (the output-error criterion on
+effective samples, :func:`greybox.metrics.criterion_scores`).
 """
 
 from __future__ import annotations
