@@ -172,3 +172,17 @@ def test_independent_samples_count_a_repeated_error_once():
     np.testing.assert_allclose(apart, alone, rtol=0.02)
     # one output: nothing to share
     np.testing.assert_allclose(metrics.independent_samples(a[None]), alone[:1])
+
+
+def test_criterion_factor_charges_each_parameter_factor_times_its_penalty():
+    """``factor`` scales the penalty only: two candidates' scores move apart by exactly
+    (factor - 1) * (k2 - k1) * log(sum n_eff), so a nested candidate's fit gain must beat
+    ``factor`` penalties (the choice in close_the_loop uses bic_factor = 10)."""
+    rng = np.random.default_rng(11)
+    fits, npars = _candidates(rng, 2000, 0.1)
+    n = fits[0].n_eff
+    s1 = metrics.criterion_scores(fits, npars, n_eff=n)
+    s10 = metrics.criterion_scores(fits, npars, n_eff=n, factor=10.0)
+    logn = np.log(np.sum(n))
+    np.testing.assert_allclose((s10 - s1) - (s10[0] - s1[0]),
+                               9.0 * (np.array(npars) - npars[0]) * logn, rtol=1e-12)
