@@ -499,3 +499,17 @@ def check_records(sys, y, u, y_val, u_val, R, *, min_steps: int, min_val_steps: 
                       f"their validation SE only measures the distance to that constant",
                       GreyboxWarning, stacklevel=3)
     return y, u, y_val, u_val
+
+
+def check_parsimony(parsimony) -> float:
+    """The retired ``parsimony`` argument of close the loop: still checked (>= 1), and a
+    DeprecationWarning when set, since the choice no longer reads it."""
+    parsimony = check_positive(parsimony, "parsimony")
+    if not parsimony >= 1:
+        raise DataError(f"need parsimony >= 1; found {parsimony} (it no longer has an "
+                        f"effect: leave it out)")
+    if parsimony != 1.1:
+        warnings.warn("parsimony no longer has an effect: candidates are chosen by one "
+                      "output-error criterion (greybox.metrics.criterion_scores); leave it out",
+                      DeprecationWarning, stacklevel=3)
+    return parsimony

@@ -37,6 +37,7 @@ from ._blas import single_thread_blas
 from ._lti import lti_states
 from ._validation import (
     check_covariance,
+    check_parsimony,
     check_positive,
     check_records,
     check_statespace,
@@ -307,10 +308,8 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         Highest order of the delta baseline; default n + 6 (that of
         :func:`greybox.update.delta_update`), at most ``DELTA_MAX_ORDER`` = 16.
     parsimony : float
-        For a ``NonlinearIOSystem`` only: candidates with estimation SE within
-        this factor of the best count as equally good, the one with fewest
-        parameters wins. A ``StateSpace`` model's candidates are compared by
-        the prediction-error criterion (``records.CRITERION``).
+        Deprecated, no effect (a value other than 1.1 warns): candidates are
+        compared by one output-error criterion (``records.CRITERION``).
     min_se_drop : float
         The update must bring the estimation SE below this fraction of the
         nominal SE.
@@ -412,13 +411,10 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_orde
                         f"{delta_max_order} (at most 20): higher orders cannot be identified "
                         f"reliably from one record")
     nonlinear, delta = _flag(nonlinear, "nonlinear"), _flag(delta, "delta")
-    parsimony = check_positive(parsimony, "parsimony")
+    parsimony = check_parsimony(parsimony)
     alpha = check_positive(alpha, "alpha")
     min_se_drop = check_positive(min_se_drop, "min_se_drop")
     bic_factor = check_positive(bic_factor, "bic_factor")
-    if not parsimony >= 1:
-        raise DataError(f"parsimony must be >= 1 (1.1 keeps candidates within 10 % of the "
-                        f"lowest SE); found {parsimony}")
     if not 0 < alpha < 1 or not 0 < min_se_drop <= 1 or not bic_factor > 0:
         raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1, bic_factor > 0; found "
                         f"{alpha}, {min_se_drop}, {bic_factor}")

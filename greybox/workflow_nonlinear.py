@@ -40,9 +40,9 @@ linear output map, the paper's (33)). The stages mirror the linear pipeline:
    (on Ny / c) of the two is kept. That channel's simulations start from the
    state (its filter's or the nominal UKF's at SKIP) whose nominal
    simulation follows y best over the first samples.
-3. **Choose and gate** as the linear pipeline: lowest estimation SE of the
-   updated model, within ``parsimony`` the fewest parameters (a model that
-   declares ``params``: the candidates within ``parsimony`` are refitted
+3. **Choose and gate** as the linear pipeline: the lowest output-error
+   criterion of the updated model (:func:`greybox.metrics.criterion_scores`; a
+   model that declares ``params``: the best candidates by it are refitted
    jointly with the parameters, from the nominal the trace ran on and from
    the declared one, and the lowest output-error BIC of those refits
    chooses, :func:`_pick_after_refit`); update only if
@@ -97,6 +97,7 @@ from ._blas import one_blas_thread
 from ._validation import (
     MAX_MAGNITUDE,
     check_covariance,
+    check_parsimony,
     check_positive,
     check_records,
 )
@@ -111,10 +112,13 @@ from .filters import (
 )
 from .nominal_refit import free_parameters, law_coordinates, refit_jointly
 from .metrics import (
+    OutputFit,
     WhitenessTest,
     autocorrelation,
     correlation_band,
+    criterion_scores,
     cross_correlation,
+    output_fit,
     relative_error,
     whiteness_test,
 )
@@ -275,6 +279,8 @@ class _LawCandidate:
         The output-error fit's evidence, when the law had one.
     oe_terms : bool
         The law's terms were chosen by output error (d^ mostly estimation noise).
+    fit : OutputFit or None
+        Its output fit on the estimation record (what the criterion reads).
     """
 
     se: float
@@ -284,6 +290,7 @@ class _LawCandidate:
     refined: bool = False
     evidence: _OEEvidence | None = None
     oe_terms: bool = False
+    fit: OutputFit | None = field(default=None, repr=False)
 
     @property
     def law(self):
@@ -359,14 +366,22 @@ def _validation_row(model_d, y, u, *, Q, R, x0, P0, name, lags, alpha, order,
 
 def _se_from(model_d, u, x_start, y, C, D) -> float:
     """Estimation SE [%] of a model simulated from x_start at sample SKIP (inf: diverged)."""
+    return _fit_from(model_d, u, x_start, y, C, D).se
+
+
+def _fit_from(model_d, u, x_start, y, C, D) -> OutputFit:
+    """The :class:`~greybox.metrics.OutputFit` of a model simulated from x_start at sample
+    SKIP (SE inf: diverged)."""
+    ny = y.shape[0]
+    bad = OutputFit(se=np.inf, per_output=np.full(ny, np.inf), n_eff=np.ones(ny))
     try:
         sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=x_start)
     except GreyboxError:
-        return np.inf
+        return bad
     ys = C @ sim.x + D @ u[:, SKIP:]
     if not _bounded(ys):
-        return np.inf
-    return float(relative_error(y[:, SKIP:], ys).value)
+        return bad
+    return output_fit(y[:, SKIP:], ys)
 
 
 def _bounded(y_sim: NDArray) -> bool:
@@ -1194,11 +1209,11 @@ def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfre
     return _JointFit(alone=alone, refit=jr)
 
 
-_REFIT_NEAR = 3  # candidates within the parsimony margin refitted with the parameters
+_REFIT_NEAR = 3  # candidates within one parameter's evidence of the best, refitted jointly
 
 
 def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
-    """A :class:`_Pick`: of the candidates within the parsimony margin (sparsest first),
+    """A :class:`_Pick`: of the candidates the criterion does not separate (best first),
     the one whose law, refitted jointly with the nominal's declared parameters, has the
     lowest output-error BIC, the nominal its refit started from, and that refit.
 
@@ -1236,11 +1251,11 @@ def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
     bic = [n * np.log(jr.se ** 2) + jr.nfree * np.log(n) if jr is not None else np.inf
            for jr, _ in fits]
     i = int(np.argmin(bic))
-    notes.append("candidates within the parsimony margin compared with the nominal's declared "
-                 "parameters refitted with each law (output-error BIC, lower is better): "
+    notes.append("candidates the criterion does not separate compared with the nominal's "
+                 "declared parameters refitted with each law (output-error BIC, lower is better): "
                  + ", ".join(f"{s.channel.name} {b:.1f} (SE {f[0].se:.3g} %)"
                              if f[0] is not None else f"{s.channel.name} failed"
-                             for s, b, f in zip(near, bic, fits))
+                             for s, b, f in zip(near[:_REFIT_NEAR], bic, fits))
                  + f"; chosen {near[i].channel.name}")
     return _Pick(candidate=near[i], start=fits[i][1], refit=fits[i][0])
 
@@ -1385,8 +1400,8 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     lags : int
         Lags of the whiteness tests and correlations.
     parsimony : float
-        Candidates within this factor of the lowest estimation SE count as
-        equally good; the fewest parameters wins.
+        Deprecated, no effect (a value other than 1.1 warns): candidates are
+        compared by one output-error criterion (``records.CRITERION``).
     min_se_drop : float
         The update must bring the estimation SE below this fraction.
     bic_factor : float
@@ -1446,7 +1461,11 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
     if not v.passed:
         return s.refused(r, v)
     s.caveats(v)
-    return s.report(r, v, s.validate(r, v))
+    try:
+        ba = s.validate(r, v)
+    except ModelError as e:  # the updated model's predictor diverged on the validation record
+        return s.diverged(r, v, e)
+    return s.report(r, v, ba)
 
 
 # --------------------------------------------------------------------------- the stages
@@ -1624,13 +1643,13 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, alpha, l
     R = check_covariance(R, p, "R", definite=True)
     nonlinear = _flag(nonlinear, "nonlinear")
     refit_parameters = _flag(refit_parameters, "refit_parameters")
-    parsimony = check_positive(parsimony, "parsimony")
+    parsimony = check_parsimony(parsimony)
     alpha = check_positive(alpha, "alpha")
     min_se_drop = check_positive(min_se_drop, "min_se_drop")
     bic_factor = check_positive(bic_factor, "bic_factor")
-    if not parsimony >= 1 or not 0 < alpha < 1 or not 0 < min_se_drop <= 1:
-        raise DataError(f"need parsimony >= 1, 0 < alpha < 1, 0 < min_se_drop <= 1; found "
-                        f"{parsimony}, {alpha}, {min_se_drop}")
+    if not 0 < alpha < 1 or not 0 < min_se_drop <= 1:
+        raise DataError(f"need 0 < alpha < 1, 0 < min_se_drop <= 1; found "
+                        f"{alpha}, {min_se_drop}")
     if substeps is not None:
         substeps = check_positive(substeps, "substeps", integer=True)
 
@@ -1750,7 +1769,7 @@ class _NonlinearPass:
         P.tick("residual of the nominal model", 1, 1)
         return _Residual(white=white, se_nom=se_nom, val_nom=val_nom, x_op=x_op,
                          lin_nom=lin_nom, lin_cont=lin_cont,
-                         crit=CRITERION.format(pct=100 * (S.parsimony - 1)))
+                         crit=CRITERION)
 
     # ------------------------------------------------------------------ 1b. parameters
     def parameters_alone(self, r: _Residual) -> LoopReport | None:
@@ -1958,18 +1977,19 @@ class _NonlinearPass:
         coefficients refined by output error first, kept if the SE drops."""
         P, law, ch = self.P, tr.static, tr.channel
         upd = add_law(self.base, ch.G, law.evaluate, name=f"{self.base.name}_updated")
-        se = _se_from(P.disc(upd), P.u, x0c, P.y, P.C, P.D)
+        fit = _fit_from(P.disc(upd), P.u, x0c, P.y, P.C, P.D)
+        se = fit.se
         if dh.r > 1 and law.npar <= OE_MAX_TERMS:
             # a delayed d^ is noisy (d shows in y only through C A G~): its law's
             # coefficients are refined by output error before the channels are compared
             ref = _refine_law_oe(law, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D, noise_ch)
             if ref is not None:
-                se_d = _se_from(P.disc(ref.model), P.u, x0c, P.y, P.C, P.D)
-                if se_d < se:
-                    return _LawCandidate(se=se_d, npar=ref.law.npar,
+                fit_d = _fit_from(P.disc(ref.model), P.u, x0c, P.y, P.C, P.D)
+                if fit_d.se < se:
+                    return _LawCandidate(se=fit_d.se, npar=ref.law.npar,
                                          trace=replace(tr, static=ref.law), model=ref.model,
-                                         refined=True, evidence=ref.evidence)
-        return _LawCandidate(se=se, npar=law.npar, trace=tr, model=upd)
+                                         refined=True, evidence=ref.evidence, fit=fit_d)
+        return _LawCandidate(se=se, npar=law.npar, trace=tr, model=upd, fit=fit)
 
     def _against_oe(self, entry: _LawCandidate | None, chosen: _OEFit, tr,
                     x0c) -> _LawCandidate:
@@ -1977,10 +1997,11 @@ class _NonlinearPass:
         BIC of the output error (effective sample count Ny / c, c the chosen law's residual
         colour, :func:`_oe_bic`); the loser is scored "replaced"."""
         P, ch = self.P, tr.channel
-        se_o = _se_from(P.disc(chosen.model), P.u, x0c, P.y, P.C, P.D)
+        fit_o = _fit_from(P.disc(chosen.model), P.u, x0c, P.y, P.C, P.D)
+        se_o = fit_o.se
         oe = _LawCandidate(se=se_o, npar=chosen.law.npar, trace=replace(tr, static=chosen.law),
                            model=chosen.model, refined=True, evidence=chosen.evidence,
-                           oe_terms=True)
+                           oe_terms=True, fit=fit_o)
         if entry is None or _oe_bic(oe, entry, P.y, P.u, P.disc, x0c, P.C, P.D):
             if entry is not None:
                 self.cands.append(CandidateScore(ch.name, "static", 0, entry.se, entry.npar,
@@ -2009,28 +2030,44 @@ class _NonlinearPass:
         ref = _refine_law_oe(hl, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D, noise_ch)
         if ref is None:
             return
-        se_h = _se_from(P.disc(ref.model), P.u, x0c, P.y, P.C, P.D)
+        fit_h = _fit_from(P.disc(ref.model), P.u, x0c, P.y, P.C, P.D)
+        se_h = fit_h.se
         self.cands.append(CandidateScore(ch.name, "static", 0, se_h, ref.law.npar, "ok",
                                          "saturation hinge(s) only, coefficient(s) and "
                                          "level(s) refined by output error"))
         self.scored.append(_LawCandidate(se=se_h, npar=ref.law.npar,
                                          trace=replace(entry.trace, static=ref.law),
                                          model=ref.model, refined=True,
-                                         evidence=ref.evidence, oe_terms=entry.oe_terms))
+                                         evidence=ref.evidence, oe_terms=entry.oe_terms,
+                                         fit=fit_h))
 
     # ------------------------------------------------------------------ 3. choose
     def choose(self) -> _Pick | None:
-        """3. The lowest estimation SE, within ``parsimony`` of it the fewest parameters (then
-        the fewest components, then the SE); for a model that declares parameters, the
-        lowest output-error BIC of those candidates refitted jointly with them
+        """3. The lowest output-error criterion (:func:`greybox.metrics.criterion_scores`, the
+        linear pipeline's: ``bic_factor`` times the BIC penalty per parameter, every
+        candidate on the effective sample count of the best-fitting one; ties to the
+        fewest parameters, then components); for a model that declares parameters, of the
+        candidates the criterion does not separate by one parameter's evidence (at most
+        ``_REFIT_NEAR``), the lowest output-error BIC refitted jointly with them
         (:func:`_pick_after_refit`). None when no candidate has a finite SE."""
         P, S = self.P, self.S
-        finite = [s for s in self.scored if np.isfinite(s.se)]
+        finite = [s for s in self.scored if np.isfinite(s.se) and s.fit is not None]
         if not finite:
             return None
-        best = min(s.se for s in finite)
-        near = sorted((s for s in finite if s.se <= S.parsimony * best),
-                      key=lambda s: (s.npar, s.channel.md, s.se))
+        n_eff = min(finite, key=lambda s: s.se).fit.n_eff
+        crit = criterion_scores([s.fit for s in finite], [s.npar for s in finite], n_eff=n_eff,
+                                factor=S.bic_factor)
+        order = sorted(range(len(finite)), key=lambda i: (crit[i], finite[i].npar,
+                                                          finite[i].channel.md, finite[i].se))
+        one = S.bic_factor * np.log(max(float(np.sum(n_eff)), 2.0))
+        near = [finite[i] for i in order if crit[i] <= crit[order[0]] + one]
+        self.notes.append(
+            f"choose: output-error criterion (each output's n_eff log(mean squared simulation "
+            f"error) + {S.bic_factor:g} log(n_eff) per parameter, on {np.sum(n_eff):.0f} "
+            f"effective samples; lower is better): " + "; ".join(
+                f"{finite[i].channel.name} ({finite[i].npar} par, SE {finite[i].se:.3g} %): "
+                + ("best" if k == 0 else f"+{crit[i] - crit[order[0]]:.1f}")
+                for k, i in enumerate(order[:4])))
         if not (S.refit_parameters and self.declared and len(near) > 1):
             return _Pick(candidate=near[0], start=self.base)
         P.tick("candidates refitted with the nominal's parameters", 0, 1)
@@ -2171,6 +2208,20 @@ class _NonlinearPass:
         return self._report(r, f"model error detected (UKF innovations not white), but the "
                                f"best candidate ({ch.name}, static) failed the gate: "
                                f"{', '.join(failed)}; model unchanged", True, tr=tr, nl=nl)
+
+    def diverged(self, r: _Residual, v: _Verdict, err: Exception) -> LoopReport:
+        """4. The law passed the gate, but the updated model's UKF diverges on the validation
+        record (a law fitted where the state stayed small, extrapolated): not handed over."""
+        ch, tr = v.candidate.channel, v.candidate.trace
+        passed = dict(self.gate.get("passed", {}))
+        passed["validation"] = False
+        self.gate["passed"] = passed
+        self.notes.append(f"{ch.name}: the updated model's predictor diverged on the validation "
+                          f"record: {err}")
+        return self._report(r, f"model error detected (UKF innovations not white), and the "
+                               f"best candidate ({ch.name}, static) passed the gate, but the "
+                               f"updated model diverges on the validation record; model "
+                               f"unchanged", True, tr=tr)
 
     def caveats(self, v: _Verdict) -> None:
         """Notes on a law that passed the gate: far above the noise floor, or weak terms."""

@@ -334,6 +334,16 @@ def test_bad_options_are_refused(kw, err, match):
         gb.close_the_loop(pendulum(), est.y, est.u, val.y, val.u, **args)
 
 
+def test_the_retired_parsimony_warns_that_it_has_no_effect():
+    """The choice is the output-error criterion's; a parsimony other than the old default
+    warns instead of being silently ignored (the call then stops on the bad alpha)."""
+    est, val = data()
+    with pytest.warns(DeprecationWarning, match="parsimony no longer has an effect"):
+        with pytest.raises(DataError, match="alpha"):
+            gb.close_the_loop(pendulum(), est.y, est.u, val.y, val.u, Q=QD, R=RM, dt=DT,
+                              parsimony=1.3, alpha=5.0)
+
+
 def test_short_or_misshaped_records_are_refused():
     est, val = data()
     with pytest.raises(DimensionError, match="y"):
