@@ -421,3 +421,19 @@ def test_law_figure_shows_the_dead_zone_in_the_data():
     scale = -law.coef[0, j] / 1.0                      # the law's amplitude (B or 1)
     truth = -scale * np.clip(mid, -c_true, c_true)
     assert np.all(np.abs(mean - truth) <= err + 0.05 * 2 * scale * c_true), (mean, truth, err)
+
+
+@pytest.mark.slow
+def test_a_law_whose_updated_model_diverges_on_validation_is_not_handed_over():
+    """A pendulum missing a strong cubic damping (-1.27e3 om^3, seed 1946288768 draw 0): the
+    law passes the gate on the estimation record, but the updated model's UKF diverges on
+    the validation record (x ~ 1e68). That used to end close_the_loop with a ModelError;
+    the model must stay unchanged, say why in its first line, and mark the validation as
+    failed in the gate."""
+    d = zoo.draw_class("nonlinear_model", 1946288768, 0)
+    rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    assert rep.model_error_detected and not rep.updated
+    assert "diverges on the validation record" in rep.message, rep.message
+    assert rep.gate["passed"]["validation"] is False
+    assert rep.table["updated"] is rep.table["nominal"]
