@@ -72,6 +72,18 @@ CRITERION_PE = ("lowest output-error criterion of the augmented model on the est
                 "(parameters) log(n_eff)")
 
 
+def choice_note(labels, npars, ses, crit, order, n_eff, factor: float, shown: int = 4) -> str:
+    """The decision record of the choice between candidates: the leading ones' criterion
+    (``labels``, ``npars``, ``ses``, ``crit`` per candidate; ``order`` best first)."""
+    best = crit[order[0]]
+    rows = "; ".join(f"{labels[i]} ({npars[i]} par, SE {ses[i]:.3g} %): "
+                     + ("best" if i == order[0] else f"+{crit[i] - best:.1f}")
+                     for i in order[:shown])
+    return (f"choose: output-error criterion (each output's n_eff log(mean squared "
+            f"simulation error) + {factor:g} log(n_eff) per parameter, on "
+            f"{np.sum(n_eff):.0f} effective samples; lower is better): {rows}")
+
+
 @dataclass(frozen=True)
 class Effect:
     """The effect the model lacked, as found.

@@ -145,6 +145,7 @@ from .records import (  # noqa: E402,F401  (re-exported: greybox.workflow.LoopRe
     Candidate,
     CRITERION_PE,
     CandidateScore,
+    choice_note,
     Effect,
     EffectStep,
     LoopReport,
@@ -572,6 +573,7 @@ class _Pass:
         self.scored: list[Candidate] = []
         self.notes: list[str] = []
         self.gate: dict = {}
+        self.n_eff = None  # the choice's effective samples, once it is made
         self.unstable = unstable_reason(nominal, P.y.shape[1])
         self.big = P.settings.channels is None and nominal.nstates > SCREEN_ABOVE
 
@@ -1038,13 +1040,15 @@ class _Pass:
         order = sorted(range(len(finite)), key=lambda i: (crit[i], finite[i].npar,
                                                           finite[i].trace.channel.md,
                                                           finite[i].se))
-        self.notes.append(_choice_note(finite, crit, order, self.n_eff, self.S.bic_factor))
+        self.notes.append(choice_note(
+            [f"{c.trace.channel.name} {c.kind}" for c in finite], [c.npar for c in finite],
+            [c.se for c in finite], crit, order, self.n_eff, self.S.bic_factor))
         return self.pruned(self.retraced(finite[order[0]]))
 
     def _criterion(self, cands) -> np.ndarray:
         """The criterion of each candidate of ``cands`` on the choice's effective samples."""
-        n_eff = getattr(self, "n_eff", None)
-        if n_eff is None:
+        n_eff = self.n_eff
+        if n_eff is None:  # before the choice (the big model's early re-trace of a force)
             n_eff = min(cands, key=lambda s: s.se).fit.n_eff
         return criterion_scores([c.fit for c in cands], [c.npar for c in cands],
                                 n_eff=n_eff, factor=self.S.bic_factor)
@@ -1185,18 +1189,6 @@ class _Pass:
                           candidates=tuple(self.cands), gate=self.gate, criterion=r.crit,
                           nominal=self.nominal, model=v.model, table=table, trace=tr,
                           notes=tuple(self.notes))
-
-
-def _choice_note(cands, crit, order, n_eff, factor: float, shown: int = 4) -> str:
-    """The decision record of :meth:`_Pass.choose`: the leading candidates' criterion."""
-    best = crit[order[0]]
-    rows = "; ".join(f"{cands[i].trace.channel.name} {cands[i].kind} ({cands[i].npar} par, "
-                     f"SE {cands[i].se:.3g} %): "
-                     + ("best" if i == order[0] else f"+{crit[i] - best:.1f}")
-                     for i in order[:shown])
-    return (f"choose: output-error criterion (each output's n_eff log(mean squared "
-            f"simulation error) + {factor:g} log(n_eff) per parameter, on "
-            f"{np.sum(n_eff):.0f} effective samples; lower is better): {rows}")
 
 
 def _logdet_gain(d, r) -> float:

@@ -140,7 +140,7 @@ from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
 from .trace.oe import _noise_floor, forward_select_oe
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after, undefined_error
-from .records import CRITERION, CandidateScore, Effect, LoopReport
+from .records import CRITERION, CandidateScore, Effect, LoopReport, choice_note
 
 __all__ = ["NonlinearUpdate", "close_the_loop_nonlinear", "nonlinear_update_of_linear"]
 
@@ -372,16 +372,12 @@ def _se_from(model_d, u, x_start, y, C, D) -> float:
 def _fit_from(model_d, u, x_start, y, C, D) -> OutputFit:
     """The :class:`~greybox.metrics.OutputFit` of a model simulated from x_start at sample
     SKIP (SE inf: diverged)."""
-    ny = y.shape[0]
-    bad = OutputFit(se=np.inf, per_output=np.full(ny, np.inf), n_eff=np.ones(ny))
     try:
         sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=x_start)
+        ys = C @ sim.x + D @ u[:, SKIP:]
     except GreyboxError:
-        return bad
-    ys = C @ sim.x + D @ u[:, SKIP:]
-    if not _bounded(ys):
-        return bad
-    return output_fit(y[:, SKIP:], ys)
+        ys = np.full(y[:, SKIP:].shape, np.nan)
+    return output_fit(y[:, SKIP:], ys if _bounded(ys) else np.full(ys.shape, np.nan))
 
 
 def _bounded(y_sim: NDArray) -> bool:
@@ -2061,13 +2057,9 @@ class _NonlinearPass:
                                                           finite[i].channel.md, finite[i].se))
         one = S.bic_factor * np.log(max(float(np.sum(n_eff)), 2.0))
         near = [finite[i] for i in order if crit[i] <= crit[order[0]] + one]
-        self.notes.append(
-            f"choose: output-error criterion (each output's n_eff log(mean squared simulation "
-            f"error) + {S.bic_factor:g} log(n_eff) per parameter, on {np.sum(n_eff):.0f} "
-            f"effective samples; lower is better): " + "; ".join(
-                f"{finite[i].channel.name} ({finite[i].npar} par, SE {finite[i].se:.3g} %): "
-                + ("best" if k == 0 else f"+{crit[i] - crit[order[0]]:.1f}")
-                for k, i in enumerate(order[:4])))
+        self.notes.append(choice_note([c.channel.name for c in finite],
+                                      [c.npar for c in finite], [c.se for c in finite], crit,
+                                      order, n_eff, S.bic_factor))
         if not (S.refit_parameters and self.declared and len(near) > 1):
             return _Pick(candidate=near[0], start=self.base)
         P.tick("candidates refitted with the nominal's parameters", 0, 1)
