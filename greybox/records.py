@@ -71,6 +71,16 @@ CRITERION_PE = ("lowest output-error criterion of the augmented model on the est
                 "undefined): sum over outputs of n_eff log(mean squared PE) + bic_factor "
                 "(parameters) log(n_eff)")
 
+#: The evidence the gate of a ``StateSpace`` model's update reads (``gate["evidence"]``)
+#: through a channel of relative degree 0 or 1 ...
+EVIDENCE_DHAT = "d^: likelihood ratio of the law against d = 0 (BIC gain + penalty)"
+#: ... and through a delayed one (relative degree >= 2), where d^ is mostly estimation
+#: noise: the choice's criterion, the nominal model a candidate without parameters.
+EVIDENCE_OE = ("output error: the chosen candidate's criterion against the nominal model's "
+               "(no parameter added): bic_gain = sum over outputs of n_eff log(nominal's / "
+               "candidate's mean squared error), bic_penalty = (parameters) log(n_eff), on "
+               "the choice's {n:.0f} effective samples")
+
 
 def choice_note(labels, npars, ses, crit, order, n_eff, factor: float, shown: int = 4) -> str:
     """The decision record of the choice between candidates: the leading ones' criterion

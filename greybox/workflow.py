@@ -70,10 +70,11 @@ from .trace import (
 )
 from .trace.channel_trace import law_estimate_of, whole_inputs
 from .trace.laws import BREAK_KINDS
-from .trace.dynamic import DynamicLaw, SharedLaw, fit_shared_dynamic, fit_sparse_dynamic
+from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
+                             fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_shared_order2
 from .trace.joint import joint_effect, refine_jointly
-from .trace.channels import force_channel, relative_coordinates
+from .trace.channels import force_channel, input_channel, relative_coordinates
 from .trace.laws import direction, sensor_states
 from .trace.screen import screen_equations
 from .update import Subsystem, UpdatedModel, delta_update
@@ -81,6 +82,7 @@ from .workflow_nonlinear import close_the_loop_nonlinear, nonlinear_update_of_li
 from .validate import (
     ModelValidation,
     describe_before_after,
+    has_marginal_pole,
     estimate_initial_state,
     simulate_output,
     undefined_error,
@@ -147,6 +149,8 @@ from .records import (  # noqa: E402,F401  (re-exported: greybox.workflow.LoopRe
     CandidateScore,
     choice_note,
     Effect,
+    EVIDENCE_DHAT,
+    EVIDENCE_OE,
     EffectStep,
     LoopReport,
 )
@@ -546,6 +550,7 @@ class Residual:
     crit: str
     nominal_model: UpdatedModel = field(repr=False)
     t_pass: float
+    fit: OutputFit | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True)
@@ -589,6 +594,7 @@ class _Pass:
         self.forces()
         self.higher_orders()
         self.sparse_laws(r)
+        self.input_lags()
         chosen = self.choose()
         if chosen is None:
             self.gate["passed"] = {"whiteness": True, "trace": False}
@@ -661,7 +667,8 @@ class _Pass:
         P.tick("residual of the nominal model", 1, 1)
         return Residual(white=white, k0=k0, x0n=x0n, se_nom=se_nom, val_nom=val_nom,
                         unstable=self.unstable, crit=crit, nominal_model=nominal_model,
-                        t_pass=t_pass)
+                        t_pass=t_pass, fit=None if white.all_white else
+                        self.fit_error(nominal, self.Q, P.R))
 
     # ------------------------------------------------------------------ 2. candidates
     def score(self, tr) -> None:
@@ -853,7 +860,7 @@ class _Pass:
                              if c.trace.channel == ch and c.kind == "static"), default=np.inf)
             se_dyn = min((c.se for c in self.scored
                           if c.trace.channel == ch and c.kind == "dynamic"), default=np.inf)
-            if not self.big and not se_dyn < SPARSE_IF * se_static:
+            if not self.big and np.isfinite(se_dyn) and not se_dyn < SPARSE_IF * se_static:
                 continue  # no evidence of dynamics in this channel: the static law stands
             self._sparse(tr_)
         # one state shared by a pair of equations along no fixed direction (a thermal
@@ -883,6 +890,39 @@ class _Pass:
                     if self.big else ()):
             if not self._shared(gtr, r):
                 break
+
+    def input_lags(self) -> None:
+        """2d. Each input's actuator lag: its channel's first-order law driven by the input
+        alone, fitted by output error (:func:`greybox.trace.dynamic.fit_input_lag`) and
+        scored with the rest. It needs no evidence of dynamics from d^ (through a delayed
+        channel d^ is mostly estimation noise and the unstructured fit there diverged: a
+        chain measured in part) and is one law where a one-input plant shows the same lag
+        on every output."""
+        P, S, sys = self.P, self.S, self.sys
+        if not (S.max_order >= 1 and sys.ninputs and not ct.isdtime(sys, strict=True)
+                and not self.unstable):
+            return
+        for j in range(sys.ninputs):
+            ch = input_channel(sys, j)
+            tr_ = next((c.trace for c in self.scored if c.trace.channel == ch), None)
+            try:
+                if tr_ is None:  # an input entering one equation: its channel not traced yet
+                    tr_ = self._trace(ch, nonlinear=False, max_order=0)
+                    if tr_.status != "ok":
+                        continue
+                    tr_ = _light(tr_)
+                res_, k0s, _, _ = _sparse_start(tr_)
+                dl = fit_input_lag(sys, ch, j, P.y, P.u, Q=self.Q, R=P.R, dt=P.dt,
+                                   x0=res_.x_filt[:, 0], k0=k0s)
+            except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+                self.notes.append(f"{ch.name}: actuator lag failed: {e}")
+                continue
+            if dl is None:
+                continue
+            fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+            self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, fit.se, dl.npar,
+                                             "ok", f"{ch.input} alone: an actuator lag"))
+            self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
 
     def _sparse(self, tr_) -> None:
         """2b for one channel: its sparse first-order law, scored."""
@@ -1076,20 +1116,13 @@ class _Pass:
 
     # ------------------------------------------------------------------ 3. gate
     def judge(self, r: Residual, chosen: Candidate) -> Verdict:
-        """3. The chosen candidate as an effect, gated on its BIC gain on d^ and its SE drop."""
+        """3. The chosen candidate as an effect, gated on its evidence (:meth:`_evidence`)
+        and its SE drop."""
         P, S, sys = self.P, self.S, self.sys
-        se_c, npar, tr, kind = chosen.se, chosen.npar, chosen.trace, chosen.kind
-        res = tr.filter_result  # the gate's d^ and x^: the search window's, as the law's
+        se_c, tr, kind = chosen.se, chosen.trace, chosen.kind
         ch = tr.channel  # (the report's trace gets its whole record at the end: _with_record)
-        Nf = res.d_est.shape[1] - 1
-        k0f = res.settled(20)
-        d = res.d_est[:, k0f:Nf]
-        x = res.x_filt[:, k0f:Nf]
-        uu = P.u[:, k0f:Nf]
-        Nd = d.shape[1]
         if kind == "static":
             law = tr.static
-            gain = float(law.bic_gain + law.npar * np.log(Nd))  # raw gain (before penalty)
             model = tr.static_model
             nsens = sensor_states(law)  # a lag or a drift: sensor states, not a static law
             effect = Effect(kind="sensor" if nsens else "static", order=nsens,
@@ -1099,28 +1132,63 @@ class _Pass:
                             parameter_notes=parameter_notes(sys, ch, law), law=law)
         elif kind == "sparse":
             dl = chosen.law
-            gain = _logdet_gain(d, d - dl.evaluate(x, uu))
             model = dl.model
             kind = "dynamic"
             effect = Effect(kind="dynamic", order=getattr(dl, "order", 1), formula=dl.formula,
                             channel=ch.name, equations=ch.equations, dynamic_law=dl)
         else:
-            sub = tr.dynamic
-            gain = _logdet_gain(d, d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d)
+            sub, res = tr.dynamic, tr.filter_result  # the formula's window: the law's
+            k0f, Nf = res.settled(20), res.d_est.shape[1] - 1
+            x, uu = res.x_filt[:, k0f:Nf], P.u[:, k0f:Nf]
             model = tr.dynamic_model
             effect = Effect(kind="dynamic", order=sub.order,
                             formula=_dynamic_formula(sub, ch, P.dt, x, uu), channel=ch.name,
                             equations=ch.equations, subsystem=sub)
-        penalty = float(npar * np.log(Nd))
+        gain, penalty, evidence = self._evidence(r, chosen)
         passed = {"whiteness": True, "bic": gain > S.bic_factor * penalty,
                   "se_drop": se_c < S.min_se_drop * r.se_nom}
         self.gate.update({"bic_gain": gain, "bic_penalty": penalty, "bic_factor": S.bic_factor,
                           "se_estimation_updated": se_c, "min_se_drop": S.min_se_drop,
-                          "passed": passed})
+                          "passed": passed, "evidence": evidence})
         ok = passed["bic"] and passed["se_drop"]
         if ok and kind == "static" and not effect.nonlinear:
             model = _noise_by_likelihood(model, self.Q, P.ys, P.us, self.SKIP, self.notes)
         return Verdict(effect=effect, model=model, kind=kind, passed=ok)
+
+    def _evidence(self, r: Residual, chosen: Candidate) -> tuple[float, float, str]:
+        """(gain, penalty, what) of the chosen candidate; the gate asks gain > bic_factor *
+        penalty. Through a channel of relative degree 1 or 0, the likelihood ratio of its
+        law against d = 0 on d^ (the BIC gain plus penalty, on the d^ samples); through a
+        delayed channel (relative degree >= 2: d^ is mostly estimation noise, the law was
+        fitted on y), the choice's criterion against the nominal model on the output
+        error (:func:`greybox.metrics.criterion_scores`; the nominal adds no parameter,
+        penalty ``npar log n`` on the choice's effective samples), as the nonlinear
+        pipeline's gate reads a delayed channel; not for a model with a pole on the unit
+        circle (:func:`greybox.validate.has_marginal_pole`: an integrator's simulation
+        error drifts, its few effective samples judge nothing; EMPS, a double integrator,
+        read 7)."""
+        tr, kind = chosen.trace, chosen.kind
+        if tr.relative_degree >= 2 and r.fit is not None and chosen.fit is not None and \
+                not has_marginal_pole(self.nominal):
+            n_eff = self.n_eff if self.n_eff is not None else chosen.fit.n_eff
+            n = float(np.sum(n_eff))
+            penalty = float(chosen.npar * np.log(max(n, 2.0)))
+            if not np.isfinite(r.fit.se):
+                return np.inf, penalty, EVIDENCE_OE.format(n=n)
+            like = criterion_scores([r.fit, chosen.fit], [0, 0], n_eff=n_eff)
+            return float(like[0] - like[1]), penalty, EVIDENCE_OE.format(n=n)
+        res = tr.filter_result
+        k0f, Nf = res.settled(20), res.d_est.shape[1] - 1
+        d, x, uu = res.d_est[:, k0f:Nf], res.x_filt[:, k0f:Nf], self.P.u[:, k0f:Nf]
+        Nd = d.shape[1]
+        if kind == "static":
+            gain = float(tr.static.bic_gain + tr.static.npar * np.log(Nd))  # before penalty
+        elif kind == "sparse":
+            gain = _logdet_gain(d, d - chosen.law.evaluate(x, uu))
+        else:
+            sub = tr.dynamic
+            gain = _logdet_gain(d, d - sub.d_sim[:, -Nd:] if sub.d_sim.shape[1] >= Nd else d)
+        return gain, float(chosen.npar * np.log(Nd)), EVIDENCE_DHAT
 
     # ------------------------------------------------------------------ 4. validate
     def validate(self, r: Residual, tr, v: Verdict) -> dict:

@@ -93,8 +93,21 @@ def _eq_channel(sys: ct.StateSpace, idx: Sequence[int]) -> Channel:
                    equations=tuple(names))
 
 
-def _input_channel(sys: ct.StateSpace, j: int) -> Channel:
-    """The channel of input j: G = B[:, j], d in the input's units (an actuator error)."""
+def input_channel(sys: ct.StateSpace, j: int) -> Channel:
+    """The channel of input j: G = B[:, j], d in the input's units (an actuator error).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Nominal model.
+    j : int
+        Index of the input.
+
+    Returns
+    -------
+    Channel
+        ``input(name)``, md = 1, kind "input".
+    """
     B = np.asarray(sys.B, dtype=float)
     name = sys.input_labels[j]
     rows = tuple(sys.state_labels[i] for i in np.flatnonzero(B[:, j]))
@@ -164,7 +177,7 @@ def default_channels(sys: ct.StateSpace, *, pairs: bool | str = "auto",
     out = [_eq_channel(sys, [i]) for i in range(n)]
     if inputs:
         B = np.asarray(sys.B, dtype=float)
-        out += [_input_channel(sys, j) for j in range(sys.ninputs)
+        out += [input_channel(sys, j) for j in range(sys.ninputs)
                 if np.count_nonzero(B[:, j]) >= 2]
     use_pairs = (sys.noutputs >= 2 and n <= 4) if pairs == "auto" else bool(pairs)
     if use_pairs and sys.noutputs >= 2:

@@ -46,7 +46,8 @@ from .channels import Channel
 from .channel_trace import _LOW_SNR
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
-__all__ = ["DynamicLaw", "SharedLaw", "fit_shared_dynamic", "fit_sparse_dynamic"]
+__all__ = ["DynamicLaw", "SharedLaw", "fit_input_lag", "fit_shared_dynamic",
+           "fit_sparse_dynamic"]
 
 # Samples (block means) on which the drivers of a sparse law are chosen.
 _SELECT_SAMPLES = 4000
@@ -276,6 +277,69 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
             best = dl
     return best
 
+
+
+def fit_input_lag(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: NDArray, *,
+                  Q: NDArray, R: NDArray, dt: float, x0: NDArray, k0: int,
+                  ntau: int = 12) -> DynamicLaw | None:
+    """Input ``j`` reaching the plant through a first-order filter: its actuator lag.
+
+    The law of a one-component channel that carries input j's whole effect
+    (``B[:, j] = c G``: the input's own channel, or the one state equation it
+    enters) with u_j its only driver, ``d = e u_j + b/(s - a) u_j``: u_j
+    reaches the plant through ``(1 + e/c) + (b/c)/(s - a)``, a lag
+    ``1/(tau s + 1)`` at ``e = -c``, ``b = c/tau``, ``a = -1/tau``; 3
+    parameters (a gain error and a lag together). Fitted by output error on y
+    alone (no d^: through a delayed channel d^ is mostly estimation noise),
+    from the pure lag whose output error is lowest on a log grid of ``ntau``
+    time constants from 2 to 500 samples.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Continuous nominal model.
+    channel : Channel
+        md = 1, along ``B[:, j]``.
+    j : int
+        The input.
+    y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
+        The estimation record (the output-error fit starts at sample 0).
+    Q, R : ndarray
+        Noise covariances of the discrete nominal model (for the intervals).
+    dt : float
+        Sampling period [s].
+    x0 : ndarray, shape (nstates,)
+        Initial state of the output-error simulation.
+    k0 : int
+        First sample of the output-error window.
+    ntau : int
+        Time constants on the start grid.
+
+    Returns
+    -------
+    DynamicLaw or None
+        None when the channel does not carry input j's whole effect or no
+        stable law is found.
+    """
+    if channel.md != 1:
+        return None
+    g = np.asarray(channel.G, dtype=float)[:, 0]
+    b = np.asarray(sys.B, dtype=float)[:, j]
+    c = float(g @ b / (g @ g)) if g @ g > 0 else 0.0
+    if c == 0 or np.linalg.norm(b - c * g) > 1e-9 * np.linalg.norm(b):
+        return None
+    drv = [("u", j)]
+    best = None
+    with single_thread_blas():
+        prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
+        for tau in np.geomspace(2.0, 500.0, ntau) * dt:
+            theta = np.array([-1.0 / tau, c / tau, -c])
+            rss = float(np.sum(prob.resid(theta) ** 2))
+            if np.isfinite(rss) and (best is None or rss < best[0]):
+                best = (rss, theta)
+    if best is None:
+        return None
+    return _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, best[1])
 
 # Output-error driver selection (noise-dominated d^): start poles (time constants in
 # samples), candidates kept per step after the score test, and at most this many
