@@ -9,6 +9,7 @@ whatever channel the trace names (its G fixes the scale).
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import control as ct
@@ -218,3 +219,26 @@ def test_a_static_effect_is_refused(case):
     rep, _ = case
     with pytest.raises(DataError, match="not a dynamic law"):
         plot_dynamic_law(replace(rep, effect=replace(rep.effect, kind="static")))
+
+
+def test_update_cli_writes_the_frequency_response_as_law_png(case, tmp_path, capsys):
+    from greybox.cli import main
+    from greybox.model_io import model_to_dict
+
+    _, (y, u, yv, uv, Q, R) = case
+    model = tmp_path / "model.json"
+    model.write_text(json.dumps(model_to_dict(_nominal(), Q, R, Ts=DT)))
+
+    def csv(path, y, u):
+        rows = np.vstack([u, y]).T
+        path.write_text("F,pos,vel\n" + "\n".join(",".join(f"{v:.12g}" for v in r)
+                                                   for r in rows) + "\n")
+        return path
+
+    out = tmp_path / "report"
+    code = main(["update", str(model), str(csv(tmp_path / "e.csv", y, u)), "--validate",
+                 str(csv(tmp_path / "v.csv", yv, uv)), "--out", str(out), "--json"])
+    s = json.loads(capsys.readouterr().out)
+    assert code == 0 and s["effect"]["kind"] == "dynamic"
+    assert list(s["figures"])[0] == "law" and (out / "law.png").stat().st_size > 1000
+    assert "![law](law.png)" in (out / "report.md").read_text()
