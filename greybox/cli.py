@@ -317,6 +317,7 @@ def _update(args, run: _Run) -> int:
 
             matplotlib.use("Agg")
             from .plotting import (
+                plot_dynamic_law,
                 plot_law,
                 plot_outputs,
                 plot_residual_autocorrelation,
@@ -333,6 +334,10 @@ def _update(args, run: _Run) -> int:
             if law is not None and law.output is None and rep.trace is not None:
                 # the figure that explains a static law: d^ against the law's variable
                 figs.insert(0, ("law", plot_law(rep, u)["figure"]))
+            elif rep.updated and rep.effect.kind == "dynamic" and (
+                    rep.effect.dynamic_law is not None or rep.effect.subsystem is not None):
+                # a dynamic law's: its frequency response with the 95 % band
+                figs.insert(0, ("law", plot_dynamic_law(rep)["figure"]))
             _save(figs, figures, stage, args.out)
         summary = rep.as_dict()
         summary["figures"] = figures

@@ -8,7 +8,8 @@ that the compute modules never depend on it.
 from __future__ import annotations
 
 __all__: list[str] = ["plot_unknown_input", "plot_residual_autocorrelation", "plot_outputs", "plot_singular_values",
-                     "plot_pump_load", "plot_fleet_coefficients", "plot_law"]
+                     "plot_pump_load", "plot_fleet_coefficients", "plot_law",
+                     "plot_dynamic_law"]
 
 
 def _plt():
@@ -403,3 +404,225 @@ def plot_law(report, u, *, bins: int = 20, max_points: int = 3000, ax=None):
         binned.append((np.array(mid), np.array(mean), np.array(err)))
     axs[0].set_title(report.effect.formula[:90], fontsize="small")
     return {"figure": fig, "axes": axs, "variables": names, "bins": binned}
+
+
+def _feed_gain(law, c, name):
+    """Index in the law's feedthrough of the term (component c, driver name), or None."""
+    for q, (cc, nm, _) in enumerate(law.feedthrough):
+        if cc == c and nm == name:
+            return q
+    return None
+
+
+def _dynamic_law_curves(law, dlabels):
+    """Curves of a continuous-time law: ``(names, theta, halfwidths, H)``.
+
+    ``H(theta, s)`` is the complex transfer, shape (ncurves, nfreq), of each
+    (component of d, driving signal) at the parameters ``theta`` (the order of
+    the law's ``ci``) and the complex frequencies ``s`` [1/s]. ``halfwidths`` is
+    None where the record's intervals cannot be laid on ``theta`` (see
+    :func:`plot_dynamic_law`).
+    """
+    import numpy as np
+
+    ci = np.asarray(law.ci, dtype=float)
+    if not hasattr(law, "k"):  # DynamicLaw: d = sum_i (e_i + b_i / (s - a)) w_i
+        nb = len(law.drivers)
+        theta = np.r_[law.pole, law.b, law.e]
+        names = [(dlabels[0], dv) for dv in law.drivers]
+        return (names, theta, ci,
+                lambda t, s: t[1 + nb:, None] + t[1:1 + nb, None] / (s[None, :] - t[0]))
+    md, ref = law.k.size, law.reference
+    feed = np.array([f[2] for f in law.feedthrough])
+    drivers = list(law.drivers) + [nm for _, nm, _ in law.feedthrough if nm not in law.drivers]
+    pairs = [(c, nm) for c in range(md) for nm in dict.fromkeys(drivers)
+             if (nm in law.drivers and law.k[c] != 0) or _feed_gain(law, c, nm) is not None]
+    if hasattr(law, "alpha"):  # SharedLaw2: z_1 = sum_j num_j(s) / den(s) w_j
+        q = law.order
+        pos = [tuple(rc) for rc in np.argwhere(law.beta != 0)]  # row-major = the fit's order
+        ok = (law.beta.shape[1] == 1 or bool(np.all(law.beta[0] != 0))) and \
+            ci.size == q + len(pos) + md - 1 + feed.size
+        theta = np.r_[law.alpha, [law.beta[rc] for rc in pos], np.delete(law.k, ref), feed]
+
+        def H(t, s):
+            den = np.polyval(np.r_[1.0, t[:q]], s)
+            beta = np.zeros_like(law.beta, dtype=float)
+            for v, rc in zip(t[q:q + len(pos)], pos):
+                beta[rc] = v
+            k = np.insert(t[q + len(pos):q - 1 + len(pos) + md], ref, 1.0)
+            e = t[q - 1 + len(pos) + md:]
+            out = []
+            for c, nm in pairs:
+                j = law.drivers.index(nm) if nm in law.drivers else None
+                h = k[c] * np.polyval(beta[:, j], s) / den if j is not None else 0 * s
+                f = _feed_gain(law, c, nm)
+                out.append(h + (e[f] if f is not None else 0.0))
+            return np.array(out)
+        return [(dlabels[c], nm) for c, nm in pairs], theta, ci if ok else None, H
+    nb = len(law.drivers)  # SharedLaw: d_c = k_c sum_i b_i / (s - a) w_i + e_c,i w_i
+    theta = np.r_[law.pole, law.b, np.delete(law.k, ref), feed]
+
+    def H1(t, s):
+        b, k = t[1:1 + nb], np.insert(t[1 + nb:nb + md], ref, 1.0)
+        e = t[nb + md:]
+        out = []
+        for c, nm in pairs:
+            h = (k[c] * b[law.drivers.index(nm)] / (s - t[0]) if nm in law.drivers else 0 * s)
+            f = _feed_gain(law, c, nm)
+            out.append(h + (e[f] if f is not None else 0.0))
+        return np.array(out)
+    return ([(dlabels[c], nm) for c, nm in pairs], theta,
+            ci if ci.size == theta.size else None, H1)
+
+
+def _subsystem_curves(sub, dt):
+    """Curves of a discrete subsystem (update.Subsystem, no intervals): ``(names, H)`` with
+    ``H(s)`` evaluated at ``z = exp(s dt)``."""
+    import numpy as np
+
+    Bw, Dw = np.hstack([sub.Bdu, sub.Bdx]), np.hstack([sub.Ddu, sub.Ddx])
+    wnames = list(sub.input_labels) + list(sub.state_labels)
+    dnames = list(sub.unknown_labels) or [f"d[{c}]" for c in range(Dw.shape[0])]
+    cols = [j for j in range(Bw.shape[1]) if np.any(Bw[:, j] != 0) or np.any(Dw[:, j] != 0)]
+    names = [(dnames[c], wnames[j]) for c in range(Dw.shape[0]) for j in cols]
+    nd = sub.Ad.shape[0]
+
+    def H(s):
+        out = np.empty((len(names), s.size), dtype=complex)
+        for f, z in enumerate(np.exp(s * dt)):
+            G = sub.Cd @ np.linalg.solve(z * np.eye(nd) - sub.Ad, Bw) + Dw if nd else Dw
+            out[:, f] = [G[c, j] for c in range(Dw.shape[0]) for j in cols]
+        return out
+    return names, H
+
+
+def _pole_marks(law, sub, dt):
+    """(pole [1/s], 95 % half-width or NaN) of each real pole and of each complex pair (its
+    upper member) the record states; a discrete subsystem's poles mapped by ``log(z) / dt``."""
+    import numpy as np
+
+    if law is None:
+        lam = np.linalg.eigvals(sub.Ad).astype(complex) if sub.Ad.size else np.zeros(0)
+        return [(p, np.nan) for p in np.log(lam) / dt if p.imag >= 0]
+    if not hasattr(law, "poles"):
+        return [(complex(law.pole), float(law.ci[0]))]
+    return [(complex(p), float(h) if abs(p.imag) == 0 else np.nan)
+            for p, h in zip(law.poles, law.pole_ci) if p.imag >= 0]
+
+
+def _band(H, theta, hw, s, nominal, n_samples: int = 400):
+    """Pointwise 2.5/97.5 % of |H| and of the phase [deg] over parameters drawn independently
+    from normals with standard deviation ``hw / 1.96`` (seeded: the same band each call)."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    draws = theta + (hw / 1.959964) * rng.standard_normal((n_samples, theta.size))
+    resp = np.array([H(t, s) for t in draws])  # (n_samples, ncurves, nfreq)
+    mag = np.nanpercentile(np.abs(resp), [2.5, 97.5], axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dph = np.degrees(np.angle(resp / nominal[None]))
+    base = np.degrees(np.unwrap(np.angle(nominal), axis=-1))
+    ph = base[None] + np.nanpercentile(dph, [2.5, 97.5], axis=0)
+    return mag, ph
+
+
+def plot_dynamic_law(report, *, ax=None, n_freq: int = 200):
+    """The figure that explains a dynamic law: its frequency response with the 95 % band.
+
+    Bode magnitude and phase of the law's transfer from each signal driving it
+    (a state or input of the model, or a relative coordinate) to each
+    component of d, in physical units (d's units per unit of that signal;
+    the phase in degrees), at frequencies ``w`` [rad/s] on a log scale, with
+    the law's poles marked (vertical lines at ``|p|`` [rad/s], the time
+    constant ``-1/p`` [s] of a real one, the 95 % interval of a real pole
+    shaded). A continuous-time law (``report.effect.dynamic_law``: DynamicLaw,
+    SharedLaw or SharedLaw2) is drawn in continuous time; a discrete subsystem
+    (``report.effect.subsystem``) at ``z = exp(j w dt)`` up to the Nyquist
+    frequency ``pi / dt``.
+
+    The band: the records keep each coefficient's 95 % half-width ``h`` (their
+    ``ci``), not the covariance, so 400 parameter vectors are drawn
+    independently from normals of standard deviation ``h / 1.96`` around the
+    estimate (seed 0) and the band is the pointwise 2.5 - 97.5 % range of
+    magnitude and phase. Leaving out the correlations (a pole's and its gain's
+    are strong) makes the band wider than the joint one: conservative. A
+    discrete subsystem carries no intervals, nor does a SharedLaw2 whose
+    numerator intervals cannot be laid on its terms (a driver missing from the
+    numerator's leading row); no band is drawn then, and the title says so.
+
+    Parameters
+    ----------
+    report : LoopReport
+        With a dynamic effect (``report.effect.kind == "dynamic"``).
+    ax : pair of matplotlib Axes, optional
+        (magnitude, phase); a new figure with both is made if None.
+    n_freq : int
+        Number of frequencies, log-spaced from 1/30 of the slowest pole's
+        ``|p|`` to 30 times the fastest (at most ``pi / dt``).
+
+    Returns
+    -------
+    dict
+        ``figure``, ``axes`` (magnitude, phase), ``frequency`` (ndarray, shape
+        (n_freq,), [rad/s]), ``names`` (list of (component of d, driving
+        signal), one per curve), ``response`` (complex ndarray, shape (ncurves,
+        n_freq): the law's transfer, d's units per the signal's unit),
+        ``band`` ((2, ncurves, n_freq) magnitude 2.5 / 97.5 % bounds, or None),
+        ``poles`` (list of (pole [1/s], 95 % half-width or NaN)).
+    """
+    import numpy as np
+
+    from .exceptions import DataError
+
+    eff = report.effect
+    law, sub = getattr(eff, "dynamic_law", None), getattr(eff, "subsystem", None)
+    if eff.kind != "dynamic" or (law is None and sub is None):
+        raise DataError(f"this report's effect is {eff.kind!r}, not a dynamic law; plot_law "
+                        f"draws a static one")
+    dt = float(law.dt if law is not None else report.nominal.dt)
+    ch = report.channel
+    dlabels = list(ch.labels) if ch is not None else \
+        [f"d[{c}]" for c in range(len(getattr(law, "k", [1.0])))]
+    units = list(ch.units) if ch is not None and ch.units else [""] * len(dlabels)
+    marks = _pole_marks(law, sub, dt)
+    speeds = [abs(p) for p, _ in marks if abs(p) > 0] or [0.1 * np.pi / dt]
+    w = np.logspace(np.log10(min(speeds) / 30), np.log10(min(max(speeds) * 30, np.pi / dt)),
+                    n_freq)
+    s = 1j * w
+    if law is not None:
+        names, theta, hw, H = _dynamic_law_curves(law, dlabels)
+        resp = H(theta, s)
+        band = _band(H, theta, hw, s, resp) if hw is not None and np.all(np.isfinite(hw)) \
+            else None
+        why = ("" if band is not None else " (no band: the intervals are not determined)"
+               if hw is not None else " (no band: its intervals cannot be laid on its terms)")
+    else:
+        names, Hs = _subsystem_curves(sub, dt)
+        resp, band, why = Hs(s), None, " (no band: a discrete subsystem carries no intervals)"
+    fig, (am, ap) = _axes(ax, 2, figsize=(6.8, 5.6))
+    phase = np.degrees(np.unwrap(np.angle(resp), axis=-1))
+    for i, (dn, drv) in enumerate(names):
+        col = f"C{i % 10}"
+        am.loglog(w, np.abs(resp[i]), color=col, lw=1.5, label=f"{dn} / {drv}")
+        ap.semilogx(w, phase[i], color=col, lw=1.5)
+        if band is not None:
+            am.fill_between(w, band[0][0, i], band[0][1, i], color=col, alpha=0.2, lw=0,
+                            label="95 % band (coefficients drawn from their intervals)"
+                            if i == 0 else None)
+            ap.fill_between(w, band[1][0, i], band[1][1, i], color=col, alpha=0.2, lw=0)
+    for p, h in marks:
+        lab = (f"pole {p.real:.3g} 1/s (time constant {-1 / p.real:.3g} s)" if p.imag == 0
+               else f"poles {p.real:.3g} ± {p.imag:.3g}j 1/s (|p| = {abs(p):.3g} rad/s)")
+        for a in (am, ap):
+            a.axvline(abs(p), color="0.3", ls="--", lw=1, label=lab if a is am else None)
+            if np.isfinite(h) and abs(p.real) > h:
+                a.axvspan(abs(p.real) - h, abs(p.real) + h, color="0.5", alpha=0.15, lw=0)
+    unit = units[0] if len(set(units)) == 1 and units[0] else "d's units"
+    am.set_ylabel(f"|d / signal| ({unit} per unit of the signal)")
+    ap.set_ylabel("phase [deg]")
+    ap.set_xlabel("frequency w [rad/s]")
+    am.legend(loc="best", fontsize="x-small")
+    am.set_title(f"{eff.channel}: frequency response of the law{why}", fontsize="small")
+    fig.tight_layout()
+    return {"figure": fig, "axes": [am, ap], "frequency": w, "names": names, "response": resp,
+            "band": None if band is None else band[0], "poles": marks}
