@@ -897,12 +897,16 @@ class _Pass:
         scored with the rest. It needs no evidence of dynamics from d^ (through a delayed
         channel d^ is mostly estimation noise and the unstructured fit there diverged: a
         chain measured in part) and is one law where a one-input plant shows the same lag
-        on every output."""
+        on every output. Not for an input whose column of B an earlier pass changed."""
         P, S, sys = self.P, self.S, self.sys
         if not (S.max_order >= 1 and sys.ninputs and not ct.isdtime(sys, strict=True)
                 and not self.unstable):
             return
+        B, B0 = np.asarray(sys.B, dtype=float), np.asarray(P.sys.B, dtype=float)
         for j in range(sys.ninputs):
+            if not np.allclose(B[:B0.shape[0], j], B0[:, j], rtol=1e-9, atol=0.0):
+                continue  # an earlier effect changed the input's path (a static law's
+                # feedthrough of it): B[:, j] no longer names how the input reaches the plant
             ch = input_channel(sys, j)
             tr_ = next((c.trace for c in self.scored if c.trace.channel == ch), None)
             try:

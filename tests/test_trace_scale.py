@@ -167,7 +167,9 @@ def test_static_and_dynamic_effects_refitted_jointly(seed):
     np.testing.assert_allclose(dl.tau, 0.1, rtol=0.05)
     lo, hi = 1.0 / (-dl.pole + dl.ci[0]), 1.0 / (-dl.pole - dl.ci[0])
     assert lo <= 0.1 <= hi, (lo, hi)  # the true tau inside its 95 % interval
-    np.testing.assert_allclose(dl.b[0], 10.0, rtol=0.1)
+    # ... in eq(v1)'s units: the law's b times its channel's entry in eq(v1) (1 for the
+    # equation's own channel; B's for the input's, whose d is in F's units)
+    np.testing.assert_allclose(dl.b[0] * np.asarray(dl.continuous.A)[1, -1], 10.0, rtol=0.1)
     assert any(n.startswith("joint refinement") for n in rep.notes), rep.notes
     se = rep.table["updated"].se.value
     assert se < 1.5 * floor, (se, floor)

@@ -526,8 +526,10 @@ def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0):
     return _law_from(sys, channel, prob, drv, sol.x, hw, Q, R)
 
 
-def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
-    """The DynamicLaw record of the drivers ``drv`` at ``theta = (a, b, e)``, half-widths ``hw``."""
+def _law_from(sys, channel, prob, drv, theta, hw, Q, R, reach: bool = True) -> DynamicLaw:
+    """The DynamicLaw record of the drivers ``drv`` at ``theta = (a, b, e)``, half-widths ``hw``.
+    ``reach``: an input channel's formula says how the input reaches the plant (not when
+    part of the law, its feedthrough, is held by another effect: a joint refit's merge)."""
     n, k, dt = sys.nstates, len(drv), prob.dt
     a, b, e = float(theta[0]), theta[1:1 + k], theta[1 + k:]
     hb, he = hw[1:1 + k], hw[1 + k:]
@@ -548,7 +550,7 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R) -> DynamicLaw:
         lo, hi = -a - hw[0], -a + hw[0]
         formula += (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if lo > 0
                     else " (not determined by the data)")
-    if channel.kind == "input" and channel.input in dn:
+    if reach and channel.kind == "input" and channel.input in dn:
         q = dn.index(channel.input)
         dc = 1.0 + e[q] + b[q] / -a
         formula += (f"; {channel.input} reaches the plant through "

@@ -309,7 +309,7 @@ def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: 
         se1 = prob.se(sol.x, active)
     values = dict(zip(active, sol.x))
     halves = dict(zip(active, hw))
-    laws = tuple(_rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob)
+    laws = tuple(_rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged)
                  for i, ef in enumerate(effects))
     Ac, Bc = prob.cont(sol.x, active)
     Ad, Bd = zoh(Ac, Bc, dt)
@@ -407,8 +407,9 @@ def _last_of_effect(ps, active, q) -> bool:
     return sum(1 for i in active if ps[i].group == grp and ps[i].prunable) <= 1
 
 
-def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
-    """The effect's law record at the jointly refitted values."""
+def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged=()):
+    """The effect's law record at the jointly refitted values (``merged``: the names
+    :func:`_independent` folded into an earlier effect's same term)."""
     law, ch, base = ef.law, ef.channel, ef.base
     mine = [(q, p) for q, p in enumerate(ps) if p.eff == i]
     if isinstance(law, StaticLaw):
@@ -453,7 +454,12 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob):
         he.append(halves.get(qe, np.nan))
     dprob = _problem(base, ch, y, u, dt, _x0_of(prob, n), k0, drv)
     Qb = Q[:n, :n]
-    return _law_from(base, ch, dprob, drv, np.r_[a, b, e], np.r_[ha, hb, he], Qb, R)
+    # a feedthrough merged into an earlier effect's same term: the input's path through
+    # the plant is no longer this law alone, so its formula does not say it
+    held = any(p.key[0] == "e" and q not in values and
+               f"{p.name} (the same term as an earlier effect's)" in merged for q, p in mine)
+    return _law_from(base, ch, dprob, drv, np.r_[a, b, e], np.r_[ha, hb, he], Qb, R,
+                     reach=not held)
 
 
 def _kept(ef, mine, values, halves, keys):
