@@ -907,10 +907,15 @@ class _Pass:
             if not np.allclose(B[:B0.shape[0], j], B0[:, j], rtol=1e-9, atol=0.0):
                 continue  # an earlier effect changed the input's path (a static law's
                 # feedthrough of it): B[:, j] no longer names how the input reaches the plant
-            ch = input_channel(sys, j)
-            tr_ = next((c.trace for c in self.scored if c.trace.channel == ch), None)
+            # a traced channel that carries the input's whole effect (its own; or the one
+            # equation it enters), else the input's channel traced here (a big model's
+            # screen may have left that equation out)
+            carriers = [c.trace for c in self.scored if j in whole_inputs(sys, c.trace.channel)]
+            tr_ = next((t for t in carriers if t.channel.kind == "input"),
+                       carriers[0] if carriers else None)
+            ch = tr_.channel if tr_ is not None else input_channel(sys, j)
             try:
-                if tr_ is None:  # an input entering one equation: its channel not traced yet
+                if tr_ is None:
                     tr_ = self._trace(ch, nonlinear=False, max_order=0)
                     if tr_.status != "ok":
                         continue
@@ -925,7 +930,7 @@ class _Pass:
                 continue
             fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
             self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, fit.se, dl.npar,
-                                             "ok", f"{ch.input} alone: an actuator lag"))
+                                             "ok", f"{sys.input_labels[j]} alone: an actuator lag"))
             self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
 
     def _sparse(self, tr_) -> None:

@@ -279,6 +279,20 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
 
 
 
+def input_scale(sys: ct.StateSpace, channel: Channel, j: int) -> float | None:
+    """c with ``B[:, j] = c G`` when the one-component channel carries input j's whole
+    effect (the input's own channel: 1; the one state equation it enters: B's entry),
+    else None."""
+    if channel.md != 1 or channel.kind == "output":
+        return None
+    g = np.asarray(channel.G, dtype=float)[:, 0]
+    b = np.asarray(sys.B, dtype=float)[:, j]
+    c = float(g @ b / (g @ g)) if g @ g > 0 else 0.0
+    if c == 0 or np.linalg.norm(b - c * g) > 1e-9 * np.linalg.norm(b):
+        return None
+    return c
+
+
 def fit_input_lag(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: NDArray, *,
                   Q: NDArray, R: NDArray, dt: float, x0: NDArray, k0: int,
                   ntau: int = 12) -> DynamicLaw | None:
@@ -321,12 +335,8 @@ def fit_input_lag(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: N
         None when the channel does not carry input j's whole effect or no
         stable law is found.
     """
-    if channel.md != 1:
-        return None
-    g = np.asarray(channel.G, dtype=float)[:, 0]
-    b = np.asarray(sys.B, dtype=float)[:, j]
-    c = float(g @ b / (g @ g)) if g @ g > 0 else 0.0
-    if c == 0 or np.linalg.norm(b - c * g) > 1e-9 * np.linalg.norm(b):
+    c = input_scale(sys, channel, j)
+    if c is None:
         return None
     drv = [("u", j)]
     best = None
@@ -550,11 +560,14 @@ def _law_from(sys, channel, prob, drv, theta, hw, Q, R, reach: bool = True) -> D
         lo, hi = -a - hw[0], -a + hw[0]
         formula += (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if lo > 0
                     else " (not determined by the data)")
-    if reach and channel.kind == "input" and channel.input in dn:
-        q = dn.index(channel.input)
-        dc = 1.0 + e[q] + b[q] / -a
-        formula += (f"; {channel.input} reaches the plant through "
-                    f"({1 + e[q]:.3g} s + {dc * -a:.3g})/(s + {-a:.3g}): DC gain {dc:.3g}, "
+    carried = [(q, c) for q, (kind, j) in enumerate(drv) if kind == "u"
+               for c in [input_scale(sys, channel, j)] if c is not None]
+    if reach and len(drv) == 1 and carried:
+        # u_j = c d-units along the channel: it reaches the plant through 1 + law / c
+        (q, c), = carried
+        k1, dc = 1.0 + e[q] / c, 1.0 + e[q] / c + b[q] / c / -a
+        formula += (f"; {dn[q]} reaches the plant through "
+                    f"({k1:.3g} s + {dc * -a:.3g})/(s + {-a:.3g}): DC gain {dc:.3g}, "
                     f"time constant {1 / -a:.3g} s")
     model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, [_lag_state(sys)])
     return DynamicLaw(pole=a, tau=1 / -a, drivers=tuple(dn), b=np.array(b), e=np.array(e),
