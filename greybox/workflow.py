@@ -72,7 +72,7 @@ from .trace.channel_trace import law_estimate_of, whole_inputs
 from .trace.laws import BREAK_KINDS
 from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
                              fit_sparse_dynamic)
-from .trace.shared_order2 import SharedLaw2, fit_shared_order2
+from .trace.shared_order2 import SharedLaw2, fit_input_lag2, fit_shared_order2
 from .trace.joint import joint_effect, refine_jointly
 from .trace.channels import force_channel, input_channel, relative_coordinates
 from .trace.laws import direction, sensor_states
@@ -893,7 +893,9 @@ class _Pass:
 
     def input_lags(self) -> None:
         """2d. Each input's actuator lag: its channel's first-order law driven by the input
-        alone, fitted by output error (:func:`greybox.trace.dynamic.fit_input_lag`) and
+        alone (:func:`greybox.trace.dynamic.fit_input_lag`) and, with ``max_order >= 2``,
+        its second-order one (the actuator's own mode,
+        :func:`greybox.trace.shared_order2.fit_input_lag2`), fitted by output error and
         scored with the rest. It needs no evidence of dynamics from d^ (through a delayed
         channel d^ is mostly estimation noise and the unstructured fit there diverged: a
         chain measured in part) and is one law where a one-input plant shows the same lag
@@ -921,17 +923,26 @@ class _Pass:
                         continue
                     tr_ = _light(tr_)
                 res_, k0s, _, _ = _sparse_start(tr_)
-                dl = fit_input_lag(sys, ch, j, P.y, P.u, Q=self.Q, R=P.R, dt=P.dt,
-                                   x0=res_.x_filt[:, 0], k0=k0s)
+                kw = dict(Q=self.Q, R=P.R, dt=P.dt, x0=res_.x_filt[:, 0], k0=k0s)
+                dl = fit_input_lag(sys, ch, j, P.y, P.u, **kw)
+                self._input_lag(tr_, dl, j)
+                if S.max_order >= 2 and dl is not None:  # the actuator's own mode
+                    self._input_lag(tr_, fit_input_lag2(
+                        sys, ch, j, P.y, P.u, tau=dl.tau, **kw), j)
             except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                 self.notes.append(f"{ch.name}: actuator lag failed: {e}")
-                continue
-            if dl is None:
-                continue
-            fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
-            self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, fit.se, dl.npar,
-                                             "ok", f"{sys.input_labels[j]} alone: an actuator lag"))
-            self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
+
+    def _input_lag(self, tr_, dl, j: int) -> None:
+        """Score input j's lag law ``dl`` (order 1 or 2; None: nothing) on ``tr_``'s
+        channel."""
+        if dl is None:
+            return
+        fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+        order = getattr(dl, "order", 1)
+        self.cands.append(CandidateScore(tr_.channel.name, "dynamic (sparse)", order, fit.se,
+                                         dl.npar, "ok", f"{self.sys.input_labels[j]} alone: "
+                                         f"an actuator lag of order {order}"))
+        self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
 
     def _sparse(self, tr_) -> None:
         """2b for one channel: its sparse first-order law, scored."""

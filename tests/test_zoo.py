@@ -375,10 +375,10 @@ def test_score_reads_a_damper_and_a_gain_in_one_equation_as_two_effects():
 
 
 @lru_cache(maxsize=None)
-def _run_draw(cls: str, seed: int, i: int):
+def _run_draw(cls: str, seed: int, i: int, max_order: int = 1):
     d = zoo.draw_class(cls, seed, i, n_est=N_RUN)
     rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
-                            delta=False, max_order=1)
+                            delta=False, max_order=max_order)
     return d, rep, zoo.score(d, rep)
 
 
@@ -417,6 +417,27 @@ def test_actuator_lag_is_named_as_the_input_reaching_the_plant_through_a_lag(i):
     assert s.right, (s.why, s.found)
     assert s.coefficients_within and s.covered == s.n_coefficients, (s.found, rep.effect.formula)
     assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+
+
+@pytest.mark.parametrize("i", [0, 1, 2])
+def test_second_order_actuator_lag_is_named_with_its_mode(i):
+    """A second-order actuator lag w^2/(s^2 + 2 zeta w s + w^2) (random chains, measured
+    sets, w and zeta): the input's channel (or the one equation it enters), a dynamic law
+    of order 2 driven by the input alone, its poles within 10 % and covered (the zoo's
+    scorer), validation SE within 1.5x the true model's. Seed 3 (the first tried): its
+    first five draws are all right; these are two measured in full and one in part (1:
+    positions of a 3-mass chain). Before the input's second-order lag candidate every
+    draw of the class was wrong (seed 1946288768: 0 of 3)."""
+    d, rep, s = _run_draw("actuator_lag2", 3, i, max_order=2)
+    assert rep.updated, rep.message
+    assert s.right, (s.why, s.found)
+    assert rep.effect.order == 2 and "reaches the plant through" in rep.effect.formula
+    assert s.coefficients_within, (s.found, rep.effect.formula)
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+    # not asserted: the poles' 95 % intervals cover the truth in 1 of 2, 0 of 2 and 0 of 2
+    # coordinates of these draws (measured; the zoo at N = 4000, seed 1946288768: 5 of 6;
+    # found within 0.2-1 % of the truth, the intervals narrower still): too narrow, the
+    # issue's item 7 (intervals that mean something), open
 
 
 def test_law_figure_shows_the_dead_zone_in_the_data():

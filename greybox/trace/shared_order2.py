@@ -41,7 +41,7 @@ effective samples, :func:`greybox.metrics.criterion_scores`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import control as ct
@@ -53,10 +53,10 @@ from .._lti import lti_states
 from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .dynamic import SharedLaw, _augmented_models, _component_lines, _driver_name, \
-    _gauss_newton_step, _pm, driver_weights
+    _gauss_newton_step, _pm, driver_weights, input_scale
 from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
 
-__all__ = ["SharedLaw2", "fit_shared_order2"]
+__all__ = ["SharedLaw2", "fit_input_lag2", "fit_shared_order2"]
 
 
 @dataclass(frozen=True)
@@ -293,6 +293,87 @@ def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw | Sha
     return _sparsest(sys, channel, fits, Q, R)
 
 
+def fit_input_lag2(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: NDArray, *,
+                   Q: NDArray, R: NDArray, dt: float, x0: NDArray, k0: int,
+                   tau: float | None = None) -> SharedLaw2 | None:
+    """Input ``j`` reaching the plant through a second-order filter: its actuator's own
+    mode (a servo, a valve with its own dynamics).
+
+    The law of a one-component channel that carries input j's whole effect
+    (``B[:, j] = c G``, :func:`greybox.trace.dynamic.input_scale`) with u_j its only
+    driver, ``d = e u_j + (beta_1 s + beta_0)/(s^2 + alpha_1 s + alpha_0) u_j``: a
+    lag ``w^2/(s^2 + 2 zeta w s + w^2)`` at ``e = -c``, ``beta_1 = 0``,
+    ``beta_0 = c w^2``; terms whose interval contains 0 are dropped
+    (:func:`_drop_weak`: a pure lag keeps 4 parameters). Fitted by output error on y
+    alone from the pure lag whose output error is lowest among w in (1, 1.6, 2.5)/tau
+    and zeta in (0.5, 0.8), tau the first-order lag's time constant (default: the
+    geometric middle of 2 .. 500 samples).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Continuous nominal model.
+    channel : Channel
+        md = 1, along ``B[:, j]``.
+    j : int
+        The input.
+    y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
+        The estimation record.
+    Q, R : ndarray
+        Noise covariances of the discrete nominal model (for the intervals).
+    dt : float
+        Sampling period [s].
+    x0 : ndarray, shape (nstates,)
+        Initial state of the output-error simulation.
+    k0 : int
+        First sample of the output-error window.
+    tau : float, optional
+        Time constant [s] of the input's first-order lag (the start's scale).
+
+    Returns
+    -------
+    SharedLaw2 or None
+        None when the channel does not carry input j's whole effect or no stable
+        law with determined terms is found.
+    """
+    c = input_scale(sys, channel, j)
+    if c is None:
+        return None
+    tau = float(tau) if tau is not None and tau > 0 else float(np.sqrt(2.0 * 500.0)) * dt
+    dv = ("u", j)
+    bterms, eterms = [(0, dv), (1, dv)], [(0, dv)]
+    args = (sys, channel, y, u, Q, R, dt, x0, k0)
+    best = None
+    with single_thread_blas():
+        prob = _Problem(sys, channel, y, u, dt, x0, k0, bterms, eterms, 0, order=2)
+        for w in np.array([1.0, 1.6, 2.5]) / tau:
+            for zeta in (0.5, 0.8):
+                theta = np.array([2 * zeta * w, w * w, 0.0, c * w * w, -c])
+                rss = float(np.sum(prob.resid(theta) ** 2))
+                if np.isfinite(rss) and (best is None or rss < best[0]):
+                    best = (rss, theta)
+        fit = None if best is None else _drop_weak(*args, bterms, eterms, 0, best[1])
+    if fit is None:
+        return None
+    law = _law_from(sys, channel, *fit, Q, R)
+    return replace(law, formula=law.formula + _reach2(sys, law, j, c))
+
+
+def _reach2(sys, law: SharedLaw2, j: int, c: float) -> str:
+    """"; F reaches the plant through ...": 1 + law / c of a second-order input law."""
+    name = sys.input_labels[j]
+    if list(law.drivers) != [name]:
+        return ""
+    a1, a0 = law.alpha
+    b1, b0 = law.beta[:, 0]
+    e = sum(v for _, nm, v in law.feedthrough if nm == name)
+    k2, k1, k0 = 1 + e / c, a1 * (1 + e / c) + b1 / c, a0 * (1 + e / c) + b0 / c
+    w = float(np.sqrt(a0)) if a0 > 0 else float("nan")
+    return (f"; {name} reaches the plant through ({k2:.3g} s^2 + {k1:.3g} s + {k0:.3g})/"
+            f"(s^2 + {a1:.3g} s + {a0:.3g}): DC gain {k0 / a0:.3g}, natural frequency "
+            f"{w:.3g} rad/s, damping {a1 / (2 * w):.3g}")
+
+
 def _driver_ref(sys):
     """name -> ("x", state index) or ("u", input index) of ``sys``."""
     states, inputs = list(sys.state_labels), list(sys.input_labels)
@@ -508,7 +589,7 @@ def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
                      f"frequency {abs(pc):.3g} rad/s, damping {-pc.real / abs(pc):.3g})")
     formula += ", poles " + " and ".join(parts)
     formula += (f" (one {'second' if q == 2 else 'third'}-order subsystem shared by "
-                f"{', '.join(channel.labels)})")
+                f"{', '.join(channel.labels)})" if md > 1 else "")
     model, cont = _augmented_models(sys, *prob.cont(theta), dt, Q, R, list(zn))
     Bz, E = prob.rows(theta)
     feed = tuple((int(c), _driver_name(sys, dv), float(ec)) for (c, dv), ec in zip(prob.eterms, e))
