@@ -594,7 +594,7 @@ class _Pass:
         self.forces()
         self.higher_orders()
         self.sparse_laws(r)
-        self.input_lags()
+        self.input_lags(r)
         chosen = self.choose()
         if chosen is None:
             self.gate["passed"] = {"whiteness": True, "trace": False}
@@ -891,12 +891,12 @@ class _Pass:
             if not self._shared(gtr, r):
                 break
 
-    def input_lags(self) -> None:
+    def input_lags(self, r: Residual) -> None:
         """2d. Each input's actuator lag: its channel's first-order law driven by the input
         alone (:func:`greybox.trace.dynamic.fit_input_lag`) and, with ``max_order >= 2``,
         its second-order one (the actuator's own mode,
-        :func:`greybox.trace.shared_order2.fit_input_lag2`), fitted by output error and
-        scored with the rest. It needs no evidence of dynamics from d^ (through a delayed
+        :func:`greybox.trace.shared_order2.fit_input_lag2`, where the first-order lag
+        passes the gate's SE drop), fitted by output error and scored with the rest. It needs no evidence of dynamics from d^ (through a delayed
         channel d^ is mostly estimation noise and the unstructured fit there diverged: a
         chain measured in part) and is one law where a one-input plant shows the same lag
         on every output. Not for an input whose column of B an earlier pass changed."""
@@ -925,24 +925,27 @@ class _Pass:
                 res_, k0s, _, _ = _sparse_start(tr_)
                 kw = dict(Q=self.Q, R=P.R, dt=P.dt, x0=res_.x_filt[:, 0], k0=k0s)
                 dl = fit_input_lag(sys, ch, j, P.y, P.u, **kw)
-                self._input_lag(tr_, dl, j)
-                if S.max_order >= 2 and dl is not None:  # the actuator's own mode
+                se1 = self._input_lag(tr_, dl, j)
+                # the actuator's own mode, where the first-order lag already passes the
+                # gate's SE drop (the input's path is where the error is)
+                if S.max_order >= 2 and se1 < S.min_se_drop * r.se_nom:
                     self._input_lag(tr_, fit_input_lag2(
                         sys, ch, j, P.y, P.u, tau=dl.tau, **kw), j)
             except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
                 self.notes.append(f"{ch.name}: actuator lag failed: {e}")
 
-    def _input_lag(self, tr_, dl, j: int) -> None:
+    def _input_lag(self, tr_, dl, j: int) -> float:
         """Score input j's lag law ``dl`` (order 1 or 2; None: nothing) on ``tr_``'s
-        channel."""
+        channel; its SE [%] (inf for None)."""
         if dl is None:
-            return
+            return np.inf
         fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
         order = getattr(dl, "order", 1)
         self.cands.append(CandidateScore(tr_.channel.name, "dynamic (sparse)", order, fit.se,
                                          dl.npar, "ok", f"{self.sys.input_labels[j]} alone: "
                                          f"an actuator lag of order {order}"))
         self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
+        return fit.se
 
     def _sparse(self, tr_) -> None:
         """2b for one channel: its sparse first-order law, scored."""
