@@ -46,6 +46,13 @@ __all__ = [
 ]
 
 
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool; DataError unless it is True or False (not 1, "yes", None)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise DataError(f"{name} must be True or False; found {value!r}")
+    return bool(value)
+
+
 def check_real(value, name: str) -> float:
     """Return ``value`` as a float if it is a finite real number (not a string or bool)."""
     if isinstance(value, (str, bytes, bool, np.bool_)) or value is None:

@@ -37,6 +37,7 @@ from ._blas import single_thread_blas
 from ._lti import lti_states
 from ._validation import (
     check_covariance,
+    check_flag,
     check_parsimony,
     check_positive,
     check_records,
@@ -154,12 +155,6 @@ from .records import (  # noqa: E402,F401  (re-exported: greybox.workflow.LoopRe
     EffectStep,
     LoopReport,
 )
-
-
-def _flag(value, name):
-    if not isinstance(value, (bool, np.bool_)):
-        raise DataError(f"{name} must be True or False; found {value!r}")
-    return bool(value)
 
 
 def _se(y, ysim, skip):
@@ -415,7 +410,7 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_orde
         raise DataError(f"max_order = {max_order} (at most 10) and delta_max_order = "
                         f"{delta_max_order} (at most 20): higher orders cannot be identified "
                         f"reliably from one record")
-    nonlinear, delta = _flag(nonlinear, "nonlinear"), _flag(delta, "delta")
+    nonlinear, delta = check_flag(nonlinear, "nonlinear"), check_flag(delta, "delta")
     parsimony = check_parsimony(parsimony)
     alpha = check_positive(alpha, "alpha")
     min_se_drop = check_positive(min_se_drop, "min_se_drop")

@@ -97,6 +97,7 @@ from ._blas import one_blas_thread
 from ._validation import (
     MAX_MAGNITUDE,
     check_covariance,
+    check_flag,
     check_parsimony,
     check_positive,
     check_records,
@@ -324,12 +325,6 @@ class _JointFit:
 
 _OP_TEXT = ("the mean of the {what} filtered states and of the inputs over the estimation "
             "record")
-
-
-def _flag(value, name):
-    if not isinstance(value, (bool, np.bool_)):
-        raise DataError(f"{name} must be True or False; found {value!r}")
-    return bool(value)
 
 
 def _validation_row(model_d, y, u, *, Q, R, x0, P0, name, lags, alpha, order,
@@ -1637,8 +1632,8 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, alpha, l
                                        min_val_steps=max(100, 2 * lags + 2 + SKIP))
     Q = check_covariance(Q, n, "Q", definite=False)
     R = check_covariance(R, p, "R", definite=True)
-    nonlinear = _flag(nonlinear, "nonlinear")
-    refit_parameters = _flag(refit_parameters, "refit_parameters")
+    nonlinear = check_flag(nonlinear, "nonlinear")
+    refit_parameters = check_flag(refit_parameters, "refit_parameters")
     parsimony = check_parsimony(parsimony)
     alpha = check_positive(alpha, "alpha")
     min_se_drop = check_positive(min_se_drop, "min_se_drop")
