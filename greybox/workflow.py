@@ -905,11 +905,16 @@ class _Pass:
                 continue  # an earlier effect changed the input's path (a static law's
                 # feedthrough of it): B[:, j] no longer names how the input reaches the plant
             # a traced channel that carries the input's whole effect (its own; or the one
-            # equation it enters), else the input's channel traced here (a big model's
-            # screen may have left that equation out)
+            # equation it enters), else the input's channel traced here; not where a big
+            # model's equation screen left that one equation out (the screen found no
+            # error there, and the lag's d enters it: at n = 32 the trace and fits cost
+            # 10 s of 28)
             carriers = [c.trace for c in self.scored if j in whole_inputs(sys, c.trace.channel)]
             tr_ = next((t for t in carriers if t.channel.kind == "input"),
                        carriers[0] if carriers else None)
+            if tr_ is None and self.big and not any(
+                    c.kind == "input" and c.input == sys.input_labels[j] for c in self.chans):
+                continue
             ch = tr_.channel if tr_ is not None else input_channel(sys, j)
             try:
                 if tr_ is None:
