@@ -16,9 +16,26 @@ def main(argv=None) -> int:
 
     Ctrl-C before ``greybox.cli.main`` takes over gives one line and exit code 130.
     """
+    import signal
+
+    hit = []
+
+    def _interrupted(signum, frame):
+        hit.append(signum)
+        raise KeyboardInterrupt
+
+    try:  # the interrupt remembered, not only raised: a library imported below can swallow
+        # a KeyboardInterrupt in a broad except (seen once in CI: the demo then ran to exit 0)
+        previous = signal.signal(signal.SIGINT, _interrupted)
+    except ValueError:  # not the main thread: Python's own handler stays
+        previous = None
     try:
         from greybox.cli import main as run
 
+        if hit:
+            raise KeyboardInterrupt
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
         return run(argv)
     except KeyboardInterrupt:
         print("greybox: interrupted", file=sys.stderr)
