@@ -44,7 +44,7 @@ from ..system import named_ss
 from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .channel_trace import _LOW_SNR
-from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
+from .oe import lowest_start, oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["DynamicLaw", "SharedLaw", "fit_input_lag", "fit_shared_dynamic",
            "fit_sparse_dynamic"]
@@ -339,17 +339,13 @@ def fit_input_lag(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: N
     if c is None:
         return None
     drv = [("u", j)]
-    best = None
     with single_thread_blas():
         prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
-        for tau in np.geomspace(2.0, 500.0, ntau) * dt:
-            theta = np.array([-1.0 / tau, c / tau, -c])
-            rss = float(np.sum(prob.resid(theta) ** 2))
-            if np.isfinite(rss) and (best is None or rss < best[0]):
-                best = (rss, theta)
-    if best is None:
+        theta0 = lowest_start(prob.resid, [np.array([-1.0 / tau, c / tau, -c]) for tau in
+                                           np.geomspace(2.0, 500.0, ntau) * dt])
+    if theta0 is None:
         return None
-    return _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, best[1])
+    return _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
 
 # Output-error driver selection (noise-dominated d^): start poles (time constants in
 # samples), candidates kept per step after the score test, and at most this many

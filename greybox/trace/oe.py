@@ -975,3 +975,14 @@ def _removal_order(prob, sel, theta, fun) -> list[int]:
         d = np.diag(np.linalg.pinv(J.T @ J))
         cost = np.where(d > 0, theta ** 2 / d, 0.0)
     return [int(q) for q in np.argsort(cost, kind="stable")]
+
+
+def lowest_start(resid, starts):
+    """The start of ``starts`` (parameter vectors) whose residual ``resid(theta)`` has the
+    lowest finite sum of squares, or None when none is finite."""
+    best = None
+    for theta in starts:
+        rss = float(np.sum(resid(theta) ** 2))
+        if np.isfinite(rss) and (best is None or rss < best[0]):
+            best = (rss, theta)
+    return None if best is None else best[1]

@@ -54,7 +54,7 @@ from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .dynamic import SharedLaw, _augmented_models, _component_lines, _driver_name, \
     _gauss_newton_step, _pm, driver_weights, input_scale
-from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
+from .oe import lowest_start, oe_window, robust_halfwidths, scaled_output_error, zoh
 
 __all__ = ["SharedLaw2", "fit_input_lag2", "fit_shared_order2"]
 
@@ -343,16 +343,12 @@ def fit_input_lag2(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: 
     dv = ("u", j)
     bterms, eterms = [(0, dv), (1, dv)], [(0, dv)]
     args = (sys, channel, y, u, Q, R, dt, x0, k0)
-    best = None
     with single_thread_blas():
         prob = _Problem(sys, channel, y, u, dt, x0, k0, bterms, eterms, 0, order=2)
-        for w in np.array([1.0, 1.6, 2.5]) / tau:
-            for zeta in (0.5, 0.8):
-                theta = np.array([2 * zeta * w, w * w, 0.0, c * w * w, -c])
-                rss = float(np.sum(prob.resid(theta) ** 2))
-                if np.isfinite(rss) and (best is None or rss < best[0]):
-                    best = (rss, theta)
-        fit = None if best is None else _drop_weak(*args, bterms, eterms, 0, best[1])
+        theta0 = lowest_start(prob.resid, [np.array([2 * z * w, w * w, 0.0, c * w * w, -c])
+                                           for w in np.array([1.0, 1.6, 2.5]) / tau
+                                           for z in (0.5, 0.8)])
+        fit = None if theta0 is None else _drop_weak(*args, bterms, eterms, 0, theta0)
     if fit is None:
         return None
     law = _law_from(sys, channel, *fit, Q, R)
