@@ -24,14 +24,21 @@ def main(argv=None) -> int:
         hit.append(signum)
         raise KeyboardInterrupt
 
+    previous = None
     try:  # the interrupt remembered, not only raised: a library imported below can swallow
-        # a KeyboardInterrupt in a broad except (seen once in CI: the demo then ran to exit 0)
-        previous = signal.signal(signal.SIGINT, _interrupted)
+        # the KeyboardInterrupt in a broad except (seen in CI: the demo then ran to exit 0), or
+        # a C extension's initialisation can turn it into "ImportError: initialization failed"
+        if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:  # a background job's
+            previous = signal.signal(signal.SIGINT, _interrupted)  # ignored SIGINT stays so
     except ValueError:  # not the main thread: Python's own handler stays
-        previous = None
+        pass
     try:
-        from greybox.cli import main as run
-
+        try:
+            from greybox.cli import main as run
+        except Exception:
+            if hit:  # an exception raised from the interrupt
+                raise KeyboardInterrupt from None
+            raise
         if hit:
             raise KeyboardInterrupt
         if previous is not None:
