@@ -47,6 +47,7 @@ from .oe import (
     _refine_nonlinear_oe,
     _refine_static_oe,
     _select_static_oe,
+    exchange_siblings,
     prune_by_criterion,
     noise_covariance,
     oe_window,
@@ -838,6 +839,11 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
         law, more = prune_by_criterion(law, model, channel.md, y, u, x0, k0,
                                        labels, channel.units, law.term_scale(x, uu),
                                        cont if law.time_base == "continuous" else None, noise)
+        notes += more
+    # a delayed d^ cannot tell a variable's forms apart (v or sign(v)): output error does
+    if whitened and law.npar and oe_ok and not has_marginal_pole(model):
+        law, more = exchange_siblings(law, model, channel.md, y, u, x0, k0, labels,
+                                      channel.units, law.term_scale(x, uu), noise)
         notes += more
     return law
 

@@ -151,6 +151,20 @@ def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
 
 
 LINEAR_KINDS = ("x", "u", "rel", "yhat")
+# The odd forms one variable can take in a law (linear, cubic, sign): terms of one family
+# on one variable are siblings, which output error tells apart where d^ cannot. |v| is no
+# sibling: an even term changes the law's symmetry, not only its shape
+SIBLING_KINDS = (("x", "x^3", "sign"), ("rel", "rel^3", "rel_sign"))
+
+
+def siblings(spec, j: int) -> list[int]:
+    """Indices of the terms of ``spec`` that are the other forms of term j's variable
+    (:data:`SIBLING_KINDS`: v, v^3, sign(v), |v|); empty for any other kind."""
+    kind, var = spec[j][1], spec[j][2]
+    fam = next((f for f in SIBLING_KINDS if kind in f), None)
+    if fam is None:
+        return []
+    return [q for q, (_, k, i) in enumerate(spec) if q != j and k in fam and i == var]
 # Sensor-law terms the updated model carries as sensor states (number of states each):
 # a first-order lag (the reading) and a drift (offset and drift rate; see sensor_states)
 SENSOR_STATE_KINDS = {"yhat_lag": 1, "drift": 2}

@@ -14,7 +14,8 @@ from .._blas import single_thread_blas
 from .._lti import lti_output, lti_states
 from ..metrics import effective_samples, oe_criterion
 from .intervals import hac_covariance, residual_colour, undetermined
-from .laws import BREAK_KINDS, LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction, linear_part
+from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction,
+                   linear_part, siblings)
 
 # Output-error refinements of static laws run on at most this many samples
 # (their cost is then independent of the record length).
@@ -660,23 +661,52 @@ def _by_score(prob: _OutputErrorLaw, sel, theta, cands) -> list:
     For each candidate term c the residual's derivative j_c at the current
     law (one simulation each, a forward difference) gives the RSS drop of a
     Gauss-Newton step in c alone, ``(j_c^T r)^2 / j_c^T j_c`` (the score
-    test). Fitting only the best few by Levenberg-Marquardt costs a few
-    simulations per candidate instead of an optimization each.
+    test, :func:`_scores`). Fitting only the best few by Levenberg-Marquardt
+    costs a few simulations per candidate instead of an optimization each.
     """
     if len(cands) <= _SCORE_TOP or prob.A.shape[0] <= _SCORE_ABOVE:
         return list(cands)
+    order = np.argsort(_scores(prob, sel, theta, cands))[::-1][:_SCORE_TOP]
+    return [cands[q] for q in order]
+
+
+def _scores(prob, sel, theta, cands) -> list[float]:
+    """Each candidate term's first-order drop of the output error's sum of squares beside
+    the terms ``sel`` at ``theta``: ``(j^T r)^2 / j^T j``, j its sensitivity
+    (:func:`_sensitivities`). ``prob``: any problem with ``resid(theta, sel)``."""
+    r0, J = _sensitivities(prob, sel, theta, cands)
+    out = []
+    for j in J:
+        jj = float(j @ j)
+        out.append(float(j @ r0) ** 2 / jj if jj > 0 and np.isfinite(jj) else 0.0)
+    return out
+
+
+def _sensitivities(prob, sel, theta, cands, own: bool = False):
+    """``(r0, J)``: the output error at the terms ``sel`` and ``theta``, and each
+    candidate's forward difference of it in a new coefficient (one simulation each; the
+    step grows from 1e-4 until the residual moves); with ``own``, first the chosen
+    terms' own, in the order of ``sel``."""
     with single_thread_blas():
         r0 = prob.resid(theta, sel)
-        scores = []
-        for cj in cands:
+        scale = 1e-9 * (np.max(np.abs(r0)) + 1e-300)
+        J = []
+        trials = ([(q, None) for q in range(len(sel))] if own else []) + \
+            [(None, c) for c in cands]
+        for q, cj in trials:
             for h in (1e-4, 1e-2, 1.0):
-                j = prob.resid(np.r_[theta, h], sel + [cj]) - r0
-                if np.max(np.abs(j)) > 1e-9 * (np.max(np.abs(r0)) + 1e-300):
+                if cj is None:  # the chosen term's own coefficient, a step of its size
+                    step = h * max(abs(float(theta[q])), 1e-300)
+                    t = np.array(theta, dtype=float)
+                    t[q] += step
+                    diff = prob.resid(t, sel) - r0
+                else:
+                    step = h
+                    diff = prob.resid(np.r_[theta, h], sel + [cj]) - r0
+                if np.max(np.abs(diff)) > scale:
                     break
-            jj = float(j @ j)
-            scores.append(float(j @ r0) ** 2 / jj if jj > 0 else 0.0)
-    order = np.argsort(scores)[::-1][:_SCORE_TOP]
-    return [cands[q] for q in order]
+            J.append(diff / step)
+    return r0, J
 
 
 def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
@@ -711,7 +741,8 @@ def _select_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
 
 
 def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=None,
-                      max_nfev: int = 100, start=None, cost=None, factor: float = 1.0):
+                      max_nfev: int = 100, start=None, cost=None, factor: float = 1.0,
+                      exchange: bool = True):
     """Forward selection of a static law's terms by output error, BIC stop, then pruning.
 
     Shared by the linear trace (:func:`_select_static_oe`) and the nonlinear
@@ -720,6 +751,8 @@ def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=
     already chosen, by ``prob.fit`` (Levenberg-Marquardt on the output
     error), and adds the one with the lowest residual sum of squares while
     the BIC of the output error drops, ``n log(RSS / nres) + k log(n)``;
+    then each chosen term is swapped for a left-out one that fits better
+    (:func:`_exchange`: greedy steps on correlated terms take a proxy first);
     then every term is checked by the same rule the other way (a term whose
     removal it accepts is dropped, :func:`_backward`: the greedy order can
     take a term that a later one makes redundant); then terms whose 95 %
@@ -763,6 +796,9 @@ def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=
     factor : float
         A term is added only if the likelihood ratio exceeds ``factor`` times
         its BIC penalty (1: the BIC itself).
+    exchange : bool
+        After the forward steps, swap chosen terms for left-out ones that fit
+        better (:func:`_exchange`), before the backward check.
 
     Returns
     -------
@@ -802,6 +838,8 @@ def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=
         elif not lr > factor * (npar(sel + [trial[1]]) - npar(sel)) * np.log(n):
             break
         rss_best, sel, theta, fun = trial[0], sel + [trial[1]], trial[2], trial[3]
+    if exchange:
+        sel, theta, fun = _exchange(prob, sel, theta, fun, cands, npar, max_nfev)
     sel, theta = _backward(prob, sel, theta, fun, nres, colour, npar, factor, max_nfev)
     hw = None
     if sel:
@@ -901,11 +939,158 @@ def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray
                          npar=len(ssel)), [note]
 
 
+def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
+                      x0: NDArray, k0: int, labels, units, tscale: NDArray,
+                      noise=None) -> tuple[StaticLaw, list[str]]:
+    """Each term of a static law swapped for the form of its variable the output error prefers.
+
+    A law chosen on a delayed d^ (an equation measured only through others)
+    takes the form of each variable by a regression on an estimate that is
+    mostly noise, where v and sign(v) (Coulomb friction on a mass whose speed
+    is not measured), or v and v^3, fit nearly alike. Here each chosen
+    term's siblings (:func:`greybox.trace.laws.siblings`) are weighed in its
+    place on the output error of y, every law simulated with the same
+    integrator (:class:`_OutputErrorNonlinearLaw`):
+
+    1. Screen (one simulation of all trials at once): each sibling in its
+       term's place at a few guessed coefficients (:func:`_sibling_screen`).
+    2. Where a sibling already simulates better than the law, the law with the swap and the
+       law as it is are refitted by output error and the swap is taken if it
+       lowers the output-error criterion (:func:`greybox.metrics.oe_criterion`
+       on the effective samples of the current law's residual) and keeps the
+       coefficient's sign (a damping stays a damping, only its shape may
+       change: on the Silverbox a -v^3 damping would become a +sign(v)
+       anti-friction); a swap keeps the parameter count, so the criterion
+       compares the fits alone.
+
+    ``tscale``: each term's RMS on the aligned data (:meth:`StaticLaw.term_scale`),
+    which sizes the screen's steps and the swapped term's starting coefficient.
+    Returns ``(law, notes)``: the law unchanged and no note when no swap wins.
+    """
+    sel, theta0 = _selected(law)
+    sibs = [(q, j2) for q, (_, j) in enumerate(sel) for j2 in siblings(law.spec, j)]
+    if not sibs or len(sel) > _NL_OE_MAX_TERMS or law.output is not None:
+        return law, []
+    p = y.shape[0]
+    W = min(_NL_OE_WINDOW, oe_window(p), y.shape[1] - k0)
+    promising = _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale,
+                                noise, W)
+    if not promising:
+        return law, []
+
+    def fitted(s, start):
+        prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, s, start, noise, W)
+        theta, half, _ = prob.fit(list(range(len(s))), start)
+        r = prob.resid(theta / prob.theta_scale).reshape(p, -1)
+        return theta, half, r
+
+    theta, half, r = fitted(sel, theta0)
+    if not np.all(np.abs(r) < 1e6):
+        return law, []
+    neff = effective_samples(r)
+    cur, best = oe_criterion(r, len(sel), neff), None
+    for q, j2 in promising:
+        s2 = sel[:q] + [(sel[q][0], j2)] + sel[q + 1:]
+        start = theta.copy()
+        start[q] = theta[q] * tscale[sel[q][1]] / max(tscale[j2], 1e-300)
+        th, hf, r2 = fitted(s2, start)
+        if np.all(np.abs(r2) < 1e6) and np.sign(th[q]) == np.sign(theta[q]):
+            crit = oe_criterion(r2, len(s2), neff)
+            if crit < cur and (best is None or crit < best[0]):
+                best = (crit, s2, th, hf, (law.spec[sel[q][1]][0], law.spec[j2][0]))
+    if best is None:
+        return law, []
+    _, sel, theta, half, (a, b) = best
+    note = (f"term form chosen by output error (the output-error criterion on effective "
+            f"samples): {b} for {a}")
+    return _nl_law_with(law, sel, list(range(len(sel))), theta, half, labels, units,
+                        tscale), [note]
+
+
+def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noise, W):
+    """The swaps (q, sibling term) that already simulate better than the law as it is at a
+    guessed coefficient: the term's own of the same RMS, times 1/4 ... 4 (one simulation
+    of every trial; see :func:`exchange_siblings`). A first-order screen (the derivative
+    at 0, as :func:`_by_score`) missed Coulomb friction for the linear damping it was
+    named as: the friction's effect on the motion is far from linear in its size."""
+    ext = sel + [(sel[q][0], j2) for q, j2 in sibs]
+    th = np.r_[theta0, np.zeros(len(sibs))]
+    prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, ext, th, noise, W)
+    cols, which = [th], []
+    for s, (q, j2) in enumerate(sibs):
+        for f in _SCREEN_FACTORS:
+            col = th.copy()
+            col[q] = 0.0
+            col[len(sel) + s] = f * theta0[q] * tscale[sel[q][1]] / max(tscale[j2], 1e-300)
+            cols.append(col)
+            which.append(s)
+    with np.errstate(all="ignore"):
+        R = prob._resid(prob.simulate(np.array(cols).T))
+    rss = np.sum(R ** 2, axis=1)
+    rss = np.where(np.isfinite(rss), rss, np.inf)
+    best = {}
+    for s, r in zip(which, rss[1:]):
+        best[s] = min(best.get(s, np.inf), r)
+    return [sibs[s] for s in sorted(best, key=best.get) if best[s] < rss[0]]
+
+
+_SCREEN_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0)
+
+
 def _bic(nres):
     """``bic(rss, k, n) = n log(RSS / nres) + k log(n)``."""
     def bic(rss, k, n):
         return n * np.log(max(rss / nres, 1e-300)) + k * np.log(n)
     return bic
+
+
+def _exchange(prob, sel, theta, fun, cands, npar, max_nfev):
+    """The forward selection's terms, each swapped for a left-out candidate that fits better.
+
+    Greedy forward selection on correlated terms takes a proxy first (a
+    thermal row's T4 for the loss of T3 beside it: alone it fits a little
+    better, and every later term is then chosen around it). A proxy is a term
+    whose effect on y resembles the right one's, so each round tries, for
+    every chosen term, the ``_EXCHANGE_TRIALS`` candidates left out (with its
+    parameter count) whose sensitivities of the output error correlate with
+    its own most (:func:`_sensitivities`, one simulation each), each in its
+    place, refitted from the other terms' coefficients by at most
+    ``_EXCHANGE_NFEV`` evaluations; it takes the swap with the lowest
+    residual sum of squares if, refitted in full, it is lower than the
+    current one; at most ``len(sel)`` rounds. The parameter count does not
+    change, so the criterion is the residual sum of squares itself. With one
+    term there is nothing to do: the first forward step is the best single
+    term. (A first-order screen of the swaps by their score, as
+    :func:`_by_score` ranks the forward steps, missed the thermal row's swap:
+    the proxy's neighbours make up for the term taken out.)
+    """
+    rss = float(np.sum(np.asarray(fun) ** 2))
+    for _ in range(len(sel) if len(sel) >= 2 else 0):
+        left = [c for c in cands if c not in sel]
+        _, J = _sensitivities(prob, sel, theta, left, own=True)
+        Jn = [j / (np.linalg.norm(j) + 1e-300) for j in J]
+        best = None
+        for q in range(len(sel)):
+            rest, th = sel[:q] + sel[q + 1:], np.delete(theta, q)
+            ok = [k for k, c in enumerate(left) if npar([c]) == npar([sel[q]])]
+            ok.sort(key=lambda k: -abs(float(Jn[q] @ Jn[len(sel) + k])))
+            for k in ok[:_EXCHANGE_TRIALS]:
+                sol = prob.fit(rest + [left[k]], np.r_[th, 0.0], max_nfev=_EXCHANGE_NFEV)
+                r2 = float(np.sum(sol.fun ** 2))
+                if r2 < rss * (1 - 1e-6) and (best is None or r2 < best[0]):
+                    best = (r2, rest + [left[k]], sol.x)
+        if best is None:
+            break
+        sol = prob.fit(best[1], best[2], max_nfev=max_nfev)
+        r2 = float(np.sum(sol.fun ** 2))
+        if not r2 < rss * (1 - 1e-6):
+            break
+        rss, sel, theta, fun = r2, best[1], sol.x, sol.fun
+    return sel, theta, fun
+
+
+_EXCHANGE_TRIALS = 2  # swaps refitted per chosen term and round: its two likeliest proxies
+_EXCHANGE_NFEV = 20  # evaluations of a trial swap's fit (the winner is refitted in full)
 
 
 def _backward(prob, sel, theta, fun, nres, colour, npar, factor, max_nfev):
