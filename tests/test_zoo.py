@@ -475,3 +475,40 @@ def test_a_law_whose_updated_model_diverges_on_validation_is_not_handed_over():
     assert "diverges on the validation record" in rep.message, rep.message
     assert rep.gate["passed"]["validation"] is False
     assert rep.table["updated"] is rep.table["nominal"]
+
+
+@lru_cache(maxsize=None)
+def _run_full_draw(cls: str, seed: int, i: int):
+    """A zoo draw at the benchmark's own record length (``bench/zoo.py``), as measured."""
+    d = zoo.draw_class(cls, seed, i)
+    rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    return d, rep, zoo.score(d, rep)
+
+
+def test_two_static_effects_each_named_in_its_own_equation_not_through_a_proxy():
+    """Two wrong loss coefficients in a thermal row of 10, all measured (seed 1554573307,
+    draw 1, the benchmark's fresh seed): the greedy first term was T4 for the loss of T3
+    (four terms, then two more passes and a 7-driver dynamic law); with the forward
+    selection's swaps (trace.oe._exchange), exactly -a*T2 in eq(T2) and -b*T3 in eq(T3),
+    each within 10 % and inside its 95 % interval, at the true model's validation SE."""
+    d, rep, s = _run_full_draw("two_static", 1554573307, 1)
+    assert rep.updated and s.right, (s.why, s.found)
+    assert s.coefficients_within and s.covered == s.n_coefficients == 2, s.found
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+    assert len(rep.steps) == 1, rep.message  # one effect, not three passes
+
+
+@pytest.mark.parametrize("seed,i", [(1554573307, 2), (1946288768, 0)])
+def test_coulomb_friction_on_an_unmeasured_speed_is_named_as_friction(seed, i):
+    """Coulomb friction in an equation measured only through others (a 5-mass chain at 2
+    of 10 states; a 2-mass chain by positions): the delayed d^ chose the viscous -c*v
+    (SE 13.9 % and 11.2 %), which the gate's output-error evidence let through; the
+    siblings' exchange by output error (trace.oe.exchange_siblings) names -F*sign(v),
+    the one term, its coefficient within 10 % (the two draws where the benchmark saw the
+    wrong law; the interval covers the truth in the first only, not asserted: item 7)."""
+    d, rep, s = _run_full_draw("coulomb", seed, i)
+    assert rep.updated and s.right and s.coefficients_within, (s.why, s.found)
+    assert "sign(" in rep.effect.formula, rep.effect.formula
+    assert any("term form chosen by output error" in n for n in rep.notes), rep.notes
+    assert s.error_updated < 0.2 * s.error_nominal  # and the model is far better than before
