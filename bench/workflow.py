@@ -378,6 +378,9 @@ def main_chains(N=100_000, sizes=(8, 16, 32, 64)):
 
 
 if __name__ == "__main__":
+    if {"-h", "--help"} & set(sys.argv[1:]):
+        print(__doc__)
+        sys.exit(0)
     _whole = "--whole-record" in sys.argv
     _NO_BASELINE = "--no-baseline" in sys.argv
     sys.argv = [a for a in sys.argv if a not in ("--whole-record", "--no-baseline")]
