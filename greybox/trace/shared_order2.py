@@ -365,8 +365,11 @@ def _reach2(sys, law: SharedLaw2, j: int, c: float) -> str:
     e = sum(v for _, nm, v in law.feedthrough if nm == name)
     k2, k1, k0 = 1 + e / c, a1 * (1 + e / c) + b1 / c, a0 * (1 + e / c) + b0 / c
     w = float(np.sqrt(a0)) if a0 > 0 else float("nan")
-    return (f"; {name} reaches the plant through ({k2:.3g} s^2 + {k1:.3g} s + {k0:.3g})/"
-            f"(s^2 + {a1:.3g} s + {a0:.3g}): DC gain {k0 / a0:.3g}, natural frequency "
+    def sgn(v):  # "+ 0.1" or "- 0.1", not "+ -0.1"
+        return f"{'-' if v < 0 else '+'} {abs(v):.3g}"
+
+    return (f"; {name} reaches the plant through ({k2:.3g} s^2 {sgn(k1)} s {sgn(k0)})/"
+            f"(s^2 {sgn(a1)} s {sgn(a0)}): DC gain {k0 / a0:.3g}, natural frequency "
             f"{w:.3g} rad/s, damping {a1 / (2 * w):.3g}")
 
 
@@ -563,7 +566,8 @@ def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
     zparts = []
     for j, nm in enumerate(dnames):
         num = [f"{_pm(Bq[r, j], Hq[r, j])}{power(q - 1 - r)}" for r in range(q) if Bq[r, j] != 0]
-        zparts.append(f"({' + '.join(num)})/{den}*{nm}")
+        one = len(num) == 1 and not num[0].endswith("s") and " s^" not in num[0]
+        zparts.append(f"{num[0]}/{den}*{nm}" if one else f"({' + '.join(num)})/{den}*{nm}")
     formula = "; ".join(lines) + f"; {zn[0]} = " + " + ".join(zparts) + unit(prob.ref)
     taus = np.full(q, np.nan)
     nreal = int(np.sum(np.isreal(poles)))
@@ -581,7 +585,9 @@ def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
                      f"constant{'s' if nreal > 1 else ''} {_and(desc)}")
     for c in range(nreal, q, 2):
         pc = poles[c]
-        parts.append(f"({_pm(pc.real, hp[c])}) ± j({_pm(pc.imag, hp[c + 1])}) 1/s (natural "
+        re_, im_ = (_pm(v, h) for v, h in ((pc.real, hp[c]), (pc.imag, hp[c + 1])))
+        re_, im_ = (t if t.startswith("(") else f"({t})" for t in (re_, im_))  # once
+        parts.append(f"{re_} ± j{im_} 1/s (natural "
                      f"frequency {abs(pc):.3g} rad/s, damping {-pc.real / abs(pc):.3g})")
     formula += ", poles " + " and ".join(parts)
     formula += (f" (one {'second' if q == 2 else 'third'}-order subsystem shared by "
