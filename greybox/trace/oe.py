@@ -905,7 +905,7 @@ def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray
     weight = [2 if law.spec[j][1] in BREAK_KINDS else 1 for _, j in sel]
     p = y.shape[0]
     if law.nonlinear:
-        W = min(_NL_OE_WINDOW, oe_window(p), y.shape[1] - k0)
+        W = _nl_window(y, k0)
         prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, sel, theta0, noise, W)
 
         def resid(keep, th):
@@ -972,7 +972,7 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     if not sibs or len(sel) > _NL_OE_MAX_TERMS or law.output is not None:
         return law, []
     p = y.shape[0]
-    W = min(_NL_OE_WINDOW, oe_window(p), y.shape[1] - k0)
+    W = _nl_window(y, k0)
     promising = _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale,
                                 noise, W)
     if not promising:
@@ -992,7 +992,7 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     for q, j2 in promising:
         s2 = sel[:q] + [(sel[q][0], j2)] + sel[q + 1:]
         start = theta.copy()
-        start[q] = theta[q] * tscale[sel[q][1]] / max(tscale[j2], 1e-300)
+        start[q] = _same_size(theta[q], tscale, sel[q][1], j2)
         th, hf, r2 = fitted(s2, start)
         if np.all(np.abs(r2) < 1e6) and np.sign(th[q]) == np.sign(theta[q]):
             crit = oe_criterion(r2, len(s2), neff)
@@ -1005,6 +1005,17 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
             f"samples): {b} for {a}")
     return _nl_law_with(law, sel, list(range(len(sel))), theta, half, labels, units,
                         tscale), [note]
+
+
+def _nl_window(y: NDArray, k0: int) -> int:
+    """Samples after k0 a whole-law output-error fit of a nonlinear law uses (the criterion's
+    prune and the siblings' exchange): at most ``_NL_OE_WINDOW`` and ``oe_window(p)``."""
+    return min(_NL_OE_WINDOW, oe_window(y.shape[0]), y.shape[1] - k0)
+
+
+def _same_size(coef: float, tscale: NDArray, j: int, j2: int) -> float:
+    """The coefficient of term j2 whose contribution has the RMS of term j's at ``coef``."""
+    return coef * tscale[j] / max(tscale[j2], 1e-300)
 
 
 def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noise, W):
@@ -1021,7 +1032,7 @@ def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noi
         for f in _SCREEN_FACTORS:
             col = th.copy()
             col[q] = 0.0
-            col[len(sel) + s] = f * theta0[q] * tscale[sel[q][1]] / max(tscale[j2], 1e-300)
+            col[len(sel) + s] = f * _same_size(theta0[q], tscale, sel[q][1], j2)
             cols.append(col)
             which.append(s)
     with np.errstate(all="ignore"):
