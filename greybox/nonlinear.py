@@ -18,6 +18,9 @@ local error per sub-step is then ~ (0.35)^5/120 ~ 4e-5 of the fast mode's
 amplitude, well inside its stability limit 2.78). The motor-pump is stiff
 (PAPER_NOTES §8.9): its speed mode has a 56 us time constant at our running
 point, which gives 6 sub-steps at Ts = 1e-4 s. Pass ``substeps`` to override.
+:func:`rk4_substeps_for` checks a count on a record by step doubling (a mode
+faster away from the operating point, a phase error accumulating over a long
+record); ``close_the_loop`` uses it on the estimation record.
 
 Vectorized evaluation: if the update function accepts states of shape
 ``(nstates, npoints)`` (and inputs of shape ``(ninputs, npoints)``) and
@@ -44,6 +47,7 @@ from .system import named_ss
 
 __all__ = [
     "rk4_substeps",
+    "rk4_substeps_for",
     "discretize_nonlinear",
     "linear_output_map",
     "simulate_nonlinear",
@@ -53,6 +57,7 @@ __all__ = [
     "with_unknown_inputs",
     "add_law",
     "linearize_at",
+    "kinematic_identities",
 ]
 
 _RK4_H_LAMBDA = 0.35
@@ -134,6 +139,63 @@ def rk4_substeps(sys: ct.NonlinearIOSystem, dt: float, *, x_op: ArrayLike | None
                          "and u_op where the model is defined, or give substeps directly")
     lam = float(np.max(np.abs(np.linalg.eigvals(J)))) if J.size else 0.0
     return max(1, int(np.ceil(dt * lam / _RK4_H_LAMBDA)))
+
+
+def rk4_substeps_for(sys: ct.NonlinearIOSystem, dt: float, u: ArrayLike, *, x0: ArrayLike,
+                     tol: ArrayLike, start: int = 1, cap: int = 64) -> int:
+    """RK4 sub-steps per sample whose simulation of a record is as good as twice as many.
+
+    Step doubling on the record itself: from ``start``, the output simulated with
+    ``s`` sub-steps is compared with ``2 s`` and ``s`` doubled until every output's
+    RMS difference is at most ``tol``. RK4's error falls 16-fold per doubling, so
+    the difference bounds the error of ``s`` sub-steps. The local rule of
+    :func:`rk4_substeps` (one operating point, one sub-step) misses a mode that is
+    faster away from that point (a hardening spring at large amplitude) and a
+    lightly damped mode whose phase error accumulates over a long record.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem
+        Continuous-time model.
+    dt : float
+        Sampling period [s].
+    u : array_like, shape (ninputs, nsteps)
+        The record's inputs, held over each sample.
+    x0 : array_like, shape (nstates,)
+        Initial state.
+    tol : array_like, shape (noutputs,)
+        Largest RMS difference allowed per output, in its units (e.g. a tenth of
+        the measurement noise's standard deviation: discretization error is then
+        no detectable model error).
+    start : int
+        First count tried (e.g. :func:`rk4_substeps`).
+    cap : int
+        Largest count returned.
+
+    Returns
+    -------
+    int
+        Between ``start`` and ``max(start, cap)``; ``start`` when the simulation
+        fails (a model unstable on this record: the filters handle it as it is).
+    """
+    tol = np.asarray(tol, dtype=float).reshape(-1)
+    s = max(1, int(start))
+
+    def run(k):
+        return simulate_nonlinear(discretize_nonlinear(sys, dt, substeps=k), u,
+                                  x0=x0).y_clean
+
+    try:
+        y_s = run(s)
+        while s < cap:
+            y_2 = run(2 * s)
+            if np.all(np.sqrt(np.mean((y_2 - y_s) ** 2, axis=1)) <= tol):
+                break
+            s, y_s = 2 * s, y_2
+    except (DataError, FloatingPointError):
+        return max(1, int(start))
+    return s
+
 
 
 def discretize_nonlinear(sys: ct.NonlinearIOSystem, dt: float, *, substeps: int | None = None,
@@ -577,6 +639,50 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None
     return ct.nlsys(upd, base.outfcn, states=list(base.state_labels),
                     inputs=list(base.input_labels), outputs=list(base.output_labels),
                     dt=base.dt, params=dict(par or {}), name=name or f"{base.name}_updated")
+
+
+def kinematic_identities(sys, X: ArrayLike, U: ArrayLike, *, rtol: float = 1e-9) -> list[str]:
+    """The kinematic identities of a continuous nonlinear model: the state equations
+    ``dx_i/dt = x_j`` (another state, unscaled, no input), checked on given points.
+
+    The nonlinear counterpart of :func:`greybox.workflow.definitions`: equation i
+    is an identity when ``f_i(x, u) = x_j`` for one j != i at every point given
+    (to ``rtol`` relative), so a law there would rewrite what a state means.
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem
+        Continuous-time model (a discrete one mixes the rows: none returned).
+    X : array_like, shape (nstates, k)
+        States to check at (e.g. filtered states of the record, in the model's units);
+        they should vary, as the record's do.
+    U : array_like, shape (ninputs, k)
+        Inputs at the same points.
+    rtol : float
+        Relative tolerance of ``f_i = x_j`` (to ``1 + max |x_j|``).
+
+    Returns
+    -------
+    list of str
+        The identities' state names, in state order.
+    """
+    base = _check_nlsys(sys)
+    if base.isdtime(strict=True):
+        return []
+    X = np.atleast_2d(np.asarray(X, dtype=float))
+    U = np.asarray(U, dtype=float).reshape(base.ninputs, -1)
+    if X.shape[1] < 2:
+        return []
+    F = np.column_stack([np.asarray(base.updfcn(0.0, X[:, k], U[:, k], base.params),
+                                    dtype=float).reshape(-1) for k in range(X.shape[1])])
+    out = []
+    for i, name in enumerate(base.state_labels):
+        if not np.all(np.isfinite(F[i])) or np.ptp(F[i]) == 0:
+            continue  # a constant is no definition of a varying state
+        tol = rtol * (1.0 + np.max(np.abs(F[i])))
+        if any(j != i and np.max(np.abs(F[i] - X[j])) <= tol for j in range(X.shape[0])):
+            out.append(name)
+    return out
 
 
 def linearize_at(sys, x_op: ArrayLike, u_op: ArrayLike | None = None) -> ct.StateSpace:

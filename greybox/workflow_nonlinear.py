@@ -127,13 +127,16 @@ from .nonlinear import (
     add_law,
     as_nonlinear,
     discretize_nonlinear,
+    kinematic_identities,
     linear_output_map,
     linearize_at,
     rk4_substeps,
+    rk4_substeps_for,
     simulate_nonlinear,
     with_unknown_inputs,
 )
 from .progress import ProgressClock
+from .recommend import recommend
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance, residual_colour, undetermined
 from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
@@ -1401,7 +1404,9 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         likelihood ratio on the output error (see the module's stage 3).
     substeps : int, optional
         RK4 sub-steps per sample for a continuous model (default from
-        :func:`greybox.rk4_substeps` at the operating point).
+        :func:`greybox.rk4_substeps` at the operating point, doubled by
+        :func:`greybox.rk4_substeps_for` until the estimation record's simulation
+        moves by less than a tenth of each output's noise deviation).
     refit_parameters : bool
         Refit the parameters the model declares (``control.nlsys(...,
         params={...})``, finite real scalars read by its update function)
@@ -1443,7 +1448,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         return s.no_error(r)
     rep = s.parameters_alone(r)
     if rep is not None:  # the refitted parameters alone leave white innovations
-        return rep
+        return s.recommended(r, rep)
     s.trace_channels(r)
     pick = s.choose()
     if pick is None:
@@ -1456,7 +1461,7 @@ def close_the_loop_nonlinear(sys: ct.NonlinearIOSystem, y, u, y_val, u_val, *, Q
         ba = s.validate(r, v)
     except ModelError as e:  # the updated model's predictor diverged on the validation record
         return s.diverged(r, v, e)
-    return s.report(r, v, ba)
+    return s.recommended(r, s.report(r, v, ba))
 
 
 # --------------------------------------------------------------------------- the stages
@@ -1648,7 +1653,12 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, alpha, l
     x_guess, P0 = _prior(C, D, y, u)
     u_mean = u.mean(axis=1) if m else np.zeros(0)
     x_mean_y = np.linalg.lstsq(C, y.mean(axis=1) - D @ u_mean, rcond=None)[0]
-    nsub = (substeps or rk4_substeps(base, dt, x_op=x_mean_y, u_op=u_mean)) if cont else 0
+    nsub = 0
+    if cont:  # the local count, doubled until the record's simulation no longer moves by
+        # a tenth of the noise (then discretization is no detectable model error)
+        nsub = substeps or rk4_substeps_for(
+            base, dt, u, x0=x_guess, tol=0.1 * np.sqrt(np.diag(R)),
+            start=rk4_substeps(base, dt, x_op=x_mean_y, u_op=u_mean))
     disc = _Discretize(continuous=cont, dt=dt, substeps=nsub)
     settings = _Settings(alpha=alpha, lags=lags, parsimony=parsimony, min_se_drop=min_se_drop,
                          bic_factor=bic_factor, nonlinear=nonlinear,
@@ -1724,6 +1734,12 @@ class _NonlinearPass:
                           nominal=r.lin_nom, model=model,
                           table=table or {"nominal": r.val_nom, "updated": r.val_nom},
                           trace=tr, notes=tuple(self.notes), nonlinear=nl)
+
+    def recommended(self, r: _Residual, rep: LoopReport) -> LoopReport:
+        """6. The update as it is when it predicts the validation record better; else the
+        nominal model kept, "not recommended" first (:func:`greybox.recommend.recommend`)."""
+        out = recommend(rep, self.P.Q, self.P.R)
+        return out if out is rep else replace(out, nonlinear=self._nominal_update(r))
 
     def no_error(self, r: _Residual) -> LoopReport:
         """The report when the nominal UKF's innovations are white: nothing to find."""
@@ -1837,6 +1853,14 @@ class _NonlinearPass:
         self.notes.append("nonlinear nominal: candidate channels from its linearization at "
                           "the operating point; static laws only (dynamic subsystem laws are "
                           "linear and not offered)")
+        if self.S.channels is None and P.cont:  # a definition is never a candidate channel
+            k = np.unique(np.linspace(SKIP, P.y.shape[1] - 1, 64).astype(int))
+            defs = set(kinematic_identities(P.base, self.kf.x_filt[:, k], P.u[:, k]))
+            if defs:
+                chans = [c for c in chans if not set(c.equations) & defs]
+                self.notes.append("kinematic identities, definitions rather than candidate "
+                                  "channels: " + ", ".join(
+                                      f"eq({d})" for d in P.base.state_labels if d in defs))
         for kc, ch in enumerate(chans):
             P.tick("trace candidate channels", kc, len(chans))
             self.trace_channel(r, ch, kc, len(chans))
