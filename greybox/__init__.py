@@ -66,6 +66,7 @@ from .metrics import (  # noqa: E402
     cross_correlation,
     relative_error,
     whiteness_test,
+    innovation_test,
 )
 from .ident import N4SIDResult, n4sid, pbsid  # noqa: E402
 from .ident.oe import OEResult, output_error  # noqa: E402
@@ -111,6 +112,7 @@ __all__ += [
     "cross_correlation",
     "relative_error",
     "whiteness_test",
+    "innovation_test",
     "N4SIDResult",
     "n4sid",
     "pbsid",

@@ -24,6 +24,7 @@ __all__ = [
     "correlation_band",
     "WhitenessTest",
     "whiteness_test",
+    "innovation_test",
     "effective_samples",
     "independent_samples",
     "oe_criterion",
@@ -194,7 +195,11 @@ class WhitenessTest:
     alpha : float
         Significance level used for ``white``.
     white : ndarray of bool, shape (nsignals,)
-        ``pvalue >= alpha``.
+        ``pvalue >= alpha``; with ``mean_pvalue`` set, the joint test of the
+        autocorrelations and the mean at ``alpha`` (:func:`innovation_test`).
+    mean_pvalue : ndarray, shape (nsignals,), optional
+        Two-sided p-value of the residual's mean alone being zero
+        (:func:`innovation_test`); None for the Ljung-Box test alone.
     """
 
     statistic: NDArray[np.float64]
@@ -202,6 +207,7 @@ class WhitenessTest:
     lags: int
     alpha: float
     white: NDArray[np.bool_]
+    mean_pvalue: NDArray[np.float64] | None = None
 
     @property
     def all_white(self) -> bool:
@@ -246,6 +252,48 @@ def whiteness_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> Whit
     stat = N * (N + 2) * np.sum(r**2 / (N - ell), axis=1)
     pv = chi2.sf(stat, lags)
     return WhitenessTest(statistic=stat, pvalue=pv, lags=lags, alpha=alpha, white=pv >= alpha)
+
+
+def innovation_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> WhitenessTest:
+    """Test of the hypothesis "the residual is zero-mean white noise", per channel.
+
+    A Kalman filter's one-step innovations under the right model are zero-mean
+    and white. The Ljung-Box test (:func:`whiteness_test`) measures
+    correlation around the residual's own mean, so it is blind to a constant
+    error: a sensor offset of 50 noise deviations passes it. This test adds
+    the mean, ``t = mean / (std / sqrt(n_eff))`` with ``n_eff`` the effective
+    samples (:func:`effective_samples`; ~N for a white residual), as one more
+    term of the same statistic: under the hypothesis the mean and the
+    autocorrelations are asymptotically independent, so ``Q + t^2`` is
+    chi-square on ``lags + 1`` degrees of freedom, and a channel is ``white``
+    when that joint p-value is at least ``alpha``: one test at one level, not
+    two tests at ``alpha`` each.
+
+    Parameters
+    ----------
+    e : array_like, shape (nsignals, nsteps)
+        Residual, e.g. one-step prediction errors.
+    lags : int
+        Lags of the Ljung-Box part.
+    alpha : float
+        Significance level of the joint test.
+
+    Returns
+    -------
+    WhitenessTest
+        With ``mean_pvalue`` set; ``statistic`` and ``pvalue`` are Ljung-Box's,
+        ``white`` the joint test's.
+    """
+    lb = whiteness_test(e, lags, alpha=alpha)
+    e = as_signal(e, "e")
+    n = effective_samples(e)
+    sd = e.std(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(sd > 0, e.mean(axis=1) * np.sqrt(n) / np.where(sd > 0, sd, 1.0), 0.0)
+    joint = chi2.sf(lb.statistic + t ** 2, lb.lags + 1)
+    return WhitenessTest(statistic=lb.statistic, pvalue=lb.pvalue, lags=lb.lags,
+                         alpha=lb.alpha, white=joint >= lb.alpha,
+                         mean_pvalue=2.0 * norm.sf(np.abs(t)))
 
 
 def effective_samples(e: ArrayLike) -> NDArray[np.float64]:

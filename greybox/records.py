@@ -219,13 +219,15 @@ class LoopReport:
     Attributes
     ----------
     model_error_detected : bool
-        The nominal residual is not white on some output (p < alpha).
+        The nominal residual is not zero-mean white noise on some output
+        (Ljung-Box or the mean's t-test, p < alpha).
     updated : bool
         The model was changed (all gates passed).
     message : str
         One-sentence conclusion.
     residual : WhitenessTest
-        Ljung-Box test of the nominal one-step residuals, estimation data.
+        Ljung-Box test of the nominal one-step residuals, estimation data, with
+        the t-test of their mean (``mean_pvalue``, :func:`greybox.innovation_test`).
     effect : Effect
     channel : Channel or None
     candidates : tuple of CandidateScore
@@ -256,7 +258,9 @@ class LoopReport:
         or a nonlinear law): the ``NonlinearIOSystem`` that the "updated"
         row simulates and its linearization at a stated operating point. The
         row of a nonlinear law starts from
-        ``estimate_initial_state(model.sys, y_val, u_val, slow_modes=False)``.
+        ``estimate_initial_state(model.sys, y_val, u_val, slow_modes=False)``
+        (for an affine law, one with a constant term, with ``free=`` the
+        law's own response from x0 = 0).
     recommended : bool
         False when the update the trace found predicts the validation data
         worse than the nominal model (:func:`greybox.recommend.recommend`):
@@ -312,7 +316,9 @@ class LoopReport:
             "message": self.message,
             "residual": {"pvalue": self.residual.pvalue.tolist(),
                          "statistic": self.residual.statistic.tolist(),
-                         "lags": self.residual.lags, "alpha": self.residual.alpha},
+                         "lags": self.residual.lags, "alpha": self.residual.alpha,
+                         **({} if self.residual.mean_pvalue is None else
+                            {"mean_pvalue": self.residual.mean_pvalue.tolist()})},
             "channels": list(self.effect.equations),
             "channel": self.channel.name if self.channel is not None else None,
             "effect": self.effect.as_dict(),

@@ -205,8 +205,8 @@ def simulate_output(sys: ct.StateSpace, u: NDArray, x0: NDArray | None = None) -
 
 
 def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
-                           nsamples: int | None = None,
-                           slow_modes: bool = True) -> NDArray[np.float64]:
+                           nsamples: int | None = None, slow_modes: bool = True,
+                           free=None) -> NDArray[np.float64]:
     """Least-squares initial state from the first samples (PAPER_NOTES §9.7).
 
     Solves ``y[k] - y0[k] = C A^k x0`` for k < nsamples, with ``y0`` the
@@ -231,6 +231,11 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
         Lengthen the default window to cover the slowest stable mode (above).
         False for the linear part of a model with a nonlinear law: over a long
         window the law's nonlinearity, which ``sys`` lacks, biases x0.
+    free : callable, optional
+        ``free(nw) -> ndarray (noutputs, nw)``: the model's response from
+        x0 = 0 to the first nw inputs, when the model is more than ``sys``
+        (``sys`` plus a law: an offset or a nonlinearity that ``sys`` lacks
+        would otherwise be read as initial state). Default: ``sys``'s own.
 
     Returns
     -------
@@ -251,7 +256,9 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
     if np.max(mags) > 1.0 + 1e-6 and Nw > 0:
         # an unstable model: keep the window short enough not to overflow
         Nw = min(Nw, max(n, int(300 / np.log(np.max(mags)))))
-    y0 = simulate_output(sys, u[:, :Nw])
+    y0 = simulate_output(sys, u[:, :Nw]) if free is None else np.asarray(free(Nw), dtype=float)
+    if not np.all(np.isfinite(y0)):
+        y0 = simulate_output(sys, u[:, :Nw])
     O = np.empty((Nw * C.shape[0], n))
     Ak = np.eye(n)
     for k in range(Nw):

@@ -32,6 +32,7 @@ import control as ct
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.linalg import block_diag
+from scipy.stats import chi2
 
 from ._blas import single_thread_blas
 from ._lti import lti_states
@@ -54,6 +55,8 @@ from .metrics import (
     correlation_band,
     criterion_scores,
     cross_correlation,
+    effective_samples,
+    innovation_test,
     output_fit,
     relative_error,
     whiteness_test,
@@ -70,14 +73,15 @@ from .trace import (
     trace_channel,
 )
 from .trace.channel_trace import law_estimate_of, whole_inputs
-from .trace.laws import BREAK_KINDS
+from .trace.laws import BREAK_KINDS, LINEAR_KINDS
 from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
                              fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_input_lag2, fit_shared_order2
 from .trace.joint import joint_effect, refine_jointly
-from .trace.channels import force_channel, input_channel, relative_coordinates
+from .trace.channels import (force_channel, input_channel, output_channel,
+                             relative_coordinates)
 from .trace.laws import direction, sensor_states
-from .trace.screen import screen_equations
+from .trace.screen import screen_equations, screen_sensors
 from .update import Subsystem, UpdatedModel, delta_update
 from .workflow_nonlinear import close_the_loop_nonlinear, nonlinear_update_of_linear
 from .validate import (
@@ -171,7 +175,7 @@ def _se(y, ysim, skip):
 def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, skip, name):
     """ModelValidation of the nominal model plus a nonlinear static law (own simulation)."""
     res, law = tr.filter_result, tr.static
-    x0 = estimate_initial_state(upd.sys, y, u, slow_modes=False)  # a linearized model
+    x0 = _law_x0(upd.sys, res.sys, res.G, law, y, u)
     # the linearized StateSpace's eigenvalues say nothing about the nonlinear law's
     # simulation (a friction law's linear surrogate may be unstable): simulate it
     se_reason = ""
@@ -533,7 +537,9 @@ class Residual:
     ``white`` the Ljung-Box test of its one-step innovations (from sample ``k0``),
     ``x0n`` its initial state, ``se_nom`` its SE (PE when ``unstable``) on the
     search window [%], ``val_nom`` its validation row, ``crit`` the stated
-    criterion, ``t_pass`` when the pass started (:func:`time.monotonic`).
+    criterion, ``t_pass`` when the pass started (:func:`time.monotonic`),
+    ``sensors`` the outputs whose constant offset alone explains the
+    innovations' mean (:func:`_offset_sensors`).
     """
 
     white: WhitenessTest
@@ -546,6 +552,7 @@ class Residual:
     nominal_model: UpdatedModel = field(repr=False)
     t_pass: float
     fit: OutputFit | None = field(default=None, repr=False)
+    sensors: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -583,9 +590,10 @@ class _Pass:
         if r.white.all_white:
             self.gate["passed"] = {"whiteness": False}
             return self._no_update(r, "no significant model error: the nominal one-step "
-                                      f"residuals are white on every output (Ljung-Box, "
-                                      f"{self.S.lags} lags, all p >= {self.S.alpha:g})", False)
-        self.trace_channels()
+                                      f"residuals are white and zero-mean on every output "
+                                      f"(Ljung-Box, {self.S.lags} lags, and the mean's t-test; "
+                                      f"all p >= {self.S.alpha:g})", False)
+        self.trace_channels(r)
         self.forces()
         self.higher_orders()
         self.sparse_laws(r)
@@ -645,7 +653,9 @@ class _Pass:
         P.tick("residual of the nominal model", 0, 1)
         kf = kalman_filter(nominal, P.y, P.u, Q=self.Q, R=P.R)
         k0 = kf.settled(skip)
-        white = whiteness_test(kf.innovations[:, k0:], S.lags, alpha=S.alpha)
+        white = innovation_test(kf.innovations[:, k0:], S.lags, alpha=S.alpha)
+        sensors = _offset_sensors(nominal, kf, k0, white, S.alpha, self.notes) \
+            if S.channels is None else ()
         x0n = estimate_initial_state(nominal, P.y, P.u)
         se_nom = _se(P.ys, kf.y_pred[:, :P.ys.shape[1]], skip) if self.unstable else \
             _se(P.ys, simulate_output(nominal, P.us, x0n), skip)  # on the search window
@@ -654,8 +664,8 @@ class _Pass:
                                      kind="nominal")
         val_nom = validate_model(nominal, P.y_val, P.u_val, Q=self.Q, R=P.R, x0="estimate",
                                  name="nominal", lags=S.lags, alpha=S.alpha, skip=skip)
-        self.gate.update({"whiteness_pvalue": white.pvalue, "alpha": S.alpha,
-                          "se_estimation_nominal": se_nom,
+        self.gate.update({"whiteness_pvalue": white.pvalue, "mean_pvalue": white.mean_pvalue,
+                          "alpha": S.alpha, "se_estimation_nominal": se_nom,
                           "measure": "PE" if self.unstable else "SE"})
         if self.unstable:
             self.gate["measure_reason"] = f"nominal: {self.unstable}"
@@ -663,7 +673,7 @@ class _Pass:
         return Residual(white=white, k0=k0, x0n=x0n, se_nom=se_nom, val_nom=val_nom,
                         unstable=self.unstable, crit=crit, nominal_model=nominal_model,
                         t_pass=t_pass, fit=None if white.all_white else
-                        self.fit_error(nominal, self.Q, P.R))
+                        self.fit_error(nominal, self.Q, P.R), sensors=sensors)
 
     # ------------------------------------------------------------------ 2. candidates
     def score(self, tr) -> None:
@@ -680,7 +690,7 @@ class _Pass:
             sm = tr.static_model
             if tr.static.nonlinear:
                 res = tr.filter_result
-                x0 = estimate_initial_state(sm.sys, ys, us, slow_modes=False)
+                x0 = _law_x0(sm.sys, res.sys, res.G, tr.static, ys, us)
                 fit = self.fit_error(sm.sys, sm.Q, sm.R,
                                      ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us,
                                                                 x0),
@@ -701,7 +711,7 @@ class _Pass:
             self.cands.append(CandidateScore(ch.name, "dynamic", sub.order, fit.se, npar, "ok"))
             self.scored.append(Candidate(fit.se, npar, tr, "dynamic", fit=fit))
 
-    def trace_channels(self) -> None:
+    def trace_channels(self, r: Residual) -> None:
         """2. Trace every candidate channel: static laws and order-1 dynamics."""
         P, S = self.P, self.S
         first_max = min(S.max_order, 1)
@@ -711,6 +721,9 @@ class _Pass:
             # unstructured subsystems (driven by all n + m signals) cost O(n) each and read
             # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
             first_max = 0
+        have = {c.output for c in self.chans if c.kind == "output"}
+        self.chans = tuple(self.chans) + tuple(output_channel(self.sys, o) for o in r.sensors
+                                               if o not in have)
         defs = definitions(P.sys) if S.channels is None else []
         if defs:
             self.notes.append("kinematic identities, definitions rather than candidate "
@@ -1347,7 +1360,7 @@ def _leaves_white(sm, y, u, Q, R, k0, lags, alpha) -> bool:
     if sm.sys.nstates > n:
         Q = block_diag(Q, np.asarray(sm.Q)[n:, n:])
     kf = kalman_filter(sm.sys, y, u, Q=Q, R=R)
-    return whiteness_test(kf.innovations[:, k0:], lags, alpha=alpha).all_white
+    return innovation_test(kf.innovations[:, k0:], lags, alpha=alpha).all_white
 
 
 def _light(tr: ChannelTrace) -> ChannelTrace:
@@ -1380,6 +1393,21 @@ def _whole_record(tr: ChannelTrace, y, u, Q, R) -> ChannelTrace:
     filt = feedthrough_uikf if tr.channel.kind == "output" else uikf  # as trace_channel ran
     return replace(tr, filter_result=filt(tr.model, y, u, unknown=list(tr.channel.labels),
                                           Q=Q, R=R))
+
+
+def _law_x0(linear: ct.StateSpace, model: ct.StateSpace, G, law: StaticLaw, y, u):
+    """Initial state of a model with a static law: least squares on the first samples with
+    the directions of ``linear`` (its short window: over a long one the law's nonlinearity
+    biases x0). For an affine law (linear terms and a constant: an offset that the linear
+    part lacks, which would otherwise be read as initial state) against the law's own free
+    response from x0 = 0, exact then; else against the linear part's (a nonlinear law's
+    free response from zero says little about its response near x0)."""
+    affine = all(law.spec[j][1] in LINEAR_KINDS + ("const",)
+                 for j in np.flatnonzero(np.any(law.coef != 0, axis=0)))
+    if not affine:
+        return estimate_initial_state(linear, y, u, slow_modes=False)
+    return estimate_initial_state(linear, y, u, slow_modes=False, free=lambda k: _simulate_law(
+        model, G, law, u[:, :k], np.zeros(model.nstates)))
 
 
 def _simulate_law(model: ct.StateSpace, G, law: StaticLaw, u, x0):
@@ -1531,6 +1559,29 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
     if pairs and set(pairs[0].trace.channel.equations) != group and \
             not forced(set(pairs[0].trace.channel.equations)):
         yield pairs[0].trace
+
+
+def _offset_sensors(nominal: ct.StateSpace, kf, k0: int, white: WhitenessTest, alpha: float,
+                    notes: list) -> tuple[str, ...]:
+    """The sensors whose constant offset alone explains the innovations' mean, when the
+    mean's t-test rejects (:func:`greybox.trace.screen.screen_sensors`): each one's
+    weighted misfit within the chi-square quantile 1 - alpha on noutputs - 1 degrees of
+    freedom. Offered as candidate channels (above ``_AUTO_OUTPUTS`` outputs there are
+    none by default); the criterion still chooses."""
+    if white.mean_pvalue is None or np.all(white.mean_pvalue >= alpha) or \
+            nominal.noutputs < 2:
+        return ()
+    e = kf.innovations[:, k0:]
+    scr = screen_sensors(nominal, kf.K, e, effective_samples(e))
+    limit = chi2.isf(alpha, nominal.noutputs - 1)
+    out = tuple(o for o, m in zip(scr.outputs, scr.misfit) if m <= limit)
+    if out:
+        notes.append("sensor screen (the innovations' mean against one constant offset per "
+                     "sensor): " + ", ".join(f"output({o}) offset {b:.3g}, misfit {m:.3g}"
+                                             for o, b, m in zip(scr.outputs, scr.offset,
+                                                                scr.misfit) if o in out)
+                     + f" (chi-square limit {limit:.3g})")
+    return out
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:

@@ -119,6 +119,7 @@ from .metrics import (
     correlation_band,
     criterion_scores,
     cross_correlation,
+    innovation_test,
     output_fit,
     relative_error,
     whiteness_test,
@@ -1746,8 +1747,9 @@ class _NonlinearPass:
         S = self.S
         self.gate["passed"] = {"whiteness": False}
         return self._report(r, "no significant model error: the nominal UKF's one-step "
-                               f"innovations are white on every output (Ljung-Box, {S.lags} "
-                               f"lags, all p >= {S.alpha:g}); model unchanged", False)
+                               f"innovations are white and zero-mean on every output "
+                               f"(Ljung-Box, {S.lags} lags, and the mean's t-test; all p >= "
+                               f"{S.alpha:g}); model unchanged", False)
 
     def unexplained(self, r: _Residual) -> LoopReport:
         """The report when no candidate channel has a finite estimation SE."""
@@ -1765,14 +1767,14 @@ class _NonlinearPass:
                                      x0=_prior(P.C, P.D, P.y_val, P.u_val)[0], P0=P.P0,
                                      name="nominal", lags=S.lags, alpha=S.alpha, order=n)
         kf = ukf(P.nominal_d, P.y, P.u, Q=P.Q, R=P.R, x0=P.x_guess, P0=P.P0)
-        white = whiteness_test(kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
+        white = innovation_test(kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
         se_nom = _se_from(P.nominal_d, P.u, kf.x_filt[:, SKIP], P.y, P.C, P.D)
         x_op = kf.x_filt[:, SKIP:].mean(axis=1)
         lin_nom = linearize_at(P.nominal_d, x_op, P.u_mean)
         lin_cont = linearize_at(P.base, x_op, P.u_mean) if P.cont else lin_nom
         self.kf = kf
-        self.gate.update({"whiteness_pvalue": white.pvalue, "alpha": S.alpha,
-                          "se_estimation_nominal": se_nom, "measure": "SE"})
+        self.gate.update({"whiteness_pvalue": white.pvalue, "mean_pvalue": white.mean_pvalue,
+                          "alpha": S.alpha, "se_estimation_nominal": se_nom, "measure": "SE"})
         P.tick("residual of the nominal model", 1, 1)
         return _Residual(white=white, se_nom=se_nom, val_nom=val_nom, x_op=x_op,
                          lin_nom=lin_nom, lin_cont=lin_cont,
@@ -1797,7 +1799,7 @@ class _NonlinearPass:
                               f"nominal")
             self.alone, self.base = alone, alone.model
             self.kf = ukf(P.disc(self.base), P.y, P.u, Q=P.Q, R=P.R, x0=P.x_guess, P0=P.P0)
-            white_p = whiteness_test(self.kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
+            white_p = innovation_test(self.kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
             if white_p.all_white:
                 return self.parameters_only(r, self.gate)
         P.tick("nominal parameters refitted alone", 1, 1)

@@ -154,9 +154,10 @@ def _law_estimate(model, labels, y, u, Q, R, res, smooth, notes, continuous=None
     align = np.einsum("icc->ci", w)
     kw = dict(unknown=labels, Q=Q, R=R, relative_degree=r)
     try:
-        est = smooth_uikf(model, y, u, **kw) if smooth else \
-            (res if r == 1 else delayed_uikf(model, y, u, **kw))
-    except (GreyboxError, np.linalg.LinAlgError) as e:
+        with np.errstate(over="raise"):  # an overflowing backward pass is no estimate
+            est = smooth_uikf(model, y, u, **kw) if smooth else \
+                (res if r == 1 else delayed_uikf(model, y, u, **kw))
+    except (GreyboxError, np.linalg.LinAlgError, FloatingPointError) as e:
         notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
         est = res if r == 1 else delayed_uikf(model, y, u, **kw)
     return est, r, align
