@@ -1563,25 +1563,30 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
 
 def _offset_sensors(nominal: ct.StateSpace, kf, k0: int, white: WhitenessTest, alpha: float,
                     notes: list) -> tuple[str, ...]:
-    """The sensors whose constant offset alone explains the innovations' mean, when the
-    mean's t-test rejects (:func:`greybox.trace.screen.screen_sensors`): each one's
-    weighted misfit within the chi-square quantile 1 - alpha on noutputs - 1 degrees of
-    freedom. Offered as candidate channels (above ``_AUTO_OUTPUTS`` outputs there are
-    none by default); the criterion still chooses."""
-    if white.mean_pvalue is None or np.all(white.mean_pvalue >= alpha) or \
-            nominal.noutputs < 2:
+    """The sensors whose constant offset explains the innovations' mean, offered as
+    candidate channels (above ``_AUTO_OUTPUTS`` outputs there are none by default); the
+    criterion still chooses.
+
+    :func:`greybox.trace.screen.screen_sensors` fits one offset per sensor to the mean
+    (its variance from the effective samples: a strongly coloured residual's mean says
+    little). Sensor j is offered when its offset is significant (the likelihood ratio
+    ``null - misfit_j`` beyond the chi-square quantile 1 - alpha on 1 degree of freedom)
+    and explains the mean alone (``misfit_j`` within the quantile on noutputs - 1).
+    Only when the residual test rejected."""
+    if white.all_white or nominal.noutputs < 2:
         return ()
     e = kf.innovations[:, k0:]
     scr = screen_sensors(nominal, kf.K, e, effective_samples(e))
-    limit = chi2.isf(alpha, nominal.noutputs - 1)
-    out = tuple(o for o, m in zip(scr.outputs, scr.misfit) if m <= limit)
-    if out:
+    limit, one = chi2.isf(alpha, nominal.noutputs - 1), chi2.isf(alpha, 1)
+    keep = [(o, b, m) for o, b, m in zip(scr.outputs, scr.offset, scr.misfit)
+            if m <= limit and scr.null - m >= one]
+    if keep:
         notes.append("sensor screen (the innovations' mean against one constant offset per "
-                     "sensor): " + ", ".join(f"output({o}) offset {b:.3g}, misfit {m:.3g}"
-                                             for o, b, m in zip(scr.outputs, scr.offset,
-                                                                scr.misfit) if o in out)
-                     + f" (chi-square limit {limit:.3g})")
-    return out
+                     "sensor): " + ", ".join(f"output({o}) offset {b:.3g}, evidence "
+                                             f"{scr.null - m:.3g}, misfit {m:.3g}"
+                                             for o, b, m in keep)
+                     + f" (limits {one:.3g} and {limit:.3g})")
+    return tuple(o for o, _, _ in keep)
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:

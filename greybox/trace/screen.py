@@ -171,11 +171,16 @@ class SensorScreen:
         freedom when the offset is the whole error).
     offset : ndarray, shape (len(outputs),)
         Each one's fitted offset, in the output's units.
+    null : float
+        The weighted misfit without any offset (chi-square on ``noutputs``
+        degrees of freedom when the mean is zero): ``null - misfit[j]`` is the
+        likelihood-ratio evidence of sensor j's offset (chi-square on 1).
     """
 
     outputs: tuple[str, ...]
     misfit: NDArray[np.float64]
     offset: NDArray[np.float64]
+    null: float = 0.0
 
 
 def screen_sensors(sys_d: ct.StateSpace, K: NDArray, e: NDArray, n_eff: NDArray
@@ -224,4 +229,4 @@ def screen_sensors(sys_d: ct.StateSpace, K: NDArray, e: NDArray, n_eff: NDArray
     order = np.argsort(mis, kind="stable")
     labels = list(sys_d.output_labels)
     return SensorScreen(outputs=tuple(labels[j] for j in order), misfit=mis[order],
-                        offset=b[order])
+                        offset=b[order], null=float(np.sum(w * m ** 2)))
