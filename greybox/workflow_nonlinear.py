@@ -1905,6 +1905,12 @@ class _NonlinearPass:
         # trace does
         r1 = float(np.min(autocorrelation(d, 1)[:, 1])) if rd == 1 and d.shape[1] > 2 else 0.0
         alt = r1 < _ALTERNATING  # then the mean of two samples, terms weighted alike
+        if rd == 1 and not alt and P.disc.continuous:
+            # d^[j] is held over sample j, so it estimates the continuous law's mean over
+            # the sample: its terms at the sample's midpoint state, not at its start (at
+            # the start, a law in v picks up c dt / 2 times the acceleration, i.e. every
+            # term of the nominal's own equation: -0.445 v came with p, p^3 and F at 0.6 %)
+            x = 0.5 * (x + res.x_filt[:, SKIP + 1:SKIP + 1 + x.shape[1]])
         return _DHat(model=model_cd, result=res, r=rd, align=align, d=d, x=x, u=uw,
                      d_fit=0.5 * (d[:, 1:] + d[:, :-1]) if alt else d,
                      weights=np.full((d.shape[0], 2), 0.5) if alt else

@@ -75,3 +75,22 @@ def test_a_correct_nonlinear_model_is_not_updated():
     rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt)
     assert not rep.updated, rep.message
     assert "eq(p)" not in {c.channel for c in rep.candidates}
+
+
+def test_a_viscous_term_is_named_alone_not_with_the_nominal_s_own_terms():
+    """d^ is held over each sample, so it estimates the continuous law's mean over the
+    sample. Fitted on the terms at the sample's start, a law -c v picked up c dt / 2 times
+    the acceleration, i.e. every term of the nominal's own equation: a zoo draw (Duffing,
+    omitted damping -0.445 v, dt = 0.025 s) came out as -0.441 v + 3.21 p^3 + 0.084 p -
+    0.005 F (each 0.6 % = c dt / 2 of the nominal's term), SE 2.35 % against the true
+    model's 0.171 %. On the midpoint state: the one true term."""
+    d = zoo.draw_class("nonlinear_model", 1641989470, 0, n_est=4000)
+    rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt)
+    s = zoo.score(d, rep)
+    assert rep.updated and s.right_channel and s.right_terms, (s.why, s.found)
+    # the coefficient within 2 % (its interval is ~0.05 %; the zoo asks 10 %)
+    law = rep.effect.law
+    (j,) = np.flatnonzero(law.coef[0])
+    np.testing.assert_allclose(law.coef[0, j], d.truth.effects[0].terms[0].coefficient,
+                               rtol=0.02)
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
