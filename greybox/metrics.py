@@ -200,6 +200,9 @@ class WhitenessTest:
     mean_pvalue : ndarray, shape (nsignals,), optional
         Two-sided p-value of the residual's mean alone being zero
         (:func:`innovation_test`); None for the Ljung-Box test alone.
+    n_eff : ndarray, shape (nsignals,), optional
+        The effective samples that test used (:func:`effective_samples`), kept
+        for the callers that weigh the same residual's mean again.
     """
 
     statistic: NDArray[np.float64]
@@ -208,6 +211,7 @@ class WhitenessTest:
     alpha: float
     white: NDArray[np.bool_]
     mean_pvalue: NDArray[np.float64] | None = None
+    n_eff: NDArray[np.float64] | None = None
 
     @property
     def all_white(self) -> bool:
@@ -293,7 +297,7 @@ def innovation_test(e: ArrayLike, lags: int = 20, *, alpha: float = 1e-3) -> Whi
     joint = chi2.sf(lb.statistic + t ** 2, lb.lags + 1)
     return WhitenessTest(statistic=lb.statistic, pvalue=lb.pvalue, lags=lb.lags,
                          alpha=lb.alpha, white=joint >= lb.alpha,
-                         mean_pvalue=2.0 * norm.sf(np.abs(t)))
+                         mean_pvalue=2.0 * norm.sf(np.abs(t)), n_eff=n)
 
 
 def effective_samples(e: ArrayLike) -> NDArray[np.float64]:

@@ -256,8 +256,8 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
     if np.max(mags) > 1.0 + 1e-6 and Nw > 0:
         # an unstable model: keep the window short enough not to overflow
         Nw = min(Nw, max(n, int(300 / np.log(np.max(mags)))))
-    y0 = simulate_output(sys, u[:, :Nw]) if free is None else np.asarray(free(Nw), dtype=float)
-    if not np.all(np.isfinite(y0)):
+    y0 = None if free is None else np.asarray(free(Nw), dtype=float)
+    if y0 is None or not np.all(np.isfinite(y0)):  # sys's own free response
         y0 = simulate_output(sys, u[:, :Nw])
     O = np.empty((Nw * C.shape[0], n))
     Ak = np.eye(n)

@@ -1576,7 +1576,8 @@ def _offset_sensors(nominal: ct.StateSpace, kf, k0: int, white: WhitenessTest, a
     if white.all_white or nominal.noutputs < 2:
         return ()
     e = kf.innovations[:, k0:]
-    scr = screen_sensors(nominal, kf.K, e, effective_samples(e))
+    scr = screen_sensors(nominal, kf.K, e,
+                         white.n_eff if white.n_eff is not None else effective_samples(e))
     limit, one = chi2.isf(alpha, nominal.noutputs - 1), chi2.isf(alpha, 1)
     keep = [(o, b, m) for o, b, m in zip(scr.outputs, scr.offset, scr.misfit)
             if m <= limit and scr.null - m >= one]
