@@ -143,3 +143,14 @@ def test_joint_pruning_keeps_a_term_whose_drop_collapses_the_fit(collapse):
     np.testing.assert_allclose(sol.x[0], 2.0, rtol=1e-12)  # a linear fit: exact
     # never the collapsed fit: the same residual as the full fit (rounding only)
     np.testing.assert_allclose(float(np.sum(sol.fun ** 2)), rss_full, rtol=1e-9)
+
+
+def test_terms_that_overflow_are_a_failed_channel_not_a_traceback():
+    """A diverged estimator's states (finite, ~1e200) make the law's Gram matrix overflow:
+    an IdentificationError (a failed candidate in close_the_loop), not scipy's ValueError
+    (a zoo draw, state_sensor seed 649577221 draw 1, ended in a traceback)."""
+    from greybox.exceptions import IdentificationError
+    from greybox.trace.laws import _ls_fit
+    rng = np.random.default_rng(0)
+    with pytest.raises(IdentificationError, match="overflow"):
+        _ls_fit(1e200 * rng.normal(size=(2, 100)), rng.normal(size=100))

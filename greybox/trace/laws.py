@@ -13,7 +13,7 @@ from scipy.linalg import lstsq, solve_toeplitz
 from scipy.signal import lfilter
 
 from .._blas import single_thread_blas
-from ..exceptions import ModelError
+from ..exceptions import IdentificationError, ModelError
 from ..filters import FilterResult
 from ..ident.regression import SparseLaw, forward_selection, forward_selection_gram
 from ..update import Subsystem, psd_part
@@ -482,12 +482,19 @@ def _ls_fit(terms: NDArray, d: NDArray) -> NDArray[np.float64]:
     For the whitening filter's residual only: the Gram matrix of the
     RMS-scaled terms (one BLAS product, about 4x faster than an SVD of the
     K x p matrix at p ~ 200, K = 1e5) is solved by SVD, so collinear terms
-    (x and x^3 of a small state) still give a minimum-norm fit.
+    (x and x^3 of a small state) still give a minimum-norm fit. Raises
+    IdentificationError when the products overflow (the channel's estimator
+    diverged): the caller reports the channel as failed.
     """
     sc = np.sqrt(np.einsum("ij,ij->i", terms, terms))  # no K x p temporaries
     sc[sc == 0] = 1.0  # a term that is zero throughout (an input at rest over the window)
-    gram = (terms @ terms.T) / np.outer(sc, sc)
-    th = lstsq(gram, (terms @ d) / sc, cond=1e-12, lapack_driver="gelsd")[0]
+    with np.errstate(over="ignore", invalid="ignore"):
+        gram = (terms @ terms.T) / np.outer(sc, sc)
+        rhs = (terms @ d) / sc
+    if not (np.all(np.isfinite(gram)) and np.all(np.isfinite(rhs))):
+        raise IdentificationError("the law's terms overflow on this channel's estimates (its "
+                                  "unknown-input filter or smoother diverged): no law fitted")
+    th = lstsq(gram, rhs, cond=1e-12, lapack_driver="gelsd")[0]
     return (th / sc) @ terms
 
 
@@ -521,6 +528,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     is then refitted with the coefficients (:func:`_refine_break`; it counts as
     a parameter). ``prebuilt``:
     ``(terms, spec, eps)`` of other candidates (:func:`output_terms`).
+
     """
     if prebuilt is None:
         terms, spec, eps = law_terms(x, u, sys.state_labels, sys.input_labels,
