@@ -33,13 +33,12 @@ from scipy.optimize import least_squares
 from .exceptions import GreyboxError, ModelError
 from .metrics import relative_error
 from .nonlinear import add_law, simulate_nonlinear
+from .terms import HINGE_KINDS, term_kind
 from .trace.intervals import hac_covariance
-from .trace.laws import hinge_name
 
 __all__ = ["ParameterChange", "JointRefit", "free_parameters", "with_parameters",
            "law_coordinates", "refit_jointly"]
 
-HINGE_KINDS = ("x_hi", "x_lo")
 _BIG = 1e3  # residual of a diverged simulation, per sample (scaled units)
 
 
@@ -213,9 +212,7 @@ def law_coordinates(law) -> tuple[NDArray, Callable, list, list]:
         coef[rows, cols] = theta[:nc]
         spec = list(law.spec)
         for j, level in zip(hinges, theta[nc:]):
-            nm, kind, (i, _) = spec[j]
-            spec[j] = (hinge_name(nm[4:-4].rsplit(" ", 2)[0], kind, float(level)), kind,
-                       (i, float(level)))
+            spec[j] = term_kind(spec[j][1]).at_level(spec[j], level)
         return replace(law, coef=coef, spec=tuple(spec))
 
     theta0 = np.concatenate([law.coef[rows, cols], [law.spec[j][2][1] for j in hinges]])

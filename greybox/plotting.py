@@ -283,20 +283,10 @@ def _law_variable(spec_j, x, u, states, inputs):
     """(values, name) of the variable a law term reads (the state of x, v^3, sign(v), |v|;
     the input of u and of a dead zone or saturation; the relative coordinate of a pair;
     the state of a product x*u); None for a constant."""
+    from .terms import term_kind
+
     _, kind, i = spec_j
-    if kind in ("x", "x^3", "sign", "abs"):
-        return x[i], states[i]
-    if kind == "u":
-        return u[i], inputs[i]
-    if kind in ("u_dz", "u_sat"):
-        return u[i[0]], inputs[i[0]]
-    if kind.startswith("rel"):
-        return x[i[1]] - x[i[0]], f"{states[i[1]]} - {states[i[0]]}"
-    if kind == "x*u":
-        return x[i[0]], states[i[0]]
-    if kind in ("x_hi", "x_lo"):
-        return x[i[0]], states[i[0]]
-    return None
+    return term_kind(kind).variable(i, x, u, states, inputs)
 
 
 def plot_law(report, u, *, bins: int = 20, max_points: int = 3000, ax=None):

@@ -14,6 +14,7 @@ import control as ct
 import numpy as np
 
 from .metrics import WhitenessTest
+from .terms import term_kind
 from .trace import Channel, ChannelTrace
 from .update import UpdatedModel
 
@@ -378,7 +379,7 @@ def explain(effect: Effect, channel=None) -> dict:
                                  "coefficient": _num(st.coef[c, j]),
                                  "ci95": _num(h) if np.isfinite(h) else None,
                                  "determined": bool(h != np.inf)})
-            if kind in ("u_dz", "u_sat"):  # an input's dead zone / saturation: its level
+            if term_kind(kind).level == "input":  # a dead zone / saturation: its level
                 law["terms"][-1].update({
                     "breakpoint": _num(idx[1]),
                     "breakpoint_ci95": _num(idx[2]) if np.isfinite(idx[2]) else None,

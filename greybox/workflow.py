@@ -73,7 +73,7 @@ from .trace import (
     trace_channel,
 )
 from .trace.channel_trace import law_estimate_of, whole_inputs
-from .trace.laws import BREAK_KINDS, LINEAR_KINDS
+from .terms import BREAK_KINDS, term_kind
 from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
                              fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_input_lag2, fit_shared_order2
@@ -1284,9 +1284,9 @@ class _Pass:
                      f"{np.array2string(g, precision=3)})")
         what = f"{v.kind} effect{'' if v.kind == 'static' else f' of order {effect.order}'}"
         if effect.kind == "sensor":
-            what = ("sensor dynamics, a first-order lag (one sensor state)"
-                    if any(sp[1] == "yhat_lag" for sp in effect.law.spec) else
-                    "a drifting sensor (offset and drift rate: two sensor states)")
+            what = ("a drifting sensor (offset and drift rate: two sensor states)"
+                    if any(term_kind(sp[1]).carries_offset for sp in effect.law.spec) else
+                    "sensor dynamics, a first-order lag (one sensor state)")
         msg = f"model error found in {where}: {what}; {describe_before_after(table)}"
         return LoopReport(model_error_detected=True, updated=True, message=msg,
                           residual=r.white, effect=effect, channel=ch,
@@ -1402,7 +1402,7 @@ def _law_x0(linear: ct.StateSpace, model: ct.StateSpace, G, law: StaticLaw, y, u
     part lacks, which would otherwise be read as initial state) against the law's own free
     response from x0 = 0, exact then; else against the linear part's (a nonlinear law's
     free response from zero says little about its response near x0)."""
-    affine = all(law.spec[j][1] in LINEAR_KINDS + ("const",)
+    affine = all(term_kind(law.spec[j][1]).affine
                  for j in np.flatnonzero(np.any(law.coef != 0, axis=0)))
     if not affine:
         return estimate_initial_state(linear, y, u, slow_modes=False)

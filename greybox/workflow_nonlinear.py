@@ -140,8 +140,8 @@ from .progress import ProgressClock
 from .recommend import recommend
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance, residual_colour, undetermined
-from .trace.laws import (LINEAR_KINDS, _eval_terms, _fit_static, _law_line,
-                         hinge_name, linear_part)
+from .terms import HINGE_KINDS, evaluate_terms, linear_part, term_kind
+from .trace.laws import _fit_static, _law_line
 from .trace.oe import _noise_floor, forward_select_oe
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after, undefined_error
@@ -166,8 +166,6 @@ _GRID = 10.0 ** np.arange(-3.0, 0.75, 0.5)
 line search, in units of d^'s spread over the term's RMS."""
 _FINE = 10.0 ** np.linspace(-0.25, 0.25, 21)
 """Factors around the best coarse coefficient tried before a candidate's fit."""
-_FINE_HI = np.linspace(0.5, 0.99, 9)
-_FINE_LO = np.linspace(0.01, 0.5, 9)
 """Quantiles of a state's filtered record where the output-error selection offers upper and
 lower saturation hinges (the d^ law's are at ``greybox.trace.laws.SAT_QUANTILES``)."""
 _LS_WINDOW = 1000
@@ -563,11 +561,11 @@ class _LawColumns:
             return self._laws[0].evaluate(x, u)
         if len(self._groups) == 1:
             spec, _, coef = self._groups[0]
-            return np.einsum("cjk,jk->ck", coef, _eval_terms(spec, self._eps, x, u))
+            return np.einsum("cjk,jk->ck", coef, evaluate_terms(spec, self._eps, x, u))
         out = np.empty((self._groups[0][2].shape[0], x.shape[1]))
         for spec, ks, coef in self._groups:
             out[:, ks] = np.einsum("cjk,jk->ck", coef,
-                                   _eval_terms(spec, self._eps, x[:, ks], u[:, ks]))
+                                   evaluate_terms(spec, self._eps, x[:, ks], u[:, ks]))
         return out
 
 
@@ -652,7 +650,7 @@ class _LawOutputError:
         self._spec, self._mask, self._th = [], np.zeros((law.coef.shape[0], 0)), None
 
         def lawfun(x, u):  # the terms of the current sel at the current coefficient columns
-            terms = _eval_terms(self._spec, law.eps, x, u)
+            terms = evaluate_terms(self._spec, law.eps, x, u)
             th = self._th if terms.ndim == 2 else self._th[:, 0]
             return self._mask @ (th * terms)
 
@@ -943,7 +941,7 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
     refining their coefficients by output error cannot repair a wrong
     choice. Candidates: every term of ``law.spec`` (x, u, x^3, tanh, |x|,
     products, the offset), the saturation hinges at a fine grid of levels
-    (the quantiles ``_FINE_HI``, ``_FINE_LO`` of the filtered state: a stiff
+    (the quantiles :attr:`greybox.terms.HingeAbove.fine`, ``HingeBelow.fine`` of the filtered state: a stiff
     clip's level matters). Each step ranks the candidates by the simulation
     error at their best coefficient on a grid (``_GRID`` times d^'s spread
     over the term's RMS, both signs; the current terms held; one batched
@@ -972,17 +970,18 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
     th0 = np.zeros((0, 2))
     batched = _takes_batch(probe.model, np.repeat(np.asarray(x_start, float)[:, None], 2, axis=1),
                            probe.uu, lambda c: setattr(probe, "_th", th0[:, c]))
-    base_spec = [sp for sp in law.spec if sp[1] not in _HINGE_KINDS] if batched else \
+    base_spec = [sp for sp in law.spec if sp[1] not in HINGE_KINDS] if batched else \
         list(law.spec)
-    states = sorted({sp[2][0] for sp in law.spec if sp[1] in _HINGE_KINDS}) if batched else []
+    states = sorted({sp[2][0] for sp in law.spec if sp[1] in HINGE_KINDS}) if batched else []
     hinges = []
     names = list(base.state_labels)
     for i in states:
-        for kind, qs in (("x_hi", _FINE_HI), ("x_lo", _FINE_LO)):
-            for lv in np.unique(np.nanquantile(x[i], qs)):
-                hinges.append((hinge_name(names[i], kind, float(lv)), kind, (i, float(lv))))
+        for kind in HINGE_KINDS:
+            hk = term_kind(kind)
+            for lv in np.unique(np.nanquantile(x[i], hk.fine)):
+                hinges.append(hk.entry(i, names[i], lv))
     spec = tuple(base_spec[:-1] + hinges + base_spec[-1:]) if base_spec and \
-        base_spec[-1][1] == "const" else tuple(base_spec + hinges)
+        term_kind(base_spec[-1][1]).constant else tuple(base_spec + hinges)
     law = replace(law, spec=spec, coef=np.zeros((law.coef.shape[0], len(spec))))
     prob = _LawOutputError(law, base, ch.G, disc, y, u, x_start, C, D, noise)
     cands = [(c, j) for c in range(law.coef.shape[0]) for j in range(len(law.spec))]
@@ -1002,7 +1001,7 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
         order, seen = [], set()
         for q in np.argsort(rss):  # one level per hinge (state, side): the best
             sp = law.spec[cs[q][1]]
-            key = (cs[q][0], sp[1], sp[2][0]) if sp[1] in _HINGE_KINDS else cs[q]
+            key = (cs[q][0], sp[1], sp[2][0]) if sp[1] in HINGE_KINDS else cs[q]
             if key not in seen:
                 seen.add(key)
                 order.append(q)
@@ -1021,13 +1020,13 @@ def _select_law_oe(law, base, ch, disc, y, u, x_start, C, D, noise, d, x, uw, al
         prob, cands, OE_MAX_TERMS, prob.nres, rank=rank,
         colour=lambda r: _residual_colour(np.asarray(r).reshape(p, -1)), max_nfev=20,
         start=lambda sl, th, cj: starts[cj],
-        cost=lambda cj: 2 if law.spec[cj[1]][1] in _HINGE_KINDS else 1, factor=factor)
+        cost=lambda cj: 2 if law.spec[cj[1]][1] in HINGE_KINDS else 1, factor=factor)
     if not sel:
         return None
     coef = np.zeros_like(law.coef)
     for (c, j), t in zip(sel, theta):
         coef[c, j] = t
-    nonlin = any(law.spec[j][1] not in LINEAR_KINDS for _, j in sel)
+    nonlin = any(not term_kind(law.spec[j][1]).linear for _, j in sel)
     Ddx, Ddu = linear_part(law.spec, coef, law.Ddx.shape[1], law.Ddu.shape[1])
     return replace(law, coef=coef, npar=len(sel), ci=None, nonlinear=nonlin, Ddx=Ddx, Ddu=Ddu)
 
@@ -1089,7 +1088,7 @@ def _refine_pruned(law, base, ch, disc, y, u, x_start, C, D, noise):
         t = np.abs(new.coef) / np.where(np.isfinite(new.ci) & (new.ci > 0), new.ci, np.inf)
         # not a hinge: a stiff hinge's simulation is far from linear in its coefficient
         # (barely determined while no hinge is far worse; the selection's BIC took it)
-        hinge = np.array([sp[1] in _HINGE_KINDS for sp in new.spec])[None, :]
+        hinge = np.array([sp[1] in HINGE_KINDS for sp in new.spec])[None, :]
         t = np.where((new.coef != 0) & ~hinge, t, np.inf)
         c, j = np.unravel_index(int(np.argmin(t)), t.shape)
         if not t[c, j] < 1.0:
@@ -1305,14 +1304,6 @@ def _wald_zero(theta: NDArray, cov: NDArray) -> float:
     return w if np.isfinite(w) and w > 0 else 0.0
 
 
-_HINGE_KINDS = ("x_hi", "x_lo")
-
-
-def _hinge_name(name: str, kind: str, level: float) -> str:
-    """The name of a hinge term (:func:`greybox.trace.laws.hinge_name`) at a new level."""
-    return hinge_name(name[4:-4].rsplit(" ", 2)[0], kind, level)
-
-
 def _level_text(spec_j, h: float) -> str:
     """A hinge's name with its level's 95 % interval: ``max(x1 - (7.995 ± 0.012), 0)``.
 
@@ -1322,17 +1313,12 @@ def _level_text(spec_j, h: float) -> str:
     that already clips barely moves the simulation, e.g. ``± 1.6e+70`` on
     the simulated overflow's seed 3).
     """
-    name, kind, (_, level) = spec_j
-    if not (np.isfinite(h) and h <= max(abs(level), 1.0)):
-        return name
-    state = name[4:-4].rsplit(" ", 2)[0]
-    return f"{kind[2:].replace('hi', 'max').replace('lo', 'min')}({state} - ({level:.4g} ± " \
-           f"{h:.2g}), 0)"
+    return term_kind(spec_j[1]).interval_name(spec_j, h)
 
 
 def _hinge_law(law, d, x, u, sys, labels, units, align, relative):
     """The law reduced to its saturation hinges (refitted on d^), or None without one."""
-    idx = [j for j, sp in enumerate(law.spec) if sp[1] in _HINGE_KINDS and
+    idx = [j for j, sp in enumerate(law.spec) if sp[1] in HINGE_KINDS and
            np.any(law.coef[:, j])]
     if not idx or len(idx) == law.npar:
         return None
@@ -1343,7 +1329,7 @@ def _hinge_law(law, d, x, u, sys, labels, units, align, relative):
 
 def _eval_law_terms(law, x, u):
     """Every candidate term of ``law`` on (x, u), shape (nterms, nsteps)."""
-    return _eval_terms(law.spec, law.eps, x, u)
+    return evaluate_terms(law.spec, law.eps, x, u)
 
 
 def _weak_terms(law) -> list[str]:
@@ -2108,7 +2094,7 @@ class _NonlinearPass:
                               f"chosen by output error on y (forward selection, BIC on the "
                               f"effective sample count Ny / colour), its coefficients and "
                               f"levels refined by output error")
-        elif c.refined and any(law.spec[j][1] in _HINGE_KINDS
+        elif c.refined and any(law.spec[j][1] in HINGE_KINDS
                                for j in np.flatnonzero(law.coef.any(0))):
             self.notes.append(f"{ch.name}: the law's saturation hinges alone, refined by output "
                               f"error on y (coefficients and levels), were chosen over the full "
@@ -2396,6 +2382,6 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
             "the mean filtered state and input" +
             (" (a sign(x) term, smoothed as tanh(x/eps), has slope 1/eps there when x is "
              "near 0: use greybox.linearize_at at your own operating point)"
-             if any(s[1] in ("sign", "rel_sign") and np.any(eff.law.coef[:, j])
+             if any(term_kind(s[1]).smoothed and np.any(eff.law.coef[:, j])
                     for j, s in enumerate(eff.law.spec)) else ""))
     return replace(rep, nonlinear=nl, notes=tuple(rep.notes) + (note,))

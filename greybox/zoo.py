@@ -52,6 +52,7 @@ from scipy.linalg import expm, solve_discrete_are
 from .metrics import relative_error
 from .signals import lowpass_noise, multisine, random_binary
 from .system import named_ss
+from .terms import natural_key, term_kind
 
 __all__ = [
     "Term", "HiddenDynamics", "TrueEffect", "Truth", "ZooDraw", "FoundEffect", "ZooScore",
@@ -1801,9 +1802,7 @@ class FoundEffect:
     notes: tuple[str, ...] = ()
 
 
-def _natural(name: str):
-    """Sort key that orders p2 before p10."""
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+_natural = natural_key  # p2 before p10
 
 
 _REL = re.compile(r"^\((.+)-(.+)\)(\^3)?$")
@@ -1813,31 +1812,8 @@ def _canonical_terms(target: str, name: str, kind: str, c: float, h: float,
                      out_name: str = "") -> list[FoundTerm]:
     """Canonical FoundTerms of one greybox law term ``(name, kind)`` with coefficient c and
     95 % half-width h. ``out_name``: the output a sensor law's "yhat" terms read."""
-    if kind in ("x", "u"):
-        return [FoundTerm(target, name, (name,), c, h)]
-    rel = _REL.match(name)
-    if kind == "rel" and rel:
-        b, a = rel.group(1), rel.group(2)         # (b - a)
-        return [FoundTerm(target, b, (b,), c, h), FoundTerm(target, a, (a,), -c, h)]
-    if kind == "rel^3" and rel:
-        b, a = rel.group(1), rel.group(2)
-        if _natural(a) > _natural(b):
-            a, b, c = b, a, -c
-        return [FoundTerm(target, f"({b}-{a})^3", (a, b), c, h)]
-    inner = name[len("sign("):-1] if name.startswith("sign(") else name.strip("|")
-    simple = {"x^3": lambda: (f"{name[:-2]}^3", (name[:-2],)),
-              "sign": lambda: (f"sign({inner})", (inner,)),
-              "abs": lambda: (f"|{inner}|", (inner,)),
-              "x*u": lambda: (name, tuple(name.split("*"))),
-              "const": lambda: ("1", ()), "drift": lambda: ("t", ()),
-              "yhat": lambda: (out_name, (out_name,)),
-              "yhat^3": lambda: (f"{out_name}^3", (out_name,)),
-              "yhat_abs": lambda: (f"|{out_name}|", (out_name,)),
-              "yhat_sat": lambda: (f"sat({out_name})", (out_name,))}
-    if kind in simple:
-        expr, var = simple[kind]()
-        return [FoundTerm(target, expr, var, c, h)]
-    return [FoundTerm(target, name, (), c, h)]          # a form the truth never uses
+    return [FoundTerm(target, expr, var, sign * c, h)
+            for expr, var, sign in term_kind(kind).canonical(name, None, out_name)]
 
 
 def _channel_of(name: str, equations) -> tuple[str, tuple[str, ...]]:
@@ -1881,7 +1857,7 @@ def _static_found(ef, rep, k_step, ch_name, kind, targets, nominal=None) -> Foun
             if c == 0:
                 continue
             h = float(law.ci[k, j]) if law.ci is not None else float("nan")
-            if tkind in ("u_dz", "u_sat"):
+            if term_kind(tkind).level == "input":
                 tgt = targets[k] if k < len(targets) else targets[-1]
                 terms.append(_break_found(rep, nominal, law, tgt, name, tkind, _idx, c, h))
                 continue
@@ -1913,7 +1889,7 @@ def _break_found(rep, nominal, law, target: str, name: str, kind: str, idx, c: f
     if target in st and inp in ins:
         expect = -float(np.asarray(nom.B)[st.index(target), ins.index(inp)])
     if expect != 0 and abs(c / expect - 1) <= COEF_RTOL:
-        form = "deadzone" if kind == "u_dz" else "sat"
+        form = term_kind(kind).effect
         return FoundTerm(target, f"{form}({inp})", (inp,), level, hl)
     return FoundTerm(target, name, (), c, h)
 
@@ -2006,12 +1982,12 @@ def _sensor_found(ef, kind, targets) -> FoundEffect:
     """A sensor law with a first-order lag (a "yhat_lag" term, coefficient tau [s]): dynamic,
     order 1, pole -1/tau; its other terms kept (a gain or an offset beside the lag)."""
     law, o = ef.law, targets[0]
-    j = [sp[1] for sp in law.spec].index("yhat_lag")
+    j = next(q for q, sp in enumerate(law.spec) if term_kind(sp[1]).time_constant)
     tau = float(law.coef[0, j])
     h = float(law.ci[0, j]) if law.ci is not None else float("nan")
     terms = []
     for q, (name, tkind, _i) in enumerate(law.spec):
-        if q != j and law.coef[0, q] != 0 and tkind != "drift":
+        if q != j and law.coef[0, q] != 0 and term_kind(tkind).static:
             terms += _canonical_terms(o, name, tkind, float(law.coef[0, q]),
                                       float(law.ci[0, q]) if law.ci is not None else np.nan,
                                       out_name=o)
@@ -2060,7 +2036,7 @@ def found_effects(report, nominal=None) -> tuple[FoundEffect, ...]:
             continue
         law = getattr(ef, "law", None)
         if ef.kind in ("static", "sensor") and law is not None:
-            if any(sp[1] == "yhat_lag" and np.any(law.coef[:, j])
+            if any(term_kind(sp[1]).time_constant and np.any(law.coef[:, j])
                    for j, sp in enumerate(law.spec)):
                 out.append(_sensor_found(ef, kind, targets))
             else:

@@ -135,7 +135,7 @@ def test_tanks_without_overflow_are_left_unchanged():
 
 def test_saturation_hinges_are_offered_at_the_record_quantiles_and_evaluate_alike():
     from greybox.trace.laws import SAT_QUANTILES, _eval_terms, law_terms
-    from greybox.workflow_nonlinear import _hinge_name
+    from greybox.terms import term_kind
 
     rng = np.random.default_rng(1)
     x, u = rng.uniform(-2, 10, (2, 400)), rng.standard_normal((1, 400))
@@ -153,5 +153,6 @@ def test_saturation_hinges_are_offered_at_the_record_quantiles_and_evaluate_alik
     np.testing.assert_array_equal(T[r], np.maximum(x[0] - c, 0))
     np.testing.assert_array_equal(_eval_terms(spec, eps, x, u), T)  # evaluated alike
     # a refined level renames the term, the state's name kept (spaces and signs too)
-    assert _hinge_name("min(x 1 + 0.43, 0)", "x_lo", 2.5) == "min(x 1 - 2.5, 0)"
-    assert _hinge_name(name, "x_hi", -1e-5) == "max(x1 + 1e-05, 0)"
+    lo = ("min(x 1 + 0.43, 0)", "x_lo", (0, -0.43))
+    assert term_kind("x_lo").at_level(lo, 2.5) == ("min(x 1 - 2.5, 0)", "x_lo", (0, 2.5))
+    assert term_kind("x_hi").at_level(spec[r], -1e-5)[0] == "max(x1 + 1e-05, 0)"

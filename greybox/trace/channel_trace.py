@@ -28,6 +28,7 @@ from ..filters.delayed import first_order_hold
 from ..filters.smoother import _smooth_feedthrough_of
 from ..metrics import autocorrelation
 from ..system import named_ss
+from ..terms import term_kind
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 from ..validate import has_marginal_pole, unstable_reason
 from .channels import Channel, channel_model
@@ -510,7 +511,7 @@ def _fit_sensor_drift(law, model, i, y, u, xs, ks, noise, dxu, label, unit, out,
     yh = C[i] @ xs + D[i] @ u
     r = y - yh
     t = (ks + np.arange(y.size)) * h
-    gain = any(sp[1] == "yhat" and law.coef[0, j] for j, sp in enumerate(law.spec))
+    gain = any(term_kind(sp[1]).linear and law.coef[0, j] for j, sp in enumerate(law.spec))
     X = np.vstack(([yh] if gain else []) + [np.ones_like(yh), t])
     th = np.linalg.lstsq(X.T, r, rcond=None)[0]
     e = r - th @ X

@@ -16,6 +16,10 @@ from .._blas import single_thread_blas
 from ..exceptions import IdentificationError, ModelError
 from ..filters import FilterResult
 from ..ident.regression import SparseLaw, forward_selection, forward_selection_gram
+from ..terms import (BREAK_KINDS, BREAK_QUANTILES, LINEAR_KINDS, SAT_QUANTILES,
+                     SENSOR_STATE_KINDS, SIBLING_KINDS, break_name, break_row, break_slope,
+                     hinge_name, law_terms, linear_part, output_terms, siblings, term_kind)
+from ..terms import evaluate_terms as _eval_terms
 from ..update import Subsystem, psd_part
 from .channels import Channel
 from .intervals import hac_covariance
@@ -23,151 +27,8 @@ from .intervals import hac_covariance
 
 
 # --------------------------------------------------------------------------- static laws
-#: Quantiles of a state's record where the saturation hinges are placed (upper, lower).
-SAT_QUANTILES = ((0.6, 0.75, 0.9), (0.1, 0.25))
-
-
-def hinge_name(state: str, kind: str, level: float) -> str:
-    """Display name of a saturation hinge: ``max(x1 - 7.9, 0)`` or ``min(x1 + 0.4, 0)``."""
-    sign = "-" if level >= 0 else "+"
-    return f"{'max' if kind == 'x_hi' else 'min'}({state} {sign} {abs(level):.4g}, 0)"
-
-
-#: Quantiles of |u_j| where an input's dead-zone and saturation breakpoints start (each
-#: selected one is then refitted freely: :func:`_refine_break`).
-BREAK_QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9)
-#: Input breakpoint terms: ``clip(u, -c, c)`` (coefficient -1: a dead zone of half-width c)
-#: and ``u - clip(u, -c, c)`` (coefficient -1: a saturation at +-c). Index ``(j, c, half
-#: width of c, input name)``.
-BREAK_KINDS = ("u_dz", "u_sat")
-
-
-def break_name(inp: str, kind: str, level: float, half: float = np.nan) -> str:
-    """Display name of an input breakpoint term: ``clip(F, ±0.53)``, ``(F - clip(F, ±1.2))``;
-    with the level's 95 % half-width ``clip(F, ±(0.53 ± 0.01))``."""
-    lv = f"{level:.4g}" if not np.isfinite(half) else f"({level:.4g} ± {half:.2g})"
-    return f"clip({inp}, ±{lv})" if kind == "u_dz" else f"({inp} - clip({inp}, ±{lv}))"
-
-
-def break_row(v: NDArray, kind: str, level: float) -> NDArray:
-    """The breakpoint term's value on the input record v (any shape)."""
-    cl = np.clip(v, -level, level)
-    return cl if kind == "u_dz" else v - cl
-
-
-def break_slope(v: NDArray, kind: str, level: float) -> NDArray:
-    """d(break_row)/d(level): ``sign(v)`` where ``|v| > level`` (negated for "u_sat")."""
-    s = np.sign(v) * (np.abs(v) > level)
-    return s if kind == "u_dz" else -s
-
-
-def law_terms(x: NDArray, u: NDArray, state_labels: Sequence[str],
-              input_labels: Sequence[str], *, nonlinear: bool = True,
-              eps: NDArray | None = None,
-              relative: Sequence[tuple[int, int]] = (),
-              saturation: bool = False,
-              breaks: Sequence[int] = ()) -> tuple[NDArray, list, NDArray]:
-    """Candidate terms of a static law, evaluated on (x, u).
-
-    Returns ``(terms, spec, eps)``: terms of shape (nterms, nsteps), a spec
-    list of ``(display name, kind, index)`` with kind in
-    {"x", "u", "rel", "x^3", "sign", "abs", "rel^3", "rel_sign", "rel_abs", "x*u", "const"},
-    and the eps of each ``tanh(v/eps)`` (5 % of v's RMS unless given; one per
-    state, then one per relative coordinate). ``relative`` lists state pairs
-    (i, j): the relative coordinate ``x_j - x_i`` (a force between two
-    bodies depends on it, PAPER_NOTES §9.6) is offered like a state, with
-    index ``(i, j, k)`` where k indexes its eps. The linear terms (x, u,
-    rel) come first; with ``nonlinear`` the bilinear products ``x_i*u_j`` (a
-    flow times a temperature, a field current times a speed: index ``(i, j)``)
-    follow the other nonlinear terms and the constant term "1" (an offset)
-    comes last. With ``saturation`` (and ``nonlinear``) each state also gets
-    hinges, ``max(x_i - c, 0)`` at the 60, 75 and 90 % quantiles of its
-    record and ``min(x_i - c, 0)`` at the 10 and 25 % quantiles (kinds
-    "x_hi", "x_lo", index ``(i, c)``): a level that stops rising at c (an
-    overflow, a stop) is a stiff restoring term above c. With ``breaks`` (and
-    ``nonlinear``) each input j listed gets breakpoint terms ``clip(u_j, -c, c)``
-    and ``u_j - clip(u_j, -c, c)`` (kinds in :data:`BREAK_KINDS`) at the
-    :data:`BREAK_QUANTILES` of ``|u_j|``: with coefficient -1, an input dead
-    zone of half-width c and a saturation at +-c (the input channel's law; a
-    selected breakpoint is refitted freely by :func:`_fit_static`).
-    """
-    n, m = x.shape[0], u.shape[0]
-    rel = [x[j] - x[i] for i, j in relative]
-    if eps is None:
-        eps = 0.05 * np.sqrt(np.nanmean(np.array(list(x) + rel) ** 2, axis=1)) + 1e-300 \
-            if n + len(rel) else np.zeros(0)
-    rows, spec = [], []
-    for i in range(n):
-        rows.append(x[i])
-        spec.append((state_labels[i], "x", i))
-    for j in range(m):
-        rows.append(u[j])
-        spec.append((input_labels[j], "u", j))
-    rnames = [f"({state_labels[j]}-{state_labels[i]})" for i, j in relative]
-    for r, (i, j) in enumerate(relative):
-        rows.append(rel[r])
-        spec.append((rnames[r], "rel", (i, j, n + r)))
-    if nonlinear:
-        for i in range(n):
-            s = state_labels[i]
-            rows.append(x[i] ** 3)
-            spec.append((f"{s}^3", "x^3", i))
-            rows.append(np.tanh(x[i] / eps[i]))
-            spec.append((f"sign({s})", "sign", i))
-            rows.append(np.abs(x[i]))
-            spec.append((f"|{s}|", "abs", i))
-        for r, (i, j) in enumerate(relative):
-            v, nm = rel[r], rnames[r]
-            rows.append(v ** 3)
-            spec.append((f"{nm}^3", "rel^3", (i, j, n + r)))
-            rows.append(np.tanh(v / eps[n + r]))
-            spec.append((f"sign{nm}", "rel_sign", (i, j, n + r)))
-            rows.append(np.abs(v))
-            spec.append((f"|{nm}|", "rel_abs", (i, j, n + r)))
-        for i in range(n):
-            for j in range(m):
-                rows.append(x[i] * u[j])
-                spec.append((f"{state_labels[i]}*{input_labels[j]}", "x*u", (i, j)))
-        for j in breaks if x.shape[1] else ():
-            for kind in BREAK_KINDS:
-                for c in np.nanquantile(np.abs(u[j]), BREAK_QUANTILES):
-                    c = float(c)
-                    rows.append(break_row(u[j], kind, c))
-                    spec.append((break_name(input_labels[j], kind, c), kind,
-                                 (j, c, np.nan, input_labels[j])))
-        if saturation and x.shape[1]:
-            for i in range(n):
-                s = state_labels[i]
-                for side, qs in zip(("x_hi", "x_lo"), SAT_QUANTILES):
-                    for c in np.nanquantile(x[i], qs):
-                        c = float(c)
-                        rows.append(np.maximum(x[i] - c, 0.0) if side == "x_hi" else
-                                    np.minimum(x[i] - c, 0.0))
-                        spec.append((hinge_name(s, side, c), side, (i, c)))
-        rows.append(np.ones(x.shape[1]))  # an offset (a constant force, a biased sensor)
-        spec.append(("1", "const", 0))
-    N = x.shape[1]
-    return (np.array(rows) if rows else np.zeros((0, N))), spec, eps
-
-
-LINEAR_KINDS = ("x", "u", "rel", "yhat")
-# The odd forms one variable can take in a law (linear, cubic, sign): terms of one family
-# on one variable are siblings, which output error tells apart where d^ cannot. |v| is no
-# sibling: an even term changes the law's symmetry, not only its shape
-SIBLING_KINDS = (("x", "x^3", "sign"), ("rel", "rel^3", "rel_sign"))
-
-
-def siblings(spec, j: int) -> list[int]:
-    """Indices of the terms of ``spec`` that are the other forms of term j's variable
-    (:data:`SIBLING_KINDS`: v, v^3, sign(v), |v|); empty for any other kind."""
-    kind, var = spec[j][1], spec[j][2]
-    fam = next((f for f in SIBLING_KINDS if kind in f), None)
-    if fam is None:
-        return []
-    return [q for q, (_, k, i) in enumerate(spec) if q != j and k in fam and i == var]
-# Sensor-law terms the updated model carries as sensor states (number of states each):
-# a first-order lag (the reading) and a drift (offset and drift rate; see sensor_states)
-SENSOR_STATE_KINDS = {"yhat_lag": 1, "drift": 2}
+# Terms, their kinds and the candidate libraries live in greybox.terms (one class per kind
+# of term); the names below are re-exported for the modules and tests that import them here.
 
 
 def sensor_states(law: StaticLaw | None) -> int:
@@ -187,86 +48,8 @@ def sensor_states(law: StaticLaw | None) -> int:
     """
     if law is None:
         return 0
-    return sum(SENSOR_STATE_KINDS.get(sp[1], 0) for j, sp in enumerate(law.spec)
+    return sum(term_kind(sp[1]).sensor_states for j, sp in enumerate(law.spec)
                if np.any(law.coef[:, j]))
-
-
-def output_terms(x: NDArray, u: NDArray, c: NDArray, dd: NDArray, name: str, *,
-                 nonlinear: bool = True) -> tuple[NDArray, list, NDArray]:
-    """Candidate terms of a sensor-error law on the model's own output ``c x + dd u``.
-
-    Returns ``(terms, spec, eps)`` as :func:`law_terms`: ``<name>_model`` (a
-    gain error), and with ``nonlinear`` its cube (a soft saturation), its
-    absolute value (a rectifying sensor: ``|y| - y``) and the offset "1".
-    """
-    c = np.asarray(c, dtype=float).reshape(-1)
-    dd = np.asarray(dd, dtype=float).reshape(-1)
-    yh = c @ x + dd @ u
-    idx = (tuple(float(v) for v in c), tuple(float(v) for v in dd))
-    nm = f"{name}_model"
-    rows, spec = [yh], [(nm, "yhat", idx)]
-    if nonlinear:
-        rows += [yh**3, np.abs(yh), np.ones_like(yh)]
-        spec += [(f"{nm}^3", "yhat^3", idx), (f"|{nm}|", "yhat_abs", idx), ("1", "const", 0)]
-    eps = np.array([0.05 * np.sqrt(np.mean(yh**2)) + 1e-300])
-    return np.array(rows), spec, eps
-
-
-def _eval_terms(spec, eps, x, u):
-    out = np.empty((len(spec),) + x.shape[1:])
-    for r, (_, kind, i) in enumerate(spec):
-        if kind == "const":
-            out[r] = 1.0
-            continue
-        if kind in SENSOR_STATE_KINDS:
-            what = "a first-order sensor lag" if kind == "yhat_lag" else "a sensor drift"
-            raise ModelError(f"{what} is not a function of the current sample; found a "
-                             f"{kind!r} term; expected a static term. Hint: simulate the "
-                             f"trace's static_model (it carries the sensor's states last)")
-        if kind.startswith("yhat"):
-            v = np.asarray(i[0]) @ x + (np.asarray(i[1]) @ u if len(i[1]) else 0.0)
-            if kind == "yhat_sat":  # (clip(v, -L, L) - v) / L: its coefficient is L itself
-                out[r] = (np.clip(v, -i[2], i[2]) - v) / i[2]
-                continue
-            out[r] = v if kind == "yhat" else v**3 if kind == "yhat^3" else np.abs(v)
-            continue
-        if kind == "x*u":
-            out[r] = x[i[0]] * u[i[1]]
-            continue
-        if kind in BREAK_KINDS:  # an input's dead zone or saturation at level i[1]
-            out[r] = break_row(u[i[0]], kind, i[1])
-            continue
-        if kind in ("x_hi", "x_lo"):  # a saturation hinge at level c = i[1]
-            out[r] = (np.maximum if kind == "x_hi" else np.minimum)(x[i[0]] - i[1], 0.0)
-            continue
-        if kind.startswith("rel"):
-            a, b, e = i
-            v, kind = x[b] - x[a], {"rel": "x", "rel^3": "x^3", "rel_sign": "sign",
-                                     "rel_abs": "abs"}[kind]
-        else:
-            v, e = (x[i] if kind != "u" else u[i]), i
-        out[r] = (v if kind in ("x", "u") else v**3 if kind == "x^3" else
-                  np.tanh(v / eps[e]) if kind == "sign" else np.abs(v))
-    return out
-
-
-def linear_part(spec, coef: NDArray, n: int, m: int) -> tuple[NDArray, NDArray]:
-    """(Ddx (md, n), Ddu (md, m)) of the linear terms (x, u, rel) of a law's coefficients."""
-    md = coef.shape[0]
-    Ddx, Ddu = np.zeros((md, n)), np.zeros((md, m))
-    for j, (_, kind, i) in enumerate(spec):
-        if kind == "x":
-            Ddx[:, i] += coef[:, j]
-        elif kind == "u":
-            Ddu[:, i] += coef[:, j]
-        elif kind == "rel":
-            Ddx[:, i[1]] += coef[:, j]
-            Ddx[:, i[0]] -= coef[:, j]
-        elif kind == "yhat":
-            Ddx += np.outer(coef[:, j], i[0])
-            if len(i[1]):
-                Ddu += np.outer(coef[:, j], i[1])
-    return Ddx, Ddu
 
 
 @dataclass(frozen=True)
@@ -602,8 +385,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             if brk:
                 j, sp = idx[brk[0]], spec[idx[brk[0]]]
                 hl = float(hw[-1]) if np.all(np.isfinite(cov)) else np.inf
-                spec[j] = (break_name(sp[2][3], sp[1], level, hl), sp[1],
-                           (sp[2][0], float(level), hl, sp[2][3]))
+                spec[j] = term_kind(sp[1]).at_level(sp, level, hl)
                 names[j] = spec[j][0]
         coef[c, idx] = cf
         rv[c] = (float(np.mean((dc - cf @ tcur[idx]) ** 2)) if idx else float(np.mean(dc**2)))
@@ -848,37 +630,17 @@ def _sensor_notes(channel: Channel, law: StaticLaw) -> tuple[str, ...]:
     Gain, offset, |.|, cube, saturation level, first-order lag, drift rate.
     """
     nm, out = channel.output, []
-    drift = any(sp[1] == "drift" and law.coef[0, j] for j, sp in enumerate(law.spec))
+    drift = any(term_kind(sp[1]).carries_offset and law.coef[0, j]
+                for j, sp in enumerate(law.spec))
     for j, (_, kind, _) in enumerate(law.spec):
         c = law.coef[0, j]
         if c == 0:
             continue
         h = law.ci[0, j] if law.ci is not None else np.nan
         pm = f" ± {h:.2g}" if np.isfinite(h) else ""
-        if kind == "yhat":
-            out.append(f"sensor {nm}: gain 1 in the model; the data want {1 + c:.4g}{pm} "
-                       f"({100 * c:+.1f} %)")
-        elif kind == "const" and drift:
-            out.append(f"sensor {nm}: offset {c:.4g}{pm} [{nm}] at the estimation record's "
-                       f"first sample (0 in the model; the updated model's state "
-                       f"{nm}_offset, estimated with the initial state of every record)")
-        elif kind == "const":
-            out.append(f"sensor {nm}: offset {c:.4g}{pm} [{nm}] (0 in the model)")
-        elif kind == "drift":
-            out.append(f"sensor {nm}: drifts at {c:.4g}{pm} [{nm}]/s (0 in the model; the "
-                       f"updated model's state {nm}_drift: d{nm}_offset/dt = {nm}_drift)")
-        elif kind == "yhat_sat":
-            out.append(f"sensor {nm}: saturates at +-{c:.4g}{pm} [{nm}] (the sensor reads "
-                       f"clip({nm}, -L, L); none in the model)")
-        elif kind == "yhat_abs":
-            out.append(f"sensor {nm}: {c:.4g}{pm} * |{nm}| (with the gain at 0 a rectifier: "
-                       f"the sensor reads |{nm}|)")
-        elif kind == "yhat^3":
-            out.append(f"sensor {nm}: {c:.4g}{pm} * {nm}^3 (negative: saturation)")
-        elif kind == "yhat_lag":
-            out.append(f"sensor {nm}: first-order lag 1/(tau s + 1), tau = {c:.4g}{pm} s "
-                       f"(none in the model: the reading is the updated model's state "
-                       f"{nm}_sensor)")
+        note = term_kind(kind).sensor_note(nm, c, pm, drift)
+        if note is not None:
+            out.append(note)
     return tuple(out)
 
 
@@ -911,18 +673,19 @@ def parameter_notes(sys: ct.StateSpace, channel: Channel, law: StaticLaw) -> tup
         S = np.flatnonzero(np.abs(g) > 0)
         rows = ", ".join(sys.state_labels[i] for i in S)
         for j, (name, kind, idx) in enumerate(law.spec):
-            c = law.coef[k, j]
-            if c != 0 and kind == "rel":
+            c, t = law.coef[k, j], term_kind(kind)
+            if c != 0 and t.pair(idx) is not None:
+                a, b = t.pair(idx)
                 h = law.ci[k, j] if law.ci is not None else np.nan
                 pm = f" ± {h:.2g}" if np.isfinite(h) else ""
                 out.append(f"[{rows}] lacks a term in the relative coordinate {name}: the "
                            f"data want {c:.4g}{pm} (a force between "
-                           f"{sys.state_labels[idx[0]]} and {sys.state_labels[idx[1]]})")
+                           f"{sys.state_labels[a]} and {sys.state_labels[b]})")
                 continue
-            if c == 0 or kind not in ("x", "u"):
+            if c == 0 or t.column(idx) is None:
                 continue
-            col = A[:, idx] if kind == "x" else B[:, idx]
-            mat = "A" if kind == "x" else "B"
+            mat, i = t.column(idx)
+            col = A[:, i] if mat == "A" else B[:, i]
             cs, gs = col[S], g[S]
             new = cs + c * gs
             h = law.ci[k, j] if law.ci is not None else np.nan

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from .._blas import single_thread_blas
 from .._lti import lti_output, lti_states
 from ..metrics import effective_samples, oe_criterion
+from ..terms import term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
 from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction,
                    linear_part, siblings)
@@ -525,7 +526,8 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     from scipy.stats import chi2
 
     sel, theta0 = _selected(law)
-    if not sel or law.output is not None or any(law.spec[j][1] == "yhat_lag" for _, j in sel) \
+    if not sel or law.output is not None or any(not term_kind(law.spec[j][1]).static
+                                                for _, j in sel) \
             or len(sel) > _NL_OE_MAX_TERMS:
         return law, np.nan, np.nan
     W = min(_NL_OE_WINDOW, oe_window(y.shape[0]), (y.shape[1] - k0) // 2)
@@ -900,7 +902,7 @@ def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray
     """
     sel, theta0 = _selected(law)
     if len(sel) < 2 or len(sel) > _NL_OE_MAX_TERMS or law.output is not None or any(
-            law.spec[j][1] in ("yhat_lag", "drift") for _, j in sel):
+            not term_kind(law.spec[j][1]).static for _, j in sel):
         return law, []
     weight = [2 if law.spec[j][1] in BREAK_KINDS else 1 for _, j in sel]
     p = y.shape[0]
