@@ -375,6 +375,24 @@ class Abs(_OfState):
 
 
 @register
+class SignedSquare(_OfState):
+    """``x_i |x_i|``: a quadratic drag (a fan, a pump, a hull, a vehicle in air); odd, a
+    sibling of x_i, x_i^3 and sign(x_i)."""
+
+    kind, family = "x|x|", "state"
+
+    def form(self, v, eps):
+        return v * np.abs(v)
+
+    def display(self, s):
+        return f"{s}*|{s}|"
+
+    def canonical(self, name, index, out_name=""):
+        inner = name.split("*", 1)[0]
+        return [(f"{inner}|{inner}|", (inner,), 1.0)]
+
+
+@register
 class RelativeCube(_OfPair):
     """``(x_j - x_i)^3``: a hardening spring between two bodies."""
 
@@ -737,7 +755,7 @@ LIBRARY: tuple[tuple[str, tuple[str, ...], str | None], ...] = (
     ("states", ("x",), None),
     ("inputs", ("u",), None),
     ("relative", ("rel",), None),
-    ("states", ("x^3", "sign", "abs"), "nonlinear"),
+    ("states", ("x^3", "sign", "abs", "x|x|"), "nonlinear"),
     ("relative", ("rel^3", "rel_sign", "rel_abs"), "nonlinear"),
     ("state_input", ("x*u",), "nonlinear"),
     ("break_inputs", ("u_dz", "u_sat"), "breaks"),

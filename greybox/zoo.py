@@ -67,7 +67,7 @@ COEF_RTOL = 0.10
 #: Leading samples left out of the validation SE (as the report's table does).
 SKIP = 20
 
-_FORMS = ("x", "x^3", "sign(x)", "|x|", "x*u", "rel^3", "1", "t", "sat", "deadzone")
+_FORMS = ("x", "x^3", "sign(x)", "|x|", "x|x|", "x*u", "rel^3", "1", "t", "sat", "deadzone")
 
 
 # ----------------------------------------------------------------------------- the truth
@@ -80,7 +80,8 @@ class Term:
     target : str
         The state whose equation, the input, or the output the term adds to.
     form : str
-        One of "x" (the variable itself), "x^3", "sign(x)", "|x|", "x*u" (a
+        One of "x" (the variable itself), "x^3", "sign(x)", "|x|", "x|x|" (a
+        signed square: quadratic drag), "x*u" (a
         product of two variables), "rel^3" (``(b - a)^3`` of variables
         ``(a, b)``), "1" (a constant), "t" (time [s] from the record's first
         sample), "sat" (``clip(v, -c, c) - v``: the coefficient is the level
@@ -114,7 +115,8 @@ class Term:
         """Canonical text of the form, e.g. ``"sign(v1)"``, ``"(p2-p1)^3"``, ``"sat(F)"``."""
         v = self.variables
         return {"x": lambda: v[0], "x^3": lambda: f"{v[0]}^3", "sign(x)": lambda: f"sign({v[0]})",
-                "|x|": lambda: f"|{v[0]}|", "x*u": lambda: f"{v[0]}*{v[1]}",
+                "|x|": lambda: f"|{v[0]}|", "x|x|": lambda: f"{v[0]}|{v[0]}|",
+                "x*u": lambda: f"{v[0]}*{v[1]}",
                 "rel^3": lambda: f"({v[1]}-{v[0]})^3", "1": lambda: "1", "t": lambda: "t",
                 "sat": lambda: f"sat({v[0]})", "deadzone": lambda: f"deadzone({v[0]})"}[self.form]()
 
@@ -134,6 +136,8 @@ class Term:
             return np.tanh(v[0] / self.smoothing) if self.smoothing > 0 else np.sign(v[0])
         if self.form == "|x|":
             return np.abs(v[0])
+        if self.form == "x|x|":
+            return v[0] * np.abs(v[0])
         if self.form == "x*u":
             return v[0] * v[1]
         if self.form == "rel^3":
@@ -1004,6 +1008,33 @@ def coulomb(rng, n_est):
                                  stiffness=fc / (mi * eps))
 
 
+@_retry
+def quadratic_drag(rng, n_est):
+    """Quadratic drag on one mass of a chain of 1-6: -cq v_i |v_i|, cq such that at v_i's rms
+    the drag is 10-40 % of the force's std (a fan, a pump, a hull); the model has none."""
+    ch = _chain(rng, lo=1, hi=6)
+    ch.amplitude = rng.uniform(1.0, 3.0)
+    A, B, states = ch.matrices()
+    i = int(rng.integers(len(ch.m)))
+    dt, bw = _mech_timing(np.random.default_rng(rng.integers(2**32)), A)
+    X = _pilot_states(A, B, dt, bw, ch.amplitude, rng)
+    vr = np.sqrt(np.mean(X[2 * i + 1] ** 2))
+    if not vr > 0:
+        raise _Redraw("no velocity")
+    cq = rng.uniform(0.1, 0.4) * ch.amplitude / vr ** 2
+    mi = ch.m[i]
+
+    def extra(x):
+        dx = np.zeros_like(x)
+        dx[2 * i + 1] = -cq / mi * x[2 * i + 1] * np.abs(x[2 * i + 1])
+        return dx
+    text = f"quadratic drag {cq:.3g} N s^2/m^2 on m{i + 1}"
+    eff = _state_effect((Term(f"v{i + 1}", "x|x|", (f"v{i + 1}",), -cq / mi, "1/m"),), text)
+    return _nonlinear_chain_case("quadratic_drag", rng, n_est, ch, extra, [eff], text,
+                                 options=("all", "positions", "subset"),
+                                 stiffness=2 * cq * 3 * vr / mi)
+
+
 def _input_chain(rng, lo=1, hi=12) -> _Chain:
     """A chain whose force F acts on one mass, or (40 %, two masses or more) pushes two masses
     apart (F enters two equations: the input channel differs from any one equation's)."""
@@ -1527,6 +1558,7 @@ CLASSES: dict[str, Callable[..., ZooDraw]] = {
     "linear_force": linear_force,
     "cubic_force": cubic_force,
     "coulomb": coulomb,
+    "quadratic_drag": quadratic_drag,
     "actuator_gain": actuator_gain,
     "actuator_lag1": actuator_lag1,
     "actuator_lag2": actuator_lag2,
