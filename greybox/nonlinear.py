@@ -596,8 +596,8 @@ def with_unknown_inputs(sys, G: ArrayLike, labels=None) -> ct.NonlinearIOSystem:
                     dt=base.dt, params=dict(par or {}), name=f"{base.name}_with_d")
 
 
-def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None
-            ) -> ct.NonlinearIOSystem:
+def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
+            hold: tuple | None = None) -> ct.NonlinearIOSystem:
     """The model with a law added to its state equations: ``f(t, x, u) + G law(x, u)``.
 
     Parameters
@@ -613,6 +613,11 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None
         (md, npoints) (e.g. ``StaticLaw.evaluate``).
     name : str, optional
         Name of the new model (default ``<name>_updated``).
+    hold : (ndarray (nstates, md), ndarray (nstates, md)), optional
+        Discrete models only: ``(Gamma0, Gamma1)`` of a continuous law taken linear
+        between the samples (``StaticLaw.hold``): each step is then the Heun step
+        ``x+ = f(x, u) + Gamma0 law(x, u) + Gamma1 law(xs, u)`` with the predictor
+        ``xs = f(x, u) + (Gamma0 + Gamma1) law(x, u)`` (G is not used).
 
     Returns
     -------
@@ -631,10 +636,21 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None
         raise ModelError(f"law must be callable as law(x, u); found {type(law).__name__}")
     f, par = base.updfcn, base.params
 
+    if hold is not None and not base.isdtime(strict=True):
+        raise ModelError("a first-order hold of the law needs a discrete model; found a "
+                         "continuous one. Hint: add the law to the continuous model without "
+                         "hold")
+    G0, G1 = (None, None) if hold is None else (_columns(hold[0], base.nstates),
+                                                _columns(hold[1], base.nstates))
+
     def upd(t, x, u, params):
         x = np.asarray(x, dtype=float)
         u = np.asarray(u, dtype=float)
-        return np.asarray(f(t, x, u, params), dtype=float) + G @ np.asarray(law(x, u), float)
+        fx, d = np.asarray(f(t, x, u, params), dtype=float), np.asarray(law(x, u), float)
+        if G0 is None:
+            return fx + G @ d
+        xs = fx + (G0 + G1) @ d  # predictor: d constant over the sample
+        return fx + G0 @ d + G1 @ np.asarray(law(xs, u), float)
 
     return ct.nlsys(upd, base.outfcn, states=list(base.state_labels),
                     inputs=list(base.input_labels), outputs=list(base.output_labels),

@@ -114,6 +114,8 @@ class TermKind:
         A sign taken as ``tanh(v / eps)``.
     time_constant : bool
         The coefficient is a time constant [s] (a sensor lag: pole -1/tau).
+    reads_input : bool
+        The term reads an input (an input, a product with one, a breakpoint).
     carries_offset : bool
         A sensor law with this term carries its offset as a state (a drift).
     """
@@ -126,6 +128,7 @@ class TermKind:
     static: ClassVar[bool] = True
     smoothed: ClassVar[bool] = False
     time_constant: ClassVar[bool] = False
+    reads_input: ClassVar[bool] = False
     carries_offset: ClassVar[bool] = False
     constant: ClassVar[bool] = False
 
@@ -276,7 +279,7 @@ class State(_OfState):
 class Input(TermKind):
     """An input (linear)."""
 
-    kind, linear = "u", True
+    kind, linear, reads_input = "u", True, True
 
     def value(self, index, x, u, eps):
         return u[index]
@@ -444,7 +447,7 @@ class RelativeAbs(_OfPair):
 class Product(TermKind):
     """``x_i * u_j`` (index (i, j)): a flow times a temperature, a field times a speed."""
 
-    kind = "x*u"
+    kind, reads_input = "x*u", True
 
     def value(self, index, x, u, eps):
         return x[index[0]] * u[index[1]]
@@ -487,7 +490,7 @@ class _Break(TermKind):
     half-width c and ``u - clip(u, -c, c)`` a saturation at +-c.
     """
 
-    level = "input"
+    level, reads_input = "input", True
     #: The zoo's name of the effect whose level is the breakpoint.
     effect: ClassVar[str] = ""
 
@@ -856,6 +859,21 @@ def linear_part(spec, coef: NDArray, n: int, m: int) -> tuple[NDArray, NDArray]:
         if t.linear:
             t.add_linear(i, coef[:, j], Ddx, Ddu)
     return Ddx, Ddu
+
+
+def shapes(spec) -> list:
+    """Per term, a label shared by the nonlinear odd shapes of one variable (v^3, sign(v),
+    v*|v|: alternatives, at most one in a law's selection on d^), else None.
+
+    Several of them together fit a shape mismatch (a smoothed sign of another width
+    than the plant's), not the physics; output error exchanges the chosen one for its
+    siblings where the data say so (:func:`siblings`)."""
+    out = []
+    for _, kind, i in spec:
+        t = term_kind(kind)
+        out.append((t.family, i if not isinstance(i, list) else tuple(i))
+                   if t.family is not None and not t.linear else None)
+    return out
 
 
 def siblings(spec, j: int) -> list[int]:

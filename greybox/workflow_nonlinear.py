@@ -2343,7 +2343,8 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
 
     The table's "updated" row of such a report simulates
     ``x[k+1] = A x + B u + G law(x, u)`` (discrete A, B, G of the traced
-    channel); this adds it as a ``NonlinearIOSystem`` (``rep.nonlinear``)
+    channel; the Heun step of ``law.hold`` for a continuous law taken linear
+    between the samples); this adds it as a ``NonlinearIOSystem`` (``rep.nonlinear``)
     with its linearization at the mean filtered state and input, and a note
     saying which row is which. Other reports are returned unchanged.
 
@@ -2364,7 +2365,8 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
     if eff.law.output is not None:  # a sensor law adds to one output, not to the states
         model = _add_sensor_law(res.sys, eff.law, f"{rep.nominal.name}_updated")
     else:
-        model = add_law(res.sys, res.G, eff.law.evaluate, name=f"{rep.nominal.name}_updated")
+        model = add_law(res.sys, res.G, eff.law.evaluate, name=f"{rep.nominal.name}_updated",
+                        hold=eff.law.hold)
     k0 = res.settled(SKIP)
     x_op = res.x_filt[:, k0:].mean(axis=1)
     u = np.asarray(res.u, dtype=float)

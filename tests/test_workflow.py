@@ -209,10 +209,12 @@ def test_cubic_law_returns_the_exact_nonlinear_model_and_a_linearization():
     A = np.asarray(rep.trace.filter_result.sys.A)
     j = [s[0] for s in law.spec].index("p1^3")
     slope = 3 * law.coef[0, j] * nl.x_op[0] ** 2
-    # 1e-6: central differences with h = 1e-6 on a cubic (truncation ~h^2 * 6c)
+    # 1e-5: central differences with h = 1e-6 on a cubic (truncation ~h^2 * 6c), and the
+    # law's first-order hold (its Heun step's Jacobian differs from A + G f' by terms of
+    # order G1 f' (A - I) ~ dt^2 f': 1.5e-6 measured)
     np.testing.assert_allclose(lin.A[:, 0], A[:, 0] + G * slope + sum(
         G * law.coef[0, k] for k, s in enumerate(law.spec) if s[1] == "x" and s[2] == 0),
-        atol=1e-6)
+        atol=1e-5)
     assert any("which row is which" in n for n in rep.notes)
     assert "nonlinear" in rep.as_dict()
 

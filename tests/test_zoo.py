@@ -58,9 +58,11 @@ def _rel_err(a, b) -> float:
 
 # ------------------------------------------------------------------------- 1. the draws
 def test_registry_names_every_class_of_the_issue():
-    """Issue 27 item 1's list, one class each (two effects of different kinds: two)."""
+    """Issue 27 item 1's list, one class each (two effects of different kinds: two), and the
+    quadratic drag that measures the signed-square term kind."""
     assert set(zoo.CLASSES) == {
-        "static_state", "linear_force", "cubic_force", "coulomb", "actuator_gain",
+        "static_state", "linear_force", "cubic_force", "coulomb", "quadratic_drag",
+        "actuator_gain",
         "actuator_lag1", "actuator_lag2", "dead_zone", "saturation", "flexible_shaft",
         "thermal_mass", "sensor_gain_offset", "sensor_lag", "sensor_drift", "two_static",
         "state_sensor", "state_input", "unstable_closed_loop", "nonlinear_model",

@@ -119,7 +119,47 @@ def _bic(rss: float, N: int, k: int) -> float:
 _GRAM_COND_MAX = 1e12
 
 
-def _select_on_gram(gram, cross, dd, N, names, max_terms, min_gain, min_drop, prune):
+def _exclusive(exclusive, nterms: int):
+    """The alternatives' labels, checked against the number of terms (None: no constraint)."""
+    if exclusive is None:
+        return None
+    ex = list(exclusive)
+    if len(ex) != nterms:
+        raise DimensionError(f"exclusive has {len(ex)} labels for {nterms} terms; expected one "
+                             f"label (or None) per term")
+    return ex
+
+
+def _swap_alternatives(Gm, b, dd, sel, coef_s, rss, exclusive, usable, floor):
+    """Each selected term that has alternatives (the same ``exclusive`` label) swapped for
+    the one that lowers the RSS most in its place, until no swap helps: a greedy pick of
+    one shape (sign(v)) is revised once the other terms (v) are in."""
+    improved = True
+    while improved:
+        improved = False
+        for pos, i in enumerate(sel):
+            if exclusive[i] is None:
+                continue
+            for j in range(len(exclusive)):
+                if j in sel or not usable[j] or exclusive[j] != exclusive[i]:
+                    continue
+                idx = sel[:pos] + [j] + sel[pos + 1:]
+                Gs = Gm[np.ix_(idx, idx)]
+                try:
+                    c = np.linalg.solve(Gs, b[idx])
+                except np.linalg.LinAlgError:
+                    continue
+                r = dd - float(c @ b[idx])
+                if np.linalg.cond(Gs) <= _GRAM_COND_MAX and r < rss - floor:
+                    sel, coef_s, rss, improved = idx, c, max(r, floor), True
+                    break
+            if improved:
+                break
+    return sel, coef_s, rss
+
+
+def _select_on_gram(gram, cross, dd, N, names, max_terms, min_gain, min_drop, prune,
+                    exclusive=None):
     """The forward pass and pruning of :func:`forward_selection` on ``X X^T``, ``X d``, ``d^T d``.
 
     Returns the term scale s (nterms,), the selected indices, their coefficients
@@ -139,8 +179,9 @@ def _select_on_gram(gram, cross, dd, N, names, max_terms, min_gain, min_drop, pr
     path = [_bic(dd, N, 0)]
     while len(sel) < max_terms:
         best = None
+        taken = set() if exclusive is None else {exclusive[i] for i in sel} - {None}
         for j in range(nterms):
-            if j in sel or not usable[j]:
+            if j in sel or not usable[j] or (exclusive is not None and exclusive[j] in taken):
                 continue
             idx = sel + [j]
             Gs = Gm[np.ix_(idx, idx)]
@@ -162,6 +203,10 @@ def _select_on_gram(gram, cross, dd, N, names, max_terms, min_gain, min_drop, pr
         sel.append(best[0])
         rss, coef_s = rj, best[2]
         path.append(bb)
+        if exclusive is not None:  # an alternative may now fit better in its place
+            sel, coef_s, rss = _swap_alternatives(Gm, b, dd, sel, coef_s, rss, exclusive,
+                                                  usable, floor)
+            path[-1] = _bic(rss, N, len(sel))
 
     pruned: list[str] = []
     while prune and len(sel) > 1:
@@ -204,7 +249,8 @@ def _selection_options(names, nterms, max_terms, min_gain, min_drop):
 
 def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
                       max_terms: int | None = None, min_gain: float = 0.0,
-                      min_drop: float = 0.0, prune: bool = False) -> SparseLaw:
+                      min_drop: float = 0.0, prune: bool = False,
+                      exclusive: Sequence | None = None) -> SparseLaw:
     """Greedy forward selection of terms with a BIC stopping rule.
 
     At each step the term that most reduces the residual sum of squares (RSS)
@@ -233,6 +279,9 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
         removal raises the RSS by less than ``min_drop * sum(d**2)`` (a greedy
         step can admit a proxy term before the true one). Has no effect with
         ``min_drop = 0``.
+    exclusive : sequence, length nterms, optional
+        Alternatives: terms with the same label other than None are never selected
+        together (e.g. the odd shapes v^3, sign(v), v*|v| of one variable).
 
     Returns
     -------
@@ -278,7 +327,8 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
     with single_thread_blas():  # thin products: threads only cost (and stall under load)
         gram, cross = X @ X.T, X @ d
     s, sel, coef_s, rss, path, pruned = _select_on_gram(
-        gram, cross, float(d @ d), N, names, max_terms, min_gain, min_drop, prune)
+        gram, cross, float(d @ d), N, names, max_terms, min_gain, min_drop, prune,
+        _exclusive(exclusive, X.shape[0]))
     coef = coef_s / s[sel] if sel else np.zeros(0)
     e = d - coef @ X[sel] if sel else d
     return SparseLaw(names=tuple(names[j] for j in sel), index=tuple(sel), coef=coef,
@@ -289,7 +339,8 @@ def forward_selection(terms: ArrayLike, d: ArrayLike, names: Sequence[str], *,
 def forward_selection_gram(gram: ArrayLike, cross: ArrayLike, dd: float, nsteps: int,
                            names: Sequence[str], *, max_terms: int | None = None,
                            min_gain: float = 0.0, min_drop: float = 0.0,
-                           prune: bool = False) -> SparseLaw:
+                           prune: bool = False, exclusive: Sequence | None = None
+                           ) -> SparseLaw:
     """:func:`forward_selection` from the products of the terms, not the terms.
 
     For callers that form ``X X^T`` and ``X d`` without holding X (or a
@@ -316,6 +367,8 @@ def forward_selection_gram(gram: ArrayLike, cross: ArrayLike, dd: float, nsteps:
         As :func:`forward_selection`.
     prune : bool
         As :func:`forward_selection`.
+    exclusive : sequence, length nterms, optional
+        As :func:`forward_selection`.
 
     Returns
     -------
@@ -341,7 +394,8 @@ def forward_selection_gram(gram: ArrayLike, cross: ArrayLike, dd: float, nsteps:
     names, max_terms, min_gain, min_drop = _selection_options(
         names, G.shape[0], max_terms, min_gain, min_drop)
     s, sel, coef_s, rss, path, pruned = _select_on_gram(
-        G, b, float(dd), N, names, max_terms, min_gain, min_drop, prune)
+        G, b, float(dd), N, names, max_terms, min_gain, min_drop, prune,
+        _exclusive(exclusive, G.shape[0]))
     coef = coef_s / s[sel] if sel else np.zeros(0)
     return SparseLaw(names=tuple(names[j] for j in sel), index=tuple(sel), coef=coef,
                      residual_var=float(rss) / N, bic_path=np.array(path),

@@ -714,6 +714,54 @@ def _check_enough(nleft: int, k0: int, nterms: int) -> None:
                         f"{nterms} candidate terms; give more data or a smaller skip")
 
 
+def _law_on_dhat(est, u, nsteps: int, k0: int, nterms: int, align, r: int, channel: Channel,
+                 notes: list, sys_f, nonlinear: bool, brk, foh):
+    """``(law data, law)``: the static law fitted on d^ (:func:`_law_data`, :func:`_fit_static`).
+
+    With ``foh`` (an r = 1 estimate of a continuous model) the law is fitted on the states
+    within each sample, the input held. Kept for a law of the states alone (a drag, a
+    spring, a friction): a law that also reads an input would pair mid-sample states with
+    the input of the sample's start, a half-sample shift wherever the plant's input is not
+    held (a measured flow); such a law is fitted on the states at the sample's start.
+    """
+    def fit(ld):
+        return _fit_static(ld.d, ld.xw, ld.uw, sys_f, nonlinear, list(channel.labels),
+                           channel.units, None if ld.align.shape[1] == 1 and
+                           np.allclose(ld.align, 1.0) else ld.align, channel.relative,
+                           whiten=est.smoothed or r >= 2, breaks=brk)
+
+    ld = _law_data(est, u, nsteps, k0, nterms, align, r, channel.md, notes, foh)
+    law = fit(ld)
+    if ld.midpoint and any(term_kind(law.spec[j][1]).reads_input
+                           for j in np.flatnonzero(np.any(law.coef != 0, axis=0))):
+        ld = _law_data(est, u, nsteps, k0, nterms, align, r, channel.md, [], None)
+        law = fit(ld)
+    return ld, law
+
+
+def _held(law: StaticLaw, cont, r: int, midpoint: bool) -> StaticLaw:
+    """The law fitted with first-order-hold weights (a delayed d^, or the states within
+    each sample for an r = 1 one) carries that hold, so it is simulated alike; a linear one
+    is then a continuous-time law, folded into the continuous nominal and discretized
+    exactly (:func:`_static_model`)."""
+    if cont is None or not (r >= 2 or midpoint):
+        return law
+    law = replace(law, hold=first_order_hold(cont[0], cont[2], cont[3]))
+    return law if law.nonlinear else replace(law, time_base="continuous")
+
+
+def _foh_weights(model, labels, cont) -> NDArray | None:
+    """(md, 2) weights of f(x[j]), f(x[j+1]) in what an r = 1 estimate of a continuous law
+    f stands for (first-order hold between the samples); None for a discrete model."""
+    if cont is None:
+        return None
+    try:
+        w, _ = input_weights(model, unknown=labels, r=1, continuous=(cont[0], cont[2]))
+    except (GreyboxError, np.linalg.LinAlgError):
+        return None
+    return np.einsum("icc->ci", w)
+
+
 def _estimate_end(est, nsteps: int, nw: int, k0: int) -> int:
     """One past the last column of d^ that is finite with its ``nw`` aligned x^ columns
     (a delayed estimate ends in NaN), at least ``k0``."""
@@ -929,14 +977,12 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     cont = _continuous_parts(sys, channel, model)
     est, r, align = _law_estimate(model, labels, y, u, Q, R, res, smooth, notes,
                                   None if cont is None else (cont[0], cont[2]))
-    ld = _law_data(est, u, y.shape[1], k0, nterms, align, r, channel.md, notes)
+    ld, law = _law_on_dhat(est, u, y.shape[1], k0, nterms, align, r, channel, notes, res.sys,
+                           nonlinear, whole_inputs(sys, channel) if breaks and nonlinear else (),
+                           _foh_weights(model, labels, cont) if r == 1 and not est.smoothed
+                           else None)
+    law = _held(law, cont, r, ld.midpoint)
     d, xw, uw, align, averaged, Ne = ld.d, ld.xw, ld.uw, ld.align, ld.averaged, ld.Ne
-    law = _fit_static(d, xw, uw, res.sys, nonlinear, labels, channel.units,
-                      None if align.shape[1] == 1 and np.allclose(align, 1.0) else align,
-                      channel.relative, whiten=est.smoothed or r >= 2,
-                      breaks=whole_inputs(sys, channel) if breaks and nonlinear else ())
-    if cont is not None and r >= 2:  # first-order-hold weights: the law is simulated alike
-        law = replace(law, hold=first_order_hold(cont[0], cont[2], cont[3]))
     K = d.shape[1]
     x = _aligned_rows(xw, align, K)
     uu = _aligned_rows(uw, align, K)
@@ -976,7 +1022,9 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
 class _LawData:
     """The samples of :func:`trace_channel`'s static law: d^ on ``k0:Ne`` (``averaged`` over
     consecutive samples when it alternates), the states ``xw`` and inputs ``uw`` its terms
-    are formed from, and the weights ``align`` of d^ over ``d[j], d[j+1], ...``."""
+    are formed from, and the weights ``align`` of d^ over ``d[j], d[j+1], ...``;
+    ``midpoint``: ``xw`` holds the states within each sample where a continuous law's
+    first-order hold weighs them (the law is then simulated with that hold)."""
 
     d: NDArray[np.float64]
     xw: NDArray[np.float64]
@@ -984,11 +1032,17 @@ class _LawData:
     align: NDArray[np.float64]
     averaged: bool
     Ne: int
+    midpoint: bool = False
 
 
 def _law_data(est, u, nsteps: int, k0: int, nterms: int, align, r: int, md: int,
-              notes: list) -> _LawData:
-    """The static law's window of the estimate ``est`` of ``nsteps`` samples (enough checked)."""
+              notes: list, foh=None) -> _LawData:
+    """The static law's window of the estimate ``est`` of ``nsteps`` samples (enough checked).
+
+    ``foh`` (md, 2): the first-order-hold weights of a continuous law in what the r = 1
+    estimate stands for (:func:`greybox.input_weights` with ``continuous``): the terms
+    are then formed from the states at those weights within the sample and the held
+    input, unless d^ alternates (then it is averaged over consecutive samples instead)."""
     # est.d_est[:, j] estimates sum_i align[:, i] d[j + i]: the law's terms are weighted alike,
     # so x and u carry nw - 1 more columns than d (the last r columns of a delayed d^ are NaN)
     nw = align.shape[1]
@@ -1008,4 +1062,13 @@ def _law_data(est, u, nsteps: int, k0: int, nterms: int, align, r: int, md: int,
             averaged = True
             notes.append(f"d^ alternates sign (lag-1 autocorrelation {r1:.2f}): the static law "
                          f"is fitted on terms averaged over consecutive samples")
-    return _LawData(d=d, xw=xw, uw=uw, align=align, averaged=averaged, Ne=Ne)
+    midpoint = False
+    if foh is not None and not averaged and Ne + 1 <= nsteps:
+        # a continuous law f between the samples, the input held: d^[j] stands for
+        # w0 f(x[j], u[j]) + w1 f(x[j+1], u[j]) ~ f(w0 x[j] + w1 x[j+1], u[j])
+        xn = est.x_filt[:, k0 + 1:Ne + 1]
+        if np.all(np.isfinite(xn)):
+            w = np.mean(foh, axis=0)
+            xw, midpoint = w[0] * xw + w[1] * xn, True
+    return _LawData(d=d, xw=xw, uw=uw, align=align, averaged=averaged, Ne=Ne,
+                    midpoint=midpoint)

@@ -18,7 +18,8 @@ from ..filters import FilterResult
 from ..ident.regression import SparseLaw, forward_selection, forward_selection_gram
 from ..terms import (BREAK_KINDS, BREAK_QUANTILES, LINEAR_KINDS, SAT_QUANTILES,
                      SENSOR_STATE_KINDS, SIBLING_KINDS, break_name, break_row, break_slope,
-                     hinge_name, law_terms, linear_part, output_terms, siblings, term_kind)
+                     hinge_name, law_terms, linear_part, output_terms, shapes, siblings,
+                     term_kind)
 from ..terms import evaluate_terms as _eval_terms
 from ..update import Subsystem, psd_part
 from .channels import Channel
@@ -173,15 +174,18 @@ def _fmt_sum(coefs, names, half=None) -> str:
 _MIN_DROP = 1e-4
 
 
-def _select(terms: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
-    """Forward selection (BIC) with backward pruning, as used for every static law."""
-    return forward_selection(terms, d, names, min_drop=_MIN_DROP, prune=True)
+def _select(terms: NDArray, d: NDArray, names: Sequence[str], exclusive=None) -> SparseLaw:
+    """Forward selection (BIC) with backward pruning, as used for every static law;
+    ``exclusive``: alternatives never selected together (:func:`greybox.terms.shapes`)."""
+    return forward_selection(terms, d, names, min_drop=_MIN_DROP, prune=True,
+                             exclusive=exclusive)
 
 
-def _select_gram(gram: NDArray, cross: NDArray, d: NDArray, names: Sequence[str]) -> SparseLaw:
+def _select_gram(gram: NDArray, cross: NDArray, d: NDArray, names: Sequence[str],
+                 exclusive=None) -> SparseLaw:
     """:func:`_select` from the terms' products ``X X^T``, ``X d`` (d: the regressand)."""
     return forward_selection_gram(gram, cross, float(d @ d), d.size, names, min_drop=_MIN_DROP,
-                                  prune=True)
+                                  prune=True, exclusive=exclusive)
 
 
 # time samples per block of the filtered products (p x 8192 floats: 13 MB at p = 200)
@@ -328,6 +332,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
     lines = []
     nlin = sum(1 for sp in spec if sp[1] in LINEAR_KINDS)  # the linear terms come first
     names = [s[0] for s in spec]
+    alternatives = shapes(spec)  # one nonlinear odd shape per variable (see shapes)
     half = np.full((md, len(spec)), np.nan)
     tscale = None
     held = (None, None)  # (weights, aligned terms): components with equal weights share one
@@ -354,10 +359,10 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             aw = _whitening(dc - _ls_fit(tcur, dc), _AR_ORDER)
             dw = lfilter(aw, [1.0], dc)[_AR_ORDER:]
             gram, cross = _filtered_products(tcur, aw, dw)
-            sel = _select_gram(gram, cross, dw, names)
+            sel = _select_gram(gram, cross, dw, names, alternatives)
         else:
             aw, dw = None, dc
-            sel = _select(tcur, dc, names)
+            sel = _select(tcur, dc, names, alternatives)
         idx, cf = list(sel.index), sel.coef
         brk = [q for q, j in enumerate(idx) if spec[j][1] in BREAK_KINDS]
         if len(brk) > 1:  # one breakpoint per input (the strongest; refitted below)
