@@ -216,7 +216,7 @@ class _OfState(TermKind):
         raise NotImplementedError
 
     def value(self, index, x, u, eps):
-        return self.form(x[index], eps[index] if len(eps) > index else np.nan)
+        return self.form(x[index], eps[index] if self.smoothed else None)
 
     def display(self, s: str) -> str:
         raise NotImplementedError
@@ -238,7 +238,7 @@ class _OfPair(TermKind):
 
     def value(self, index, x, u, eps):
         a, b, e = index
-        return self.form(x[b] - x[a], eps[e] if len(eps) > e else np.nan)
+        return self.form(x[b] - x[a], eps[e] if self.smoothed else None)
 
     def display(self, s: str) -> str:
         raise NotImplementedError
@@ -843,10 +843,21 @@ def output_terms(x: NDArray, u: NDArray, c: NDArray, dd: NDArray, name: str, *,
 
 def evaluate_terms(spec, eps: NDArray, x: NDArray, u: NDArray) -> NDArray:
     """Every term of ``spec`` on x (nstates, ...) and u (ninputs, ...): (nterms, ...)."""
-    out = np.empty((len(spec),) + x.shape[1:])
-    for r, (_, kind, i) in enumerate(spec):
-        out[r] = term_kind(kind).value(i, x, u, eps)
-    return out
+    return evaluator(spec, eps)(x, u)
+
+
+def evaluator(spec, eps: NDArray):
+    """``f(x, u)``: :func:`evaluate_terms` of ``spec`` with the kinds looked up once (a
+    simulation evaluates a law at every sample)."""
+    items = [(term_kind(kind).value, i) for _, kind, i in spec]
+    n = len(items)
+
+    def evaluate(x: NDArray, u: NDArray) -> NDArray:
+        out = np.empty((n,) + x.shape[1:])
+        for r, (value, i) in enumerate(items):
+            out[r] = value(i, x, u, eps)
+        return out
+    return evaluate
 
 
 def linear_part(spec, coef: NDArray, n: int, m: int) -> tuple[NDArray, NDArray]:

@@ -21,6 +21,7 @@ from ..terms import (BREAK_KINDS, BREAK_QUANTILES, LINEAR_KINDS, SAT_QUANTILES,
                      hinge_name, law_terms, linear_part, output_terms, shapes, siblings,
                      term_kind)
 from ..terms import evaluate_terms as _eval_terms
+from ..terms import evaluator
 from ..update import Subsystem, psd_part
 from .channels import Channel
 from .intervals import hac_covariance
@@ -126,8 +127,8 @@ class StaticLaw:
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
-        coef, spec = self._selected
-        return coef @ _eval_terms(spec, self.eps, x, u)
+        coef, terms = self._selected_terms
+        return coef @ terms(x, u)
 
     @cached_property
     def _selected(self) -> tuple[NDArray, tuple]:
@@ -139,6 +140,12 @@ class StaticLaw:
         """
         keep = np.flatnonzero(np.any(self.coef != 0, axis=0))
         return self.coef[:, keep], tuple(self.spec[j] for j in keep)
+
+    @cached_property
+    def _selected_terms(self):
+        """(coefficients, evaluator) of the selected terms (:func:`greybox.terms.evaluator`)."""
+        coef, spec = self._selected
+        return coef, evaluator(spec, self.eps)
 
     @property
     def breakpoints(self) -> list[str]:

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from .._blas import single_thread_blas
 from .._lti import lti_output, lti_states
 from ..metrics import effective_samples, oe_criterion
-from ..terms import term_kind
+from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
 from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction,
                    linear_part, siblings)
@@ -342,12 +342,13 @@ class _OutputErrorNonlinearLaw:
         self.scale_y = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
         self.theta_scale = np.where(np.abs(theta0) > 0, np.abs(theta0), 1.0)
         self.spec = [law.spec[j] for _, j in self.sel]
+        self._terms = evaluator(self.spec, law.eps)  # kinds looked up once, not per sample
         self.mask = np.zeros((md, len(self.sel)))  # which component each term feeds
         for q, (c, _) in enumerate(self.sel):
             self.mask[c, q] = 1.0
 
     def _law(self, X, uk, TH):
-        return self.mask @ (TH * _eval_terms(self.spec, self.law.eps, X, uk))
+        return self.mask @ (TH * self._terms(X, uk))
 
     def simulate(self, TH: NDArray) -> NDArray:
         """Outputs (K, noutputs, nsteps) for the coefficient columns TH (nsel, K)."""
@@ -409,6 +410,7 @@ class _OutputErrorNonlinearLaw:
         sub.__dict__.update(self.__dict__)
         sub.sel = [self.sel[q] for q in keep]
         sub.spec = [self.spec[q] for q in keep]
+        sub._terms = evaluator(sub.spec, self.law.eps)
         sub.mask = self.mask[:, keep]
         sub.theta_scale = self.theta_scale[keep]
         with single_thread_blas():
