@@ -631,6 +631,12 @@ class Constant(TermKind):
 class _OfOutput(TermKind):
     """A form of the model's own output ``c x + d u``; index ``(c, d)`` (tuples)."""
 
+    #: The term in the zoo's vocabulary, ``{}`` standing for the output's name.
+    written: ClassVar[str] = "{}"
+
+    def canonical(self, name, index, out_name=""):
+        return [(self.written.format(out_name), (out_name,), 1.0)]
+
     def reading(self, index, x, u):
         return np.asarray(index[0]) @ x + (np.asarray(index[1]) @ u if len(index[1]) else 0.0)
 
@@ -655,9 +661,6 @@ class Reading(_OfOutput):
         if len(index[1]):
             Ddu += np.outer(col, index[1])
 
-    def canonical(self, name, index, out_name=""):
-        return [(out_name, (out_name,), 1.0)]
-
     def sensor_note(self, out, c, pm, drift):
         return (f"sensor {out}: gain 1 in the model; the data want {1 + c:.4g}{pm} "
                 f"({100 * c:+.1f} %)")
@@ -667,13 +670,10 @@ class Reading(_OfOutput):
 class ReadingCube(_OfOutput):
     """The output's cube (negative: a soft saturation)."""
 
-    kind = "yhat^3"
+    kind, written = "yhat^3", "{}^3"
 
     def form(self, v, index):
         return v ** 3
-
-    def canonical(self, name, index, out_name=""):
-        return [(f"{out_name}^3", (out_name,), 1.0)]
 
     def sensor_note(self, out, c, pm, drift):
         return f"sensor {out}: {c:.4g}{pm} * {out}^3 (negative: saturation)"
@@ -683,13 +683,10 @@ class ReadingCube(_OfOutput):
 class ReadingAbs(_OfOutput):
     """The output's absolute value (with the gain at 0: a rectifying sensor)."""
 
-    kind = "yhat_abs"
+    kind, written = "yhat_abs", "|{}|"
 
     def form(self, v, index):
         return np.abs(v)
-
-    def canonical(self, name, index, out_name=""):
-        return [(f"|{out_name}|", (out_name,), 1.0)]
 
     def sensor_note(self, out, c, pm, drift):
         return (f"sensor {out}: {c:.4g}{pm} * |{out}| (with the gain at 0 a rectifier: "
@@ -700,13 +697,10 @@ class ReadingAbs(_OfOutput):
 class ReadingSaturation(_OfOutput):
     """``(clip(y, -L, L) - y) / L`` (index ``(c, d, L)``): its coefficient is L itself."""
 
-    kind = "yhat_sat"
+    kind, written = "yhat_sat", "sat({})"
 
     def form(self, v, index):
         return (np.clip(v, -index[2], index[2]) - v) / index[2]
-
-    def canonical(self, name, index, out_name=""):
-        return [(f"sat({out_name})", (out_name,), 1.0)]
 
     def sensor_note(self, out, c, pm, drift):
         return (f"sensor {out}: saturates at +-{c:.4g}{pm} [{out}] (the sensor reads "
@@ -882,8 +876,7 @@ def shapes(spec) -> list:
     out = []
     for _, kind, i in spec:
         t = term_kind(kind)
-        out.append((t.family, i if not isinstance(i, list) else tuple(i))
-                   if t.family is not None and not t.linear else None)
+        out.append((t.family, i) if t.family is not None and not t.linear else None)
     return out
 
 

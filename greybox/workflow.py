@@ -1284,9 +1284,9 @@ class _Pass:
                      f"{np.array2string(g, precision=3)})")
         what = f"{v.kind} effect{'' if v.kind == 'static' else f' of order {effect.order}'}"
         if effect.kind == "sensor":
-            what = ("a drifting sensor (offset and drift rate: two sensor states)"
-                    if any(term_kind(sp[1]).carries_offset for sp in effect.law.spec) else
-                    "sensor dynamics, a first-order lag (one sensor state)")
+            what = ("sensor dynamics, a first-order lag (one sensor state)"
+                    if any(term_kind(sp[1]).time_constant for sp in effect.law.spec) else
+                    "a drifting sensor (offset and drift rate: two sensor states)")
         msg = f"model error found in {where}: {what}; {describe_before_after(table)}"
         return LoopReport(model_error_detected=True, updated=True, message=msg,
                           residual=r.white, effect=effect, channel=ch,

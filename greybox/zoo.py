@@ -982,17 +982,24 @@ def _pilot_states(A, B, dt, bandwidth, amplitude, rng, N: int = 2000) -> NDArray
     return X
 
 
+def _one_mass_of_a_chain(rng) -> tuple[_Chain, int, float]:
+    """(chain of 1-6 with its force amplitude, one mass i, the rms of v_i on a pilot run):
+    the set-up of a velocity force on one mass (Coulomb friction, quadratic drag)."""
+    ch = _chain(rng, lo=1, hi=6)
+    ch.amplitude = rng.uniform(1.0, 3.0)
+    A, B, _ = ch.matrices()
+    i = int(rng.integers(len(ch.m)))
+    dt, bw = _mech_timing(np.random.default_rng(rng.integers(2**32)), A)
+    X = _pilot_states(A, B, dt, bw, ch.amplitude, rng)
+    return ch, i, float(np.sqrt(np.mean(X[2 * i + 1] ** 2)))
+
+
 @_retry
 def coulomb(rng, n_est):
     """Coulomb friction on one mass of a chain of 1-6: -Fc sign(v_i), Fc 10-40 % of the
     force's std (the truth simulates sign as tanh(v / eps), eps 2 % of v_i's rms)."""
-    ch = _chain(rng, lo=1, hi=6)
-    ch.amplitude = rng.uniform(1.0, 3.0)
-    A, B, states = ch.matrices()
-    i = int(rng.integers(len(ch.m)))
-    dt, bw = _mech_timing(np.random.default_rng(rng.integers(2**32)), A)
-    X = _pilot_states(A, B, dt, bw, ch.amplitude, rng)
-    eps = 0.02 * np.sqrt(np.mean(X[2 * i + 1] ** 2))
+    ch, i, vr = _one_mass_of_a_chain(rng)
+    eps = 0.02 * vr
     fc = rng.uniform(0.1, 0.4) * ch.amplitude
     mi = ch.m[i]
 
@@ -1012,13 +1019,7 @@ def coulomb(rng, n_est):
 def quadratic_drag(rng, n_est):
     """Quadratic drag on one mass of a chain of 1-6: -cq v_i |v_i|, cq such that at v_i's rms
     the drag is 10-40 % of the force's std (a fan, a pump, a hull); the model has none."""
-    ch = _chain(rng, lo=1, hi=6)
-    ch.amplitude = rng.uniform(1.0, 3.0)
-    A, B, states = ch.matrices()
-    i = int(rng.integers(len(ch.m)))
-    dt, bw = _mech_timing(np.random.default_rng(rng.integers(2**32)), A)
-    X = _pilot_states(A, B, dt, bw, ch.amplitude, rng)
-    vr = np.sqrt(np.mean(X[2 * i + 1] ** 2))
+    ch, i, vr = _one_mass_of_a_chain(rng)
     if not vr > 0:
         raise _Redraw("no velocity")
     cq = rng.uniform(0.1, 0.4) * ch.amplitude / vr ** 2
