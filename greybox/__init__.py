@@ -80,7 +80,8 @@ from .update import (  # noqa: E402
     identify_subsystem,
 )
 from .validate import ModelValidation, estimate_initial_state, validate_model  # noqa: E402
-from .workflow import CandidateScore, Effect, EffectStep, LoopReport, close_the_loop  # noqa: E402
+from .workflow import (  # noqa: E402
+    CandidateScore, Decision, Effect, EffectStep, LoopReport, close_the_loop)
 
 __all__ += [
     "FilterResult",
@@ -130,6 +131,7 @@ __all__ += [
     "estimate_initial_state",
     "validate_model",
     "CandidateScore",
+    "Decision",
     "Effect",
     "LoopReport",
     "EffectStep",

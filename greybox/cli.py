@@ -249,7 +249,7 @@ def _fmt_update(rep) -> str:
         lines.append(f"  {name:<24}{v.order:>6}{_pct(v.se.value, '>10.3g'):>10}"
                      f"{_pct(v.pe.value, '>10.3g'):>10}"
                      f"{'yes' if v.whiteness.all_white else 'no':>7}")
-    lines += [f"note: {s}" for s in rep.notes]
+    lines += [f"note ({d.stage}): {d}" for d in rep.decisions]
     return "\n".join(lines)
 
 
@@ -285,7 +285,8 @@ def _report_markdown(rep, figures) -> str:
                 f"{c.npar} | {c.status}{': ' + c.reason if c.reason else ''} |"
                 for c in rep.candidates]
         out.append("")
-    out += [f"- {s}" for s in rep.notes]
+    out += [f"- *{d.stage}*{' ' + d.subject if d.subject else ''}: {d.reason}"
+            for d in rep.decisions]
     return "\n".join(out) + "\n"
 
 

@@ -75,4 +75,4 @@ def recommend(rep: LoopReport, Q, R) -> LoopReport:
                          R=np.asarray(R, dtype=float), order=rep.nominal.nstates, kind="nominal")
     note = f"update refused on the validation record: {measure} {before:.3g}% -> {after:.3g}%"
     return replace(rep, updated=False, recommended=False, message=msg, table=table,
-                   model=model, nonlinear=None, notes=tuple(rep.notes) + (note,))
+                   model=model, nonlinear=None).with_decision("recommend", "", note)

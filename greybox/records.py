@@ -7,7 +7,7 @@ import them from here; neither imports the other's records.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import control as ct
@@ -24,8 +24,49 @@ if TYPE_CHECKING:  # annotations only
     from .trace.shared_order2 import SharedLaw2
     from .update import Subsystem
 
-__all__ = ["CRITERION", "CRITERION_PE", "Candidate", "CandidateScore", "Effect", "EffectStep",
-           "LoopReport", "explain"]
+__all__ = ["CRITERION", "CRITERION_PE", "STAGES", "Candidate", "CandidateScore", "Decision",
+           "Effect", "EffectStep", "LoopReport", "explain"]
+
+#: The stages of close the loop, in order, as a decision record names them.
+STAGES = ("residual", "screen", "trace", "generate", "choose", "gate", "validate", "baseline",
+          "loop", "refit", "recommend")
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One entry of a report's decision trail: at which stage, about what, and why.
+
+    Attributes
+    ----------
+    stage : str
+        One of :data:`STAGES`: "residual" (the nominal's innovations and noise
+        model), "screen" (which channels are traced), "trace" (a channel's own
+        trace), "generate" (a candidate law tried or not tried), "choose" (the
+        selection criterion), "gate" (the evidence), "validate" (the validation
+        rows), "baseline" (the parallel delta row), "loop" (further passes),
+        "refit" (joint refits and re-traces), "recommend" (the final check
+        against the nominal on validation data).
+    subject : str
+        What it is about: a channel's name, or "" for the whole model.
+    reason : str
+        The decision in words.
+    """
+
+    stage: str
+    subject: str
+    reason: str
+
+    def __post_init__(self):
+        if self.stage not in STAGES:
+            raise ValueError(f"unknown stage {self.stage!r}; one of {STAGES}")
+
+    def __str__(self) -> str:
+        return f"{self.subject}: {self.reason}" if self.subject else self.reason
+
+    def as_dict(self) -> dict:
+        """``{"stage", "subject", "reason"}``."""
+        return {"stage": self.stage, "subject": self.subject, "reason": self.reason}
+
 
 @dataclass(frozen=True)
 class Candidate:
@@ -247,7 +288,9 @@ class LoopReport:
         for a nonlinear law also "updated (linearized)".
     trace : ChannelTrace or None
         The chosen channel's filter, laws and models (d^ for plots).
-    notes : tuple of str
+    decisions : tuple of Decision
+        The decision trail, in the order taken: each stage's (stage, subject,
+        reason); ``notes`` renders it as text.
     steps : tuple of EffectStep
         One row per effect added, in order (several effects: after each
         update the updated model's innovations are tested again, and traced
@@ -283,10 +326,19 @@ class LoopReport:
     model: UpdatedModel = field(repr=False)
     table: dict = field(repr=False)
     trace: ChannelTrace | None = field(default=None, repr=False)
-    notes: tuple[str, ...] = ()
+    decisions: tuple[Decision, ...] = ()
     steps: tuple[EffectStep, ...] = ()
     nonlinear: object = field(default=None, repr=False)
     recommended: bool = True
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """The decision trail as text, one line per :class:`Decision` ("subject: reason")."""
+        return tuple(str(d) for d in self.decisions)
+
+    def with_decision(self, stage: str, subject: str, reason: str) -> "LoopReport":
+        """A copy with one more decision at the end of the trail."""
+        return replace(self, decisions=self.decisions + (Decision(stage, subject, reason),))
 
     def se_ratio(self) -> float:
         """Validation SE of the nominal model divided by that of the updated model.
@@ -329,6 +381,7 @@ class LoopReport:
             "candidates": [c.__dict__.copy() for c in self.candidates],
             "table": {k: v.as_dict() for k, v in self.table.items()},
             "notes": list(self.notes),
+            "decisions": [d.as_dict() for d in self.decisions],
             "steps": [st.as_dict() for st in self.steps],
             "explanation": self.explanation(),
             **({"nonlinear": self.nonlinear.as_dict()} if self.nonlinear is not None else {}),

@@ -153,6 +153,7 @@ from .records import (  # noqa: E402,F401  (re-exported: greybox.workflow.LoopRe
     CRITERION_PE,
     CandidateScore,
     choice_note,
+    Decision,
     Effect,
     EVIDENCE_DHAT,
     EVIDENCE_OE,
@@ -436,15 +437,16 @@ def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
     """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs."""
     scr = screen_equations(sys, P.ys, P.us, Q=Q, R=P.R, dt=P.dt, skip=20)
     if not scr.available:
-        notes.append(f"equation screen unavailable ({scr.reason}): every single "
-                     f"equation is traced (cost grows with n)")
+        notes.append(Decision("screen", "", f"equation screen unavailable ({scr.reason}): "
+                              "every single equation is traced (cost grows with n)"))
         return chans
     top = scr.ranked(SCREEN_TOP)
     best = max((scr.score[scr.states.index(t)] for t in top), default=0.0)
     top = [t for t in top if scr.score[scr.states.index(t)] >= SCREEN_REL * best]
-    notes.append("equation screen (joint unknown-input filter): " + ", ".join(
-        f"eq({s}) z = {scr.score[scr.states.index(s)]:.3g}" for s in top) +
-        f"; {len(scr.states) - len(top)} other equations below")
+    notes.append(Decision("screen", "", "equation screen (joint unknown-input filter): " +
+                          ", ".join(f"eq({s}) z = {scr.score[scr.states.index(s)]:.3g}"
+                                    for s in top) +
+                          f"; {len(scr.states) - len(top)} other equations below"))
     keep = [c for c in chans if c.kind in ("input", "output") or
             (c.md == 1 and c.equations and c.equations[0] in top)]
     if nominal.noutputs >= 2:
@@ -569,7 +571,7 @@ class _Pass:
     """One pass of close the loop on the model ``sys``: residual, trace, choose, gate,
     before/after. Stages are methods; what they decide is kept in ``cands`` (every
     candidate's score, for the report), ``scored`` (the Candidates in play) and
-    ``notes`` (the decision trail)."""
+    ``decisions`` (the decision trail, :class:`greybox.records.Decision`)."""
 
     SKIP = 20  # leading samples left out of SE, PE and whiteness (the filters' transient)
 
@@ -578,7 +580,7 @@ class _Pass:
         self.sys, self.nominal, self.Q, self.chans, self.delta = sys, nominal, Q, chans, delta
         self.cands: list[CandidateScore] = []
         self.scored: list[Candidate] = []
-        self.notes: list[str] = []
+        self.decisions: list[Decision] = []
         self.gate: dict = {}
         self.n_eff = None  # the choice's effective samples, once it is made
         self.unstable = unstable_reason(nominal, P.y.shape[1])
@@ -603,14 +605,14 @@ class _Pass:
             self.gate["passed"] = {"whiteness": True, "trace": False}
             return self._no_update(r, "model error detected, but no candidate channel could "
                                       "explain it (see candidates)", True,
-                                   cands=self.cands, notes=self.notes)
+                                   cands=self.cands)
         v = self.judge(r, chosen)
         if not v.passed:
             failed = [k for k, ok in self.gate["passed"].items() if not ok]
             return self._no_update(r, f"model error detected (residual not white), but the best "
                                       f"candidate ({chosen.trace.channel.name}, {v.kind}) failed "
                                       f"the gate: {', '.join(failed)}; model unchanged", True,
-                                   cands=self.cands, notes=self.notes, tr=chosen.trace)
+                                   cands=self.cands, tr=chosen.trace)
         table = self.validate(r, chosen.trace, v)
         return self.report(r, chosen.trace, v, table)
 
@@ -635,14 +637,18 @@ class _Pass:
         P = self.P
         return trace_channel(self.sys, ch, P.ys, P.us, Q=self.Q, R=P.R, dt=P.dt, **kw)
 
-    def _no_update(self, r: Residual, msg, detected, cands=(), notes=(), effect=None, tr=None,
+    def note(self, stage: str, subject: str, reason: str) -> None:
+        """Record a decision of ``stage`` about ``subject`` (a channel, or "": the model)."""
+        self.decisions.append(Decision(stage, subject, reason))
+
+    def _no_update(self, r: Residual, msg, detected, cands=(), effect=None, tr=None,
                    ch=None) -> LoopReport:
         table = {"nominal": r.val_nom, "updated": r.val_nom}
         return LoopReport(model_error_detected=detected, updated=False, message=msg,
                           residual=r.white, effect=effect or Effect(kind="none"), channel=ch,
                           candidates=tuple(cands), gate=self.gate, criterion=r.crit,
                           nominal=self.nominal, model=r.nominal_model, table=table, trace=tr,
-                          notes=tuple(notes))
+                          decisions=tuple(self.decisions))
 
     # ------------------------------------------------------------------ 1. residual
     def residual(self) -> Residual:
@@ -654,7 +660,7 @@ class _Pass:
         kf = kalman_filter(nominal, P.y, P.u, Q=self.Q, R=P.R)
         k0 = kf.settled(skip)
         white = innovation_test(kf.innovations[:, k0:], S.lags, alpha=S.alpha)
-        sensors = _offset_sensors(nominal, kf, k0, white, S.alpha, self.notes) \
+        sensors = _offset_sensors(nominal, kf, k0, white, S.alpha, self.decisions) \
             if S.channels is None else ()
         x0n = estimate_initial_state(nominal, P.y, P.u)
         se_nom = _se(P.ys, kf.y_pred[:, :P.ys.shape[1]], skip) if self.unstable else \
@@ -680,7 +686,7 @@ class _Pass:
         """Score a trace's static and dynamic laws by their estimation SE (candidates)."""
         tr = _light(tr)  # every candidate's full filter record would be kept to the end
         ch, ys, us = tr.channel, self.P.ys, self.P.us
-        self.notes.extend(f"{ch.name}: {s}" for s in tr.notes)
+        self.decisions.extend(Decision("trace", ch.name, s) for s in tr.notes)
         dead = tr.static is not None and ch.md > 1 and bool(
             np.any(np.all(tr.static.coef == 0, axis=1)))
         if dead:  # a component explains nothing: the same as a smaller channel
@@ -717,7 +723,7 @@ class _Pass:
         first_max = min(S.max_order, 1)
         if self.big:
             self.chans = _screened_channels(P, self.sys, self.nominal, self.Q, self.chans,
-                                            self.notes)
+                                            self.decisions)
             # unstructured subsystems (driven by all n + m signals) cost O(n) each and read
             # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
             first_max = 0
@@ -726,8 +732,8 @@ class _Pass:
                                                if o not in have)
         defs = definitions(P.sys) if S.channels is None else []
         if defs:
-            self.notes.append("kinematic identities, definitions rather than candidate "
-                              "channels: " + ", ".join(f"eq({d})" for d in defs))
+            self.note("screen", "", "kinematic identities, definitions rather than candidate "
+                                    "channels: " + ", ".join(f"eq({d})" for d in defs))
         self.screen_forces = [c for c in self.chans if c.kind == "force"] if self.big else []
         for kc, ch in enumerate(self.chans):
             P.tick("trace candidate channels", kc, len(self.chans))
@@ -754,12 +760,12 @@ class _Pass:
         try:
             tr_ = self._trace(ch_, nonlinear=self.S.nonlinear, max_order=0, breaks=breaks)
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            self.notes.append(f"{ch_.name}: {e}")
+            self.note("trace", ch_.name, str(e))
             return None
         if tr_.status != "ok":
             return None
         if breaks and not (tr_.static is not None and tr_.static.breakpoints):
-            self.notes.append(f"{ch_.name}: no input dead zone or saturation selected")
+            self.note("trace", ch_.name, "no input dead zone or saturation selected")
             return None
         self.score(tr_)
         return next((t.trace for t in self.scored[::-1] if t.trace.channel == ch_), None)
@@ -782,7 +788,8 @@ class _Pass:
                 if rtr.status == "ok":
                     self.score(rtr)
             except (GreyboxError, np.linalg.LinAlgError) as e:
-                self.notes.append(f"{tr.channel.name} along its refitted direction: {e}")
+                self.note("generate", tr.channel.name,
+                          f"traced again along its refitted direction: {e}")
             new = [c for c in self.scored[n_before:] if c.kind == "static" and c.fit is not None]
             crit = self._criterion([pick, *new]) if new else []
             better = [c for c, k in zip(new, crit[1:]) if k < crit[0]]
@@ -842,7 +849,7 @@ class _Pass:
             try:
                 tr = self._trace(ch, nonlinear=False, max_order=S.max_order, min_order=2)
             except (GreyboxError, np.linalg.LinAlgError) as e:
-                self.notes.append(f"{ch.name}: dynamic order >= 2 failed: {e}")
+                self.note("generate", ch.name, f"dynamic order >= 2 failed: {e}")
                 continue
             tr = replace(tr, static=None, static_model=None)
             self.score(tr)
@@ -945,7 +952,7 @@ class _Pass:
                     self._input_lag(tr_, fit_input_lag2(
                         sys, ch, j, P.y, P.u, tau=dl.tau, **kw), j)
             except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-                self.notes.append(f"{ch.name}: actuator lag failed: {e}")
+                self.note("generate", ch.name, f"actuator lag failed: {e}")
 
     def _input_lag(self, tr_, dl, j: int) -> float:
         """Score input j's lag law ``dl`` (order 1 or 2; None: nothing) on ``tr_``'s
@@ -969,7 +976,7 @@ class _Pass:
                                     P.y, P.u, Q=self.Q, R=P.R, dt=P.dt, x0=res_.x_filt[:, 0],
                                     k0=k0s, pole=pole0, d_noise=_d_noise(res_))
         except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-            self.notes.append(f"{ch.name}: sparse dynamic law failed: {e}")
+            self.note("generate", ch.name, f"sparse dynamic law failed: {e}")
             return
         if dl is None:
             return
@@ -988,7 +995,7 @@ class _Pass:
             fit = None if dl is None else self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
             se = np.inf if fit is None else fit.se
         except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-            self.notes.append(f"{ch.name}: shared-state law failed: {e}")
+            self.note("generate", ch.name, f"shared-state law failed: {e}")
             return False
         if dl is not None and dl.one_direction and any(
                 t.trace.channel.kind == "force" and
@@ -1005,17 +1012,17 @@ class _Pass:
             # mass, the order-2 fits cost 18 s of 41 s)
             others = [t.se for t in self.scored[:-1] if np.isfinite(t.se)]
             if others and not se <= ORDER2_WITHIN * min(others):
-                self.notes.append(f"{ch.name}: no second-order shared law tried: the "
-                                  f"first-order one ({se:.3g} %) is not within "
-                                  f"{ORDER2_WITHIN:g}x of the best candidate's SE "
-                                  f"({min(others):.3g} %)")
+                self.note("generate", ch.name, f"no second-order shared law tried: the "
+                                               f"first-order one ({se:.3g} %) is not within "
+                                               f"{ORDER2_WITHIN:g}x of the best candidate's SE "
+                                               f"({min(others):.3g} %)")
             elif self.white_shared:
-                self.notes.append(f"{ch.name}: no second-order shared law tried: "
-                                  f"{self.white_shared[0]}'s leaves white innovations")
+                self.note("generate", ch.name, f"no second-order shared law tried: "
+                                               f"{self.white_shared[0]}'s leaves white innovations")
             elif _leaves_white(dl.model, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
                 self.white_shared.append(ch.name)
-                self.notes.append(f"{ch.name}: no second-order shared law tried: the "
-                                  f"first-order one leaves white innovations")
+                self.note("generate", ch.name, f"no second-order shared law tried: the "
+                                               f"first-order one leaves white innovations")
             else:
                 self._shared_higher(tr_, dl, res_, k0s, se, r)
         return True
@@ -1036,11 +1043,11 @@ class _Pass:
                                                            dl2.model.R)
             se2 = np.inf if fit2 is None else fit2.se
         except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-            self.notes.append(f"{ch.name}: {word}-order shared law failed: {e}")
+            self.note("generate", ch.name, f"{word}-order shared law failed: {e}")
             return
         if dl2 is None:
-            self.notes.append(f"{ch.name}: no {word}-order shared law (unstable, or a gain or "
-                              f"an interval the data do not determine)")
+            self.note("generate", ch.name, f"no {word}-order shared law (unstable, or a gain or "
+                                           f"an interval the data do not determine)")
             return
         self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", dl2.order, se2,
                                          dl2.npar, "ok"))
@@ -1050,15 +1057,16 @@ class _Pass:
             return
         others = [t.se for t in self.scored[:-1] if np.isfinite(t.se)]
         if not se2 < se:
-            self.notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
-                              f"one ({se2:.3g} %) fits no better than the first ({se:.3g} %)")
+            self.note("generate", ch.name, f"no third-order shared law tried: the second-order "
+                                           f"one ({se2:.3g} %) fits no better than the first "
+                                           f"({se:.3g} %)")
         elif not se2 <= min(others, default=np.inf):
-            self.notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
-                              f"one ({se2:.3g} %) does not lead the candidates (best "
-                              f"{min(others):.3g} %)")
+            self.note("generate", ch.name, f"no third-order shared law tried: the second-order "
+                                           f"one ({se2:.3g} %) does not lead the candidates (best "
+                                           f"{min(others):.3g} %)")
         elif _leaves_white(dl2.model, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
-            self.notes.append(f"{ch.name}: no third-order shared law tried: the second-order "
-                              f"one leaves white innovations")
+            self.note("generate", ch.name, f"no third-order shared law tried: the second-order "
+                                           f"one leaves white innovations")
         else:
             self._shared_higher(tr2, dl2, res_, k0s, se2, r)
 
@@ -1087,7 +1095,7 @@ class _Pass:
                                     x0=res_.x_filt[:, 0], k0=k0s,
                                     pole=float(np.exp(dl.pole * P.dt)))
         except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-            self.notes.append(f"{fch.name} along the shared law's direction: {e}")
+            self.note("generate", fch.name, f"traced again along the shared law's direction: {e}")
             return
         if fl is None:
             return
@@ -1116,9 +1124,9 @@ class _Pass:
         order = sorted(range(len(finite)), key=lambda i: (crit[i], finite[i].npar,
                                                           finite[i].trace.channel.md,
                                                           finite[i].se))
-        self.notes.append(choice_note(
-            [f"{c.trace.channel.name} {c.kind}" for c in finite], [c.npar for c in finite],
-            [c.se for c in finite], crit, order, self.n_eff, self.S.bic_factor))
+        self.note("choose", "", choice_note(
+                  [f"{c.trace.channel.name} {c.kind}" for c in finite], [c.npar for c in finite],
+                  [c.se for c in finite], crit, order, self.n_eff, self.S.bic_factor))
         return self.pruned(self.retraced(finite[order[0]]))
 
     def _criterion(self, cands) -> np.ndarray:
@@ -1142,7 +1150,7 @@ class _Pass:
             tr = self._trace(pick.trace.channel, nonlinear=self.S.nonlinear, max_order=0,
                              breaks=breaks, prune=True)
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            self.notes.append(f"{pick.trace.channel.name}: criterion prune failed: {e}")
+            self.note("choose", pick.trace.channel.name, f"criterion prune failed: {e}")
             return pick
         if tr.status != "ok" or tr.static is None or tr.static.npar >= law.npar:
             return pick
@@ -1188,7 +1196,7 @@ class _Pass:
                           "passed": passed, "evidence": evidence})
         ok = passed["bic"] and passed["se_drop"]
         if ok and kind == "static" and not effect.nonlinear:
-            model = _noise_by_likelihood(model, self.Q, P.ys, P.us, self.SKIP, self.notes)
+            model = _noise_by_likelihood(model, self.Q, P.ys, P.us, self.SKIP, self.decisions)
         return Verdict(effect=effect, model=model, kind=kind, passed=ok)
 
     def _evidence(self, r: Residual, chosen: Candidate) -> tuple[float, float, str]:
@@ -1238,8 +1246,8 @@ class _Pass:
             table["updated (linearized)"] = validate_model(
                 model.sys, P.y_val, P.u_val, Q=model.Q, R=model.R, x0="estimate",
                 name="updated (linearized)", lags=S.lags, alpha=S.alpha, skip=skip)
-            self.notes.append("the law is nonlinear: the updated StateSpace holds its best "
-                              "linear part; the 'updated' row simulates the full law")
+            self.note("validate", "", "the law is nonlinear: the updated StateSpace holds its best "
+                                      "linear part; the 'updated' row simulates the full law")
         else:
             table["updated"] = validate_model(model.sys, P.y_val, P.u_val, Q=model.Q,
                                               R=model.R, x0="estimate", name="updated",
@@ -1250,7 +1258,7 @@ class _Pass:
         P.tick("validation", 2 if self.delta else 1, 2 if self.delta else 1)
         for name, row in table.items():
             if not row.se_defined:
-                self.notes.append(f"{name}: SE n/a: {row.se_reason}")
+                self.note("validate", name, f"SE n/a: {row.se_reason}")
         return table
 
     def _baseline(self, r: Residual, table: dict) -> None:
@@ -1260,15 +1268,15 @@ class _Pass:
             dm, bound = _delta_baseline(self.nominal, P.y, P.u, self.Q, P.R, S.delta_max_order,
                                         r.x0n, max(time.monotonic() - r.t_pass,
                                                    DELTA_MIN_BUDGET_S))
-            self.notes.append(dm.message)
+            self.note("baseline", "", dm.message)
             if bound:
-                self.notes.append(bound)
+                self.note("baseline", "", bound)
             table["delta"] = validate_model(dm.updated.sys, P.y_val, P.u_val, Q=dm.updated.Q,
                                             R=dm.updated.R, name="delta",
                                             x0=dm.initial_state(P.y_val, P.u_val),
                                             lags=S.lags, alpha=S.alpha, skip=self.SKIP)
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            self.notes.append(f"parallel delta baseline failed: {e}")
+            self.note("baseline", "", f"parallel delta baseline failed: {e}")
 
     # ------------------------------------------------------------------ 5. report
     def report(self, r: Residual, tr, v: Verdict, table: dict) -> LoopReport:
@@ -1292,7 +1300,7 @@ class _Pass:
                           residual=r.white, effect=effect, channel=ch,
                           candidates=tuple(self.cands), gate=self.gate, criterion=r.crit,
                           nominal=self.nominal, model=v.model, table=table, trace=tr,
-                          notes=tuple(self.notes))
+                          decisions=tuple(self.decisions))
 
 
 def _logdet_gain(d, r) -> float:
@@ -1329,9 +1337,10 @@ def _noise_by_likelihood(model: UpdatedModel, Q, y, u, skip, notes) -> UpdatedMo
                           float(np.sum(e * np.linalg.solve(S, e)))))
     if not ll[1] > ll[0]:
         return model
-    notes.append(f"noise model: the law's residual variance (eq. 30) is left out of Q: the "
-                 f"innovations are likelier without it (log-likelihood {ll[0]:.6g} -> "
-                 f"{ll[1]:.6g}); that residual is d^'s estimation error, not process noise")
+    notes.append(Decision(
+        "gate", "", f"noise model: the law's residual variance (eq. 30) is left out of Q: "
+        f"the innovations are likelier without it (log-likelihood {ll[0]:.6g} -> "
+        f"{ll[1]:.6g}); that residual is d^'s estimation error, not process noise"))
     return replace(model, Q=Qp)
 
 
@@ -1562,7 +1571,7 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
 
 
 def _offset_sensors(nominal: ct.StateSpace, kf, k0: int, white: WhitenessTest, alpha: float,
-                    notes: list) -> tuple[str, ...]:
+                    notes: list[Decision]) -> tuple[str, ...]:
     """The sensors whose constant offset explains the innovations' mean, offered as
     candidate channels (above ``_AUTO_OUTPUTS`` outputs there are none by default); the
     criterion still chooses.
@@ -1582,11 +1591,12 @@ def _offset_sensors(nominal: ct.StateSpace, kf, k0: int, white: WhitenessTest, a
     keep = [(o, b, m) for o, b, m in zip(scr.outputs, scr.offset, scr.misfit)
             if m <= limit and scr.null - m >= one]
     if keep:
-        notes.append("sensor screen (the innovations' mean against one constant offset per "
-                     "sensor): " + ", ".join(f"output({o}) offset {b:.3g}, evidence "
-                                             f"{scr.null - m:.3g}, misfit {m:.3g}"
-                                             for o, b, m in keep)
-                     + f" (limits {one:.3g} and {limit:.3g})")
+        notes.append(Decision(
+            "screen", "", "sensor screen (the innovations' mean against one constant offset "
+            "per sensor): " + ", ".join(f"output({o}) offset {b:.3g}, evidence "
+                                        f"{scr.null - m:.3g}, misfit {m:.3g}"
+                                        for o, b, m in keep)
+            + f" (limits {one:.3g} and {limit:.3g})"))
     return tuple(o for o, _, _ in keep)
 
 
@@ -1705,7 +1715,7 @@ def _loop(once, sys, nominal, Q, spec, chans, delta, max_effects, dt, joint) -> 
     row = rep.table.get("updated") if rep.updated else None
     note = None if row is None else _input_correlation_note(row, sys.input_labels,
                                                             sys.output_labels)
-    return rep if note is None else replace(rep, notes=tuple(rep.notes) + (note,))
+    return rep if note is None else rep.with_decision("validate", "", note)
 
 
 def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
@@ -1715,7 +1725,7 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
     if not first.updated:
         return first
     steps, reps, bases = [], [first], [sys]
-    notes = list(first.notes)
+    notes = list(first.decisions)
     cur_sys, rep = sys, first
     while True:
         tb = rep.table
@@ -1725,8 +1735,8 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
         if len(steps) >= max_effects:
             break
         if rep.effect.nonlinear:
-            notes.append("several effects: the loop stops after a nonlinear law (the next pass "
-                         "would need the law in its base model)")
+            notes.append(Decision("loop", "", "several effects: the loop stops after a nonlinear "
+                                  "law (the next pass would need the law in its base model)"))
             break
         nxt = _next_model(cur_sys, rep)
         nom_next = nxt if ct.isdtime(nxt, strict=True) else discretize(nxt, dt)
@@ -1734,16 +1744,17 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
             rep2 = once(nxt, nom_next, rep.model.Q,
                         _channels_for(nxt, spec, sys, sys.nstates), False)
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            notes.append(f"several effects: pass {len(steps) + 1} failed: {e}")
+            notes.append(Decision("loop", "",
+                                  f"several effects: pass {len(steps) + 1} failed: {e}"))
             break
-        notes.append(f"pass {len(steps) + 1}: {rep2.message}")
+        notes.append(Decision("loop", "", f"pass {len(steps) + 1}: {rep2.message}"))
         if not rep2.updated:
             break
         cur_sys, rep = nxt, rep2
         reps.append(rep2)
         bases.append(nxt)
     if len(steps) == 1:
-        return replace(first, steps=tuple(steps), notes=tuple(notes))
+        return replace(first, steps=tuple(steps), decisions=tuple(notes))
     last = reps[-1]
     table = dict(first.table)
     for k in ("updated", "updated (linearized)"):
@@ -1771,7 +1782,7 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
     if last.effect.nonlinear:  # the last pass's law is nonlinear: its exact model
         nl = nonlinear_update_of_linear(last).nonlinear
     return replace(first, message=msg, model=model, table=table, steps=tuple(steps),
-                   notes=tuple(notes), nonlinear=nl)
+                   decisions=tuple(notes), nonlinear=nl)
 
 
 def _refit_jointly(joint, passes, final, Qf, notes):
@@ -1784,16 +1795,17 @@ def _refit_jointly(joint, passes, final, Qf, notes):
     try:
         out = joint(passes, final, Qf)
     except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
-        notes.append(f"joint refinement failed: {e}")
+        notes.append(Decision("refit", "", f"joint refinement failed: {e}"))
         return None
     if out is None:
         return None
     jr, row = out
     drop = f"; dropped {', '.join(jr.dropped)}" if jr.dropped else ""
-    notes.append(f"joint refinement of the {len(passes)} effects by output error: estimation "
-                 f"SE {jr.se_before:.3g}% -> {jr.se_after:.3g}%, {jr.npar_before} -> "
-                 f"{jr.npar_after} coefficients{drop}" +
-                 ("" if row is not None else " (not kept: no better)"))
+    notes.append(Decision(
+        "refit", "", f"joint refinement of the {len(passes)} effects by output error: estimation "
+        f"SE {jr.se_before:.3g}% -> {jr.se_after:.3g}%, {jr.npar_before} -> "
+        f"{jr.npar_after} coefficients{drop}" +
+        ("" if row is not None else " (not kept: no better)")))
     return None if row is None else (jr, row)
 
 
@@ -1826,22 +1838,25 @@ def _retrace_last(once, joint, jr, passes, Q, steps, chans, dt, notes):
     try:
         rep = once(base, discretize(base, dt), Q, chans, False)
     except (GreyboxError, np.linalg.LinAlgError) as e:
-        notes.append(f"re-trace of the last effect failed: {e}")
+        notes.append(Decision("refit", "", f"re-trace of the last effect failed: {e}"))
         return None
     if not rep.updated or rep.effect.nonlinear:
-        notes.append(f"re-trace of the last effect on the refitted model: {rep.message}")
+        notes.append(Decision("refit", "", "re-trace of the last effect on the refitted model: "
+                              + rep.message))
         return None
     earlier = [(b, ch, st.effect) for (b, ch, _), st in zip(passes[:-1], steps[:-1])]
     alt = passes[:-1] + [(base, rep.channel, rep.effect)]
     out = _refit_jointly(joint, earlier + [(base, rep.channel, rep.effect)],
                          _next_model(base, rep), rep.model.Q, notes)
     if out is None or not out[0].se_after < jr.se_after:
-        notes.append("re-trace of the last effect on the refitted model: no better")
+        notes.append(Decision("refit", "", "re-trace of the last effect on the refitted model: "
+                              "no better"))
         return None
     jr2, row2 = out
     tb = rep.table
     last = EffectStep(effect=rep.effect, channel=rep.channel.name, message=rep.message,
                       se_before=tb["nominal"].se.value, se_after=tb["updated"].se.value,
                       model=rep.model)
-    notes.append(f"re-trace of the last effect on the refitted model: {rep.message}")
+    notes.append(Decision("refit", "", "re-trace of the last effect on the refitted model: "
+                          + rep.message))
     return jr2, row2, _refitted_steps(steps[:-1] + [last], alt, jr2, row2)

@@ -145,7 +145,7 @@ from .trace.laws import _fit_static, _law_line
 from .trace.oe import _noise_floor, forward_select_oe
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after, undefined_error
-from .records import CRITERION, CandidateScore, Effect, LoopReport, choice_note
+from .records import CRITERION, CandidateScore, Decision, Effect, LoopReport, choice_note
 
 __all__ = ["NonlinearUpdate", "close_the_loop_nonlinear", "nonlinear_update_of_linear"]
 
@@ -1063,8 +1063,9 @@ def _held_out_terms(chosen, base, ch, disc, y, u, x_start, C, D, noise, notes):
             keep = [k for k in range(len(sel)) if k != q]
             if held([sel[k] for k in keep], theta[keep]) <= full:
                 c, j = sel[q]
-                notes.append(f"{ch.name}: the term {law.spec[j][0]} chosen by output error "
-                             f"does not improve the simulation of held-out samples: dropped")
+                notes.append(Decision("generate", ch.name, f"the term {law.spec[j][0]} chosen by "
+                                      "output error does not improve the simulation of "
+                                      "held-out samples: dropped"))
                 coef = law.coef.copy()
                 coef[c, j] = 0.0
                 return _refine_pruned(replace(law, coef=coef, npar=law.npar - 1), base, ch,
@@ -1183,23 +1184,23 @@ def _joint_refit(base, disc, law, ch, y, u, x_start, C, D, se_fixed: float, nfre
         jr = replace(jr, parameters=tuple(replace(pc, nominal=declared.get(pc.name, pc.nominal))
                                           for pc in jr.parameters))
     if alone is None or jr is None or jr.law is None:
-        notes.append(f"{ch.name}: the nominal's declared parameters could not be refitted "
-                     f"with the law (the output-error fit failed); kept")
+        notes.append(Decision("refit", ch.name, "the nominal's declared parameters could not be "
+                              "refitted with the law (the output-error fit failed); kept"))
         return None
     n = yy.size / _residual_colour(jr.residual)
     bic_j = n * np.log(jr.se**2) + jr.nfree * np.log(n)
     bic_f = n * np.log(se_fixed**2) + nfree_fixed * np.log(n) if np.isfinite(se_fixed) \
         else np.inf
-    text = (f"{ch.name}: nominal parameters refitted with the law by output error "
+    text = (f"nominal parameters refitted with the law by output error "
             f"(estimation SE {jr.se:.3g} %, the law on the fixed nominal {se_fixed:.3g} %, "
             f"the parameters alone {alone.se:.3g} %): {jr.parameter_text()}")
     if jr.spill:
         text += f"; the law also enters {jr.spill_text()}"
     if not bic_j < bic_f:
-        notes.append(text + " -- not kept: higher output-error BIC than the law on the fixed "
-                     "nominal")
+        notes.append(Decision("refit", ch.name, text + " -- not kept: higher output-error BIC "
+                                                       "than the law on the fixed nominal"))
         return None
-    notes.append(text)
+    notes.append(Decision("refit", ch.name, text))
     return _JointFit(alone=alone, refit=jr)
 
 
@@ -1245,12 +1246,13 @@ def _pick_after_refit(near, starts, disc, y, u, x0_of, C, D, notes):
     bic = [n * np.log(jr.se ** 2) + jr.nfree * np.log(n) if jr is not None else np.inf
            for jr, _ in fits]
     i = int(np.argmin(bic))
-    notes.append("candidates the criterion does not separate compared with the nominal's "
-                 "declared parameters refitted with each law (output-error BIC, lower is better): "
-                 + ", ".join(f"{s.channel.name} {b:.1f} (SE {f[0].se:.3g} %)"
-                             if f[0] is not None else f"{s.channel.name} failed"
-                             for s, b, f in zip(near[:_REFIT_NEAR], bic, fits))
-                 + f"; chosen {near[i].channel.name}")
+    notes.append(Decision(
+        "choose", "", "candidates the criterion does not separate compared with the nominal's "
+        "declared parameters refitted with each law (output-error BIC, lower is better): "
+        + ", ".join(f"{s.channel.name} {b:.1f} (SE {f[0].se:.3g} %)"
+                    if f[0] is not None else f"{s.channel.name} failed"
+                    for s, b, f in zip(near[:_REFIT_NEAR], bic, fits))
+        + f"; chosen {near[i].channel.name}"))
     return _Pick(candidate=near[i], start=fits[i][1], refit=fits[i][0])
 
 
@@ -1679,7 +1681,7 @@ class _NonlinearPass:
 
     What they decide is kept in ``cands`` (every candidate's score, for the report),
     ``scored`` (the :class:`_LawCandidate` in play), ``x0_of`` (where each channel's
-    simulations start), ``gate`` and ``notes`` (the decision trail). ``base`` and
+    simulations start), ``gate`` and ``decisions`` (the decision trail). ``base`` and
     ``kf`` are the nominal the trace runs on and its UKF: the declared parameters
     refitted alone when that lowered the estimation SE (stage 1b, ``alone``);
     ``joint`` the refit of stage 2c when it was kept.
@@ -1693,11 +1695,15 @@ class _NonlinearPass:
         self.scored: list[_LawCandidate] = []
         self.x0_of: dict = {}
         self.gate: dict = {}
-        self.notes: list[str] = []
+        self.decisions: list[Decision] = []
         if P.cont:
-            self.notes.append(f"continuous model discretized with RK4, {P.nsub} sub-step(s) per "
-                              f"sample (inputs and d held over the sample); every model in the "
-                              f"table uses it")
+            self.note("residual", "", f"continuous model discretized with RK4, {P.nsub} "
+                                      f"sub-step(s) per sample (inputs and d held over the "
+                                      f"sample); every model in the table uses it")
+
+    def note(self, stage: str, subject: str, reason: str) -> None:
+        """Record a decision of ``stage`` about ``subject`` (a channel, or "": the model)."""
+        self.decisions.append(Decision(stage, subject, reason))
 
     # ------------------------------------------------------------------ reports
     def _nominal_update(self, r: _Residual, refused=None) -> NonlinearUpdate:
@@ -1720,7 +1726,7 @@ class _NonlinearPass:
                           gate=self.gate if gate is None else gate, criterion=r.crit,
                           nominal=r.lin_nom, model=model,
                           table=table or {"nominal": r.val_nom, "updated": r.val_nom},
-                          trace=tr, notes=tuple(self.notes), nonlinear=nl)
+                          trace=tr, decisions=tuple(self.decisions), nonlinear=nl)
 
     def recommended(self, r: _Residual, rep: LoopReport) -> LoopReport:
         """6. The update as it is when it predicts the validation record better; else the
@@ -1779,10 +1785,10 @@ class _NonlinearPass:
         alone = refit_jointly(P.base, P.disc, P.y[:, SKIP:], P.u[:, SKIP:],
                               self.kf.x_filt[:, SKIP], P.C, P.D)
         if alone is not None and alone.se < r.se_nom:
-            self.notes.append(f"the nominal's declared parameters refitted alone by output "
-                              f"error: estimation SE {r.se_nom:.3g} % -> {alone.se:.3g} % "
-                              f"({alone.parameter_text()}); the trace runs on this refitted "
-                              f"nominal")
+            self.note("refit", "", f"the nominal's declared parameters refitted alone by output "
+                                   f"error: estimation SE {r.se_nom:.3g} % -> {alone.se:.3g} % "
+                                   f"({alone.parameter_text()}); the trace runs on this refitted "
+                                   f"nominal")
             self.alone, self.base = alone, alone.model
             self.kf = ukf(P.disc(self.base), P.y, P.u, Q=P.Q, R=P.R, x0=P.x_guess, P0=P.P0)
             white_p = innovation_test(self.kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
@@ -1838,17 +1844,17 @@ class _NonlinearPass:
         """2. Trace every candidate channel with the unknown-input UKF; static laws on d^."""
         P = self.P
         chans = resolve_channel_spec(r.lin_cont, self.S.channels)
-        self.notes.append("nonlinear nominal: candidate channels from its linearization at "
-                          "the operating point; static laws only (dynamic subsystem laws are "
-                          "linear and not offered)")
+        self.note("screen", "", "nonlinear nominal: candidate channels from its linearization at "
+                                "the operating point; static laws only (dynamic subsystem laws are "
+                                "linear and not offered)")
         if self.S.channels is None and P.cont:  # a definition is never a candidate channel
             k = np.unique(np.linspace(SKIP, P.y.shape[1] - 1, 64).astype(int))
             defs = set(kinematic_identities(P.base, self.kf.x_filt[:, k], P.u[:, k]))
             if defs:
                 chans = [c for c in chans if not set(c.equations) & defs]
-                self.notes.append("kinematic identities, definitions rather than candidate "
-                                  "channels: " + ", ".join(
-                                      f"eq({d})" for d in P.base.state_labels if d in defs))
+                self.note("screen", "", "kinematic identities, definitions rather than candidate "
+                                        "channels: " + ", ".join(
+                                            f"eq({d})" for d in P.base.state_labels if d in defs))
         for kc, ch in enumerate(chans):
             P.tick("trace candidate channels", kc, len(chans))
             self.trace_channel(r, ch, kc, len(chans))
@@ -1920,15 +1926,16 @@ class _NonlinearPass:
                                              f"static law on d^: {e}"))
             return
         if dh.alt:
-            self.notes.append(f"{ch.name}: d^ alternates sign (lag-1 autocorrelation "
-                              f"{dh.r1:.2f}): the static law is fitted on the mean of "
-                              f"consecutive samples")
+            self.note("trace", ch.name, f"d^ alternates sign (lag-1 autocorrelation "
+                                        f"{dh.r1:.2f}): the static law is fitted on the mean of "
+                                        f"consecutive samples")
         if dh.r > 1:
-            self.notes.append(f"{ch.name}: relative degree {dh.r} (delayed unscented estimate, "
-                              f"greybox.delayed_ui_ukf): d^[j] estimates " + ", ".join(
-                                  f"{labels[c]}: " + " + ".join(
-                                      f"{dh.align[c, i]:.3g}*d[j+{i}]" for i in range(dh.r))
-                                  for c in range(len(labels))))
+            self.note("trace", ch.name,
+                      f"relative degree {dh.r} (delayed unscented estimate, "
+                      f"greybox.delayed_ui_ukf): d^[j] estimates " + ", ".join(
+                          f"{labels[c]}: " + " + ".join(
+                              f"{dh.align[c, i]:.3g}*d[j+{i}]" for i in range(dh.r))
+                          for c in range(len(labels))))
         tr = ChannelTrace(channel=ch, status="ok", model=dh.model, filter_result=dh.result,
                           static=law, relative_degree=dh.r)
         noise_ch = _noise_of(dh.result, P.Q, P.R, self.kf.P_filt)
@@ -1978,7 +1985,7 @@ class _NonlinearPass:
                                 noise_ch)
         if chosen is not None and chosen.law.npar > 1:
             chosen = _held_out_terms(chosen, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D,
-                                     noise_ch, self.notes)
+                                     noise_ch, self.decisions)
         return chosen
 
     def _dhat_candidate(self, tr, dh: _DHat, x0c, noise_ch) -> _LawCandidate:
@@ -2070,14 +2077,14 @@ class _NonlinearPass:
                                                           finite[i].channel.md, finite[i].se))
         one = S.bic_factor * np.log(max(float(np.sum(n_eff)), 2.0))
         near = [finite[i] for i in order if crit[i] <= crit[order[0]] + one]
-        self.notes.append(choice_note([c.channel.name for c in finite],
-                                      [c.npar for c in finite], [c.se for c in finite], crit,
-                                      order, n_eff, S.bic_factor))
+        self.note("choose", "", choice_note([c.channel.name for c in finite],
+                                            [c.npar for c in finite], [c.se for c in finite], crit,
+                                            order, n_eff, S.bic_factor))
         if not (S.refit_parameters and self.declared and len(near) > 1):
             return _Pick(candidate=near[0], start=self.base)
         P.tick("candidates refitted with the nominal's parameters", 0, 1)
         pick = _pick_after_refit(near, (self.base, P.base), P.disc, P.y, P.u, self.x0_of,
-                                 P.C, P.D, self.notes)
+                                 P.C, P.D, self.decisions)
         P.tick("candidates refitted with the nominal's parameters", 1, 1)
         return pick
 
@@ -2090,30 +2097,33 @@ class _NonlinearPass:
         P.tick("output-error refinement", 0, 1)
         ref = None
         if c.oe_terms:
-            self.notes.append(f"{ch.name}: d^ is mostly estimation noise: the law's terms were "
-                              f"chosen by output error on y (forward selection, BIC on the "
-                              f"effective sample count Ny / colour), its coefficients and "
-                              f"levels refined by output error")
+            self.note("generate", ch.name,
+                      f"d^ is mostly estimation noise: the law's terms were "
+                      f"chosen by output error on y (forward selection, BIC on the "
+                      f"effective sample count Ny / colour), its coefficients and "
+                      f"levels refined by output error")
         elif c.refined and any(law.spec[j][1] in HINGE_KINDS
                                for j in np.flatnonzero(law.coef.any(0))):
-            self.notes.append(f"{ch.name}: the law's saturation hinges alone, refined by output "
-                              f"error on y (coefficients and levels), were chosen over the full "
-                              f"d^ law")
+            self.note("generate", ch.name,
+                      f"the law's saturation hinges alone, refined by output "
+                      f"error on y (coefficients and levels), were chosen over the full "
+                      f"d^ law")
         elif c.refined:
-            self.notes.append(f"{ch.name}: the delayed d^ law was refined by output error on y "
-                              f"before the channels were compared")
+            self.note("generate", ch.name, f"the delayed d^ law was refined by output error on y "
+                                           f"before the channels were compared")
         elif law.npar <= OE_MAX_TERMS:
             ref = _refine_law_oe(law, self.base, ch, P.disc, P.y, P.u, self.x0_of[ch.name], P.C,
                                  P.D, _noise_of(c.trace.filter_result, P.Q, P.R, self.kf.P_filt))
         else:
-            self.notes.append(f"{ch.name}: the law has {law.npar} terms (> {OE_MAX_TERMS}): not "
-                              f"refined by output error (each term costs a simulation per "
-                              f"iteration)")
+            self.note("generate", ch.name,
+                      f"the law has {law.npar} terms (> {OE_MAX_TERMS}): not "
+                      f"refined by output error (each term costs a simulation per "
+                      f"iteration)")
         if ref is not None:
             se_r = _se_from(P.disc(ref.model), P.u, self.x0_of[ch.name], P.y, P.C, P.D)
             if se_r < c.se:
-                self.notes.append(f"{ch.name}: law refined by output error on y: estimation SE "
-                                  f"{c.se:.3g}% -> {se_r:.3g}%")
+                self.note("generate", ch.name, f"law refined by output error on y: estimation SE "
+                                               f"{c.se:.3g}% -> {se_r:.3g}%")
                 c = replace(c, se=se_r, trace=replace(c.trace, static=ref.law), model=ref.model,
                             evidence=ref.evidence)
         P.tick("output-error refinement", 1, 1)
@@ -2131,7 +2141,7 @@ class _NonlinearPass:
         joint = _joint_refit(pick.start, P.disc, law, ch, P.y, P.u, self.x0_of[ch.name], P.C,
                              P.D, c.se,
                              int(c.evidence.nfree) if c.evidence is not None else law.npar,
-                             self.notes, self.declared, self.alone,
+                             self.decisions, self.declared, self.alone,
                              jr=pick.refit if law is pick.candidate.law else None)
         if joint is not None:
             self.alone, self.joint, jr = joint.alone, joint, joint.refit
@@ -2206,8 +2216,8 @@ class _NonlinearPass:
                                        law_gate=self.gate, tr=tr)
             if rep is not None:
                 return rep
-            self.notes.append("the declared parameters refitted alone failed their gate too "
-                              f"(estimation SE {r.se_nom:.3g} % -> {self.alone.se:.3g} %)")
+            self.note("gate", "", "the declared parameters refitted alone failed their gate too "
+                                  f"(estimation SE {r.se_nom:.3g} % -> {self.alone.se:.3g} %)")
         nl = self._nominal_update(r, refused=self.joint.refit) if self.joint is not None \
             else None
         return self._report(r, f"model error detected (UKF innovations not white), but the "
@@ -2221,8 +2231,8 @@ class _NonlinearPass:
         passed = dict(self.gate.get("passed", {}))
         passed["validation"] = False
         self.gate["passed"] = passed
-        self.notes.append(f"{ch.name}: the updated model's predictor diverged on the validation "
-                          f"record: {err}")
+        self.note("validate", ch.name, f"the updated model's predictor diverged on the validation "
+                                       f"record: {err}")
         return self._report(r, f"model error detected (UKF innovations not white), and the "
                                f"best candidate ({ch.name}, static) passed the gate, but the "
                                f"updated model diverges on the validation record; model "
@@ -2232,19 +2242,21 @@ class _NonlinearPass:
         """Notes on a law that passed the gate: far above the noise floor, or weak terms."""
         ch, law = v.candidate.channel, v.candidate.law
         if v.floor_ratio > FLOOR_NOTE ** 2:
-            self.notes.append(f"{ch.name}: the updated model's simulation error on the "
-                              f"estimation data is {np.sqrt(v.floor_ratio):.1f}x (RMS) what the "
-                              f"noise model (Q, R) allows: the law explains part of the error; "
-                              f"it may be incomplete, or a proxy for another law (e.g. a term "
-                              f"of the right one missing)")
+            self.note("gate", ch.name,
+                      f"the updated model's simulation error on the "
+                      f"estimation data is {np.sqrt(v.floor_ratio):.1f}x (RMS) what the "
+                      f"noise model (Q, R) allows: the law explains part of the error; "
+                      f"it may be incomplete, or a proxy for another law (e.g. a term "
+                      f"of the right one missing)")
         weak = _weak_terms(law)
         if weak:
-            self.notes.append(f"{ch.name}: {len(weak)} of the law's {law.npar} terms "
-                              f"({', '.join(weak)}) have 95 % intervals containing 0: d^ is "
-                              f"mostly estimation noise in this channel (e.g. a velocity "
-                              f"equation seen through positions only) and the law may be "
-                              f"spurious; measure the state the suspected equation drives, or "
-                              f"name the channel (channels=...)")
+            self.note("gate", ch.name,
+                      f"{len(weak)} of the law's {law.npar} terms "
+                      f"({', '.join(weak)}) have 95 % intervals containing 0: d^ is "
+                      f"mostly estimation noise in this channel (e.g. a velocity "
+                      f"equation seen through positions only) and the law may be "
+                      f"spurious; measure the state the suspected equation drives, or "
+                      f"name the channel (channels=...)")
 
     # ------------------------------------------------------------------ 4. validate
     def _updated(self, r: _Residual, model, **changes) -> _BeforeAfter:
@@ -2277,17 +2289,18 @@ class _NonlinearPass:
                            spill=jr.spill if jr is not None else ())
         P.tick("validation", 1, 1)
         nl = ba.update
-        self.notes.append(f"the 'nominal' and 'updated' rows simulate the nonlinear models"
-                          f"{' (RK4)' if P.cont else ''}; report.model.sys (updated_model.json) "
-                          f"is the updated model's linearization at x_op = "
-                          f"{np.array2string(nl.x_op, precision=4)}, u_op = "
-                          f"{np.array2string(P.u_mean, precision=4)} ({nl.operating_point}), "
-                          f"not a row of the table")
-        self.notes.append("the parallel delta baseline (linear) is not computed for a "
-                          "nonlinear nominal model")
+        self.note("validate", "",
+                  f"the 'nominal' and 'updated' rows simulate the nonlinear models"
+                  f"{' (RK4)' if P.cont else ''}; report.model.sys (updated_model.json) "
+                  f"is the updated model's linearization at x_op = "
+                  f"{np.array2string(nl.x_op, precision=4)}, u_op = "
+                  f"{np.array2string(P.u_mean, precision=4)} ({nl.operating_point}), "
+                  f"not a row of the table")
+        self.note("baseline", "", "the parallel delta baseline (linear) is not computed for a "
+                                  "nonlinear nominal model")
         for name, row in ba.table.items():
             if not row.se_defined:
-                self.notes.append(f"{name}: SE n/a: {row.se_reason}")
+                self.note("validate", name, f"SE n/a: {row.se_reason}")
         return ba
 
     # ------------------------------------------------------------------ 5. report
@@ -2386,4 +2399,4 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
              "near 0: use greybox.linearize_at at your own operating point)"
              if any(term_kind(s[1]).smoothed and np.any(eff.law.coef[:, j])
                     for j, s in enumerate(eff.law.spec)) else ""))
-    return replace(rep, nonlinear=nl, notes=tuple(rep.notes) + (note,))
+    return replace(rep, nonlinear=nl).with_decision("validate", "", note)

@@ -36,7 +36,7 @@ GOLDEN = Path(__file__).resolve().parent / "golden"
 RTOL = 1e-6
 # a number in text, not the digits of a name (p2, x1, sys[3] stay in the skeleton)
 _NUM = re.compile(r"(?<![\w.\[])[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
-_SKIP_KEYS = {"notes", "figures", "updated_model"}
+_SKIP_KEYS = {"notes", "decisions", "figures", "updated_model"}
 
 
 def _clean(obj):

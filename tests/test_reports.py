@@ -310,6 +310,16 @@ def test_close_the_loop_reports_the_parallel_model():
         # measured 819 % -> 1.3 %: a missing spring)
         assert int(re.match(r"parallel model: order (\d+)", lines[0]).group(1)) == row.order
         assert row.se.value < 0.1 * rep.table["nominal"].se.value
+    # the notes are the decision trail's text: records (stage, subject, reason), in the
+    # JSON too; the baseline's line is the baseline stage's, the choice the choose stage's
+    assert rep.notes == tuple(str(d) for d in rep.decisions)
+    assert [d for d in rep.decisions if d.stage == "baseline"][0].reason == lines[0]
+    choice = [d for d in rep.decisions if d.stage == "choose"]
+    assert len(choice) == 1 and choice[0].subject == "" and \
+        choice[0].reason.startswith("choose: output-error criterion")
+    assert all(d.stage in gb.records.STAGES for d in rep.decisions)
+    assert rep.as_dict()["decisions"] == [
+        {"stage": d.stage, "subject": d.subject, "reason": d.reason} for d in rep.decisions]
 
 
 def test_parallel_baseline_is_judged_on_the_held_out_tail():
