@@ -34,7 +34,7 @@ from .metrics import (
     whiteness_test,
 )
 
-__all__ = ["ModelValidation", "validate_model", "simulate_output", "estimate_initial_state",
+__all__ = ["ModelValidation", "Run", "validate_model", "validation_row", "linear_run", "simulate_output", "estimate_initial_state",
            "unstable_reason", "undefined_error", "UNSTABLE_TOL", "before_after",
            "describe_before_after", "has_marginal_pole", "MARGINAL_TOL"]
 
@@ -340,29 +340,76 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
         x0v = np.zeros(sys.nstates)
     else:
         x0v = check_vector(x0, sys.nstates, "x0")
+    return validation_row(linear_run(sys, y, u, Q=Q, R=R, x0=x0v), y, u,
+                          name=name or (sys.name or "model"), order=sys.nstates,
+                          output_labels=tuple(sys.output_labels), lags=lags, alpha=alpha,
+                          skip=skip)
+
+
+@dataclass(frozen=True)
+class Run:
+    """What a model does on a record: its simulation and its one-step prediction.
+
+    Attributes
+    ----------
+    y_sim : ndarray, shape (noutputs, nsteps)
+        Simulated outputs (NaN where ``se_reason`` says the simulation is undefined).
+    y_pred : ndarray, shape (noutputs, nsteps)
+        One-step predicted outputs of the model's predictor.
+    residuals : ndarray, shape (noutputs, nsteps)
+        The predictor's innovations, y - y_pred.
+    se_reason, pe_reason : str
+        Why the simulation (prediction) error is undefined ("" when defined).
+    """
+
+    y_sim: NDArray = field(repr=False)
+    y_pred: NDArray = field(repr=False)
+    residuals: NDArray = field(repr=False)
+    se_reason: str = ""
+    pe_reason: str = ""
+
+
+def linear_run(sys: ct.StateSpace, y: NDArray, u: NDArray, *, Q, R, x0: NDArray) -> Run:
+    """The :class:`Run` of a discrete StateSpace from the state ``x0``: its exact simulation
+    (undefined when the model is unstable or the simulation diverges) and its Kalman
+    predictor started at x0 with zero initial covariance."""
     se_reason = unstable_reason(sys, y.shape[1])
     if se_reason:
         y_sim = np.full(y.shape, np.nan)
     else:
-        y_sim = simulate_output(sys, u, x0v)
+        y_sim = simulate_output(sys, u, x0)
         if not np.all(np.isfinite(y_sim)):
             se_reason = "the simulation diverged: its simulation error is undefined; PE used"
             y_sim = np.full(y.shape, np.nan)
-    kf = kalman_filter(sys, y, u, Q=Q, R=R, x0=x0v, P0=np.zeros((sys.nstates, sys.nstates)))
-    e = kf.innovations
+    kf = kalman_filter(sys, y, u, Q=Q, R=R, x0=x0, P0=np.zeros((sys.nstates, sys.nstates)))
+    return Run(y_sim=y_sim, y_pred=kf.y_pred, residuals=kf.innovations, se_reason=se_reason)
+
+
+def validation_row(run: Run, y: NDArray, u: NDArray, *, name: str, order: int,
+                   output_labels: tuple, lags: int, alpha: float, skip: int) -> ModelValidation:
+    """The :class:`ModelValidation` row of a model's :class:`Run` on the record (y, u): SE,
+    PE and the residual tests after ``skip`` samples, the same for every kind of model
+    (``greybox.plant_adapter`` makes the run of each kind)."""
+    e, p = run.residuals, y.shape[0]
+    if run.pe_reason:  # no residual: its statistics are undefined too
+        nan = np.full(p, np.nan)
+        white = WhitenessTest(statistic=nan, pvalue=nan, lags=lags, alpha=alpha,
+                              white=np.zeros(p, bool))
+        acf = np.full((p, lags + 1), np.nan)
+        xcf = np.full((u.shape[0], p, 2 * lags + 1), np.nan)
+    else:
+        white = whiteness_test(e[:, skip:], lags, alpha=alpha)
+        acf = autocorrelation(e[:, skip:], lags)
+        xcf = cross_correlation(u[:, skip:], e[:, skip:], lags) if u.shape[0] else \
+            np.zeros((0, p, 2 * lags + 1))
     return ModelValidation(
-        name=name or (sys.name or "model"),
-        order=sys.nstates,
-        se=undefined_error(y.shape[0]) if se_reason else relative_error(y, y_sim, skip=skip),
-        pe=relative_error(y, kf.y_pred, skip=skip),
-        whiteness=whiteness_test(e[:, skip:], lags, alpha=alpha),
-        autocorr=autocorrelation(e[:, skip:], lags),
-        crosscorr=cross_correlation(u[:, skip:], e[:, skip:], lags) if u.shape[0] else
-        np.zeros((0, y.shape[0], 2 * lags + 1)),
-        band=correlation_band(y.shape[1] - skip, 0.99),
-        y_sim=y_sim, y_pred=kf.y_pred, residuals=e,
-        output_labels=tuple(sys.output_labels), se_reason=se_reason,
-    )
+        name=name, order=order,
+        se=undefined_error(p) if run.se_reason else relative_error(y, run.y_sim, skip=skip),
+        pe=undefined_error(p) if run.pe_reason else relative_error(y, run.y_pred, skip=skip),
+        whiteness=white, autocorr=acf, crosscorr=xcf,
+        band=correlation_band(y.shape[1] - skip, 0.99), y_sim=run.y_sim, y_pred=run.y_pred,
+        residuals=e, output_labels=tuple(output_labels), se_reason=run.se_reason,
+        pe_reason=run.pe_reason)
 
 
 def before_after(table: dict) -> tuple[str, float, float]:

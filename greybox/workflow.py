@@ -35,7 +35,6 @@ from scipy.linalg import block_diag
 from scipy.stats import chi2
 
 from ._blas import single_thread_blas
-from ._lti import lti_states
 from ._validation import (
     check_covariance,
     check_flag,
@@ -49,27 +48,21 @@ from .progress import ProgressClock
 from .recommend import recommend
 from .filters import feedthrough_uikf, kalman_filter, uikf
 from .metrics import (
-    WhitenessTest,
-    autocorrelation,
     OutputFit,
-    correlation_band,
+    WhitenessTest,
     criterion_scores,
-    cross_correlation,
     effective_samples,
     innovation_test,
     output_fit,
     relative_error,
-    whiteness_test,
 )
 from .system import discretize, named_ss
 from .trace import (
     Channel,
     ChannelTrace,
-    StaticLaw,
     parameter_notes,
     ekf_predict_with_law,
     resolve_channel_spec,
-    simulate_with_law,
     trace_channel,
 )
 from .trace.channel_trace import law_estimate_of, whole_inputs
@@ -82,6 +75,7 @@ from .trace.channels import (force_channel, input_channel, output_channel,
                              relative_coordinates)
 from .trace.laws import direction, sensor_states
 from .trace.screen import screen_equations, screen_sensors
+from .plant_adapter import LawPlant, validation
 from .update import Subsystem, UpdatedModel, delta_update
 from .workflow_nonlinear import close_the_loop_nonlinear, nonlinear_update_of_linear
 from .validate import (
@@ -90,7 +84,6 @@ from .validate import (
     has_marginal_pole,
     estimate_initial_state,
     simulate_output,
-    undefined_error,
     unstable_reason,
     validate_model,
 )
@@ -171,48 +164,6 @@ def _se(y, ysim, skip):
         return float(relative_error(y, ysim, skip=skip).value)
     except DataError:  # values beyond the magnitude check (1e252 from a diverged candidate)
         return np.inf
-
-
-def _nl_validation(tr: ChannelTrace, upd: UpdatedModel, y, u, *, lags, alpha, skip, name):
-    """ModelValidation of the nominal model plus a nonlinear static law (own simulation)."""
-    res, law = tr.filter_result, tr.static
-    x0 = _law_x0(upd.sys, res.sys, res.G, law, y, u)
-    # the linearized StateSpace's eigenvalues say nothing about the nonlinear law's
-    # simulation (a friction law's linear surrogate may be unstable): simulate it
-    se_reason = ""
-    y_sim = simulate_with_law(res.sys, res.G, law, u, x0)
-    if not np.all(np.isfinite(y_sim)):
-        se_reason = se_reason or "the simulation diverged: its simulation error is undefined"
-        y_sim = np.full(y.shape, np.nan)
-    # the one-step predictor of a nonlinear law: an extended Kalman filter (gain from the
-    # law's local slope); a constant gain designed on the law's linear stand-in diverges when
-    # the slope changes sign (a |.| sensor), and its PE read ~1e28 %
-    y_pred = ekf_predict_with_law(res.sys, res.G, law, y, u, x0, Q=upd.Q, R=upd.R)
-    pe_reason = ""
-    if not np.all(np.isfinite(y_pred[:, skip:])):
-        pe_reason = "the one-step predictor (extended Kalman filter) diverged"
-        y_pred = np.full(y.shape, np.nan)
-    e = y - y_pred
-    p = y.shape[0]
-    if pe_reason:  # no residual: its statistics are undefined too
-        nan = np.full(p, np.nan)
-        white = WhitenessTest(statistic=nan, pvalue=nan, lags=lags, alpha=alpha,
-                              white=np.zeros(p, bool))
-        acf = np.full((p, lags + 1), np.nan)
-        xcf = np.full((u.shape[0], p, 2 * lags + 1), np.nan)
-    else:
-        white = whiteness_test(e[:, skip:], lags, alpha=alpha)
-        acf = autocorrelation(e[:, skip:], lags)
-        xcf = cross_correlation(u[:, skip:], e[:, skip:], lags) if u.shape[0] else \
-            np.zeros((0, p, 2 * lags + 1))
-    return ModelValidation(
-        name=name, order=upd.order,
-        se=undefined_error(p) if se_reason else relative_error(y, y_sim, skip=skip),
-        pe=undefined_error(p) if pe_reason else relative_error(y, y_pred, skip=skip),
-        whiteness=white, autocorr=acf, crosscorr=xcf,
-        band=correlation_band(y.shape[1] - skip, 0.99), y_sim=y_sim, y_pred=y_pred,
-        residuals=e, output_labels=tuple(upd.sys.output_labels), se_reason=se_reason,
-        pe_reason=pe_reason)
 
 
 def _dynamic_formula(sub: Subsystem, ch: Channel, dt: float, x, u) -> str:
@@ -696,10 +647,9 @@ class _Pass:
             sm = tr.static_model
             if tr.static.nonlinear:
                 res = tr.filter_result
-                x0 = _law_x0(sm.sys, res.sys, res.G, tr.static, ys, us)
-                fit = self.fit_error(sm.sys, sm.Q, sm.R,
-                                     ysim=lambda: _simulate_law(res.sys, res.G, tr.static, us,
-                                                                x0),
+                plant = LawPlant(res.sys, res.G, tr.static, sm.sys)
+                x0 = plant.initial_state(ys, us)
+                fit = self.fit_error(sm.sys, sm.Q, sm.R, ysim=lambda: plant.simulate(us, x0),
                                      ypred=lambda: ekf_predict_with_law(
                                          res.sys, res.G, tr.static, ys, us, x0, Q=sm.Q,
                                          R=sm.R))
@@ -1021,8 +971,8 @@ class _Pass:
                                                f"{self.white_shared[0]}'s leaves white innovations")
             elif _leaves_white(dl.model, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
                 self.white_shared.append(ch.name)
-                self.note("generate", ch.name, f"no second-order shared law tried: the "
-                                               f"first-order one leaves white innovations")
+                self.note("generate", ch.name, "no second-order shared law tried: the "
+                                               "first-order one leaves white innovations")
             else:
                 self._shared_higher(tr_, dl, res_, k0s, se, r)
         return True
@@ -1065,8 +1015,8 @@ class _Pass:
                                            f"one ({se2:.3g} %) does not lead the candidates (best "
                                            f"{min(others):.3g} %)")
         elif _leaves_white(dl2.model, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
-            self.note("generate", ch.name, f"no third-order shared law tried: the second-order "
-                                           f"one leaves white innovations")
+            self.note("generate", ch.name, "no third-order shared law tried: the second-order "
+                                           "one leaves white innovations")
         else:
             self._shared_higher(tr2, dl2, res_, k0s, se2, r)
 
@@ -1241,8 +1191,11 @@ class _Pass:
         P.tick("validation", 0, 2 if self.delta else 1)
         table = {"nominal": r.val_nom}
         if v.effect.nonlinear:
-            table["updated"] = _nl_validation(tr, model, P.y_val, P.u_val, lags=S.lags,
-                                              alpha=S.alpha, skip=skip, name="updated")
+            res = tr.filter_result
+            table["updated"] = validation(
+                LawPlant(res.sys, res.G, tr.static, model.sys, order=model.order), P.y_val,
+                P.u_val, Q=model.Q, R=model.R, name="updated", lags=S.lags, alpha=S.alpha,
+                skip=skip)
             table["updated (linearized)"] = validate_model(
                 model.sys, P.y_val, P.u_val, Q=model.Q, R=model.R, x0="estimate",
                 name="updated (linearized)", lags=S.lags, alpha=S.alpha, skip=skip)
@@ -1402,39 +1355,6 @@ def _whole_record(tr: ChannelTrace, y, u, Q, R) -> ChannelTrace:
     filt = feedthrough_uikf if tr.channel.kind == "output" else uikf  # as trace_channel ran
     return replace(tr, filter_result=filt(tr.model, y, u, unknown=list(tr.channel.labels),
                                           Q=Q, R=R))
-
-
-def _law_x0(linear: ct.StateSpace, model: ct.StateSpace, G, law: StaticLaw, y, u):
-    """Initial state of a model with a static law: least squares on the first samples with
-    the directions of ``linear`` (its short window: over a long one the law's nonlinearity
-    biases x0). For an affine law (linear terms and a constant: an offset that the linear
-    part lacks, which would otherwise be read as initial state) against the law's own free
-    response from x0 = 0, exact then; else against the linear part's (a nonlinear law's
-    free response from zero says little about its response near x0)."""
-    affine = all(term_kind(law.spec[j][1]).affine
-                 for j in np.flatnonzero(np.any(law.coef != 0, axis=0)))
-    if not affine:
-        return estimate_initial_state(linear, y, u, slow_modes=False)
-    return estimate_initial_state(linear, y, u, slow_modes=False, free=lambda k: _simulate_law(
-        model, G, law, u[:, :k], np.zeros(model.nstates)))
-
-
-def _simulate_law(model: ct.StateSpace, G, law: StaticLaw, u, x0):
-    """:func:`greybox.trace.simulate_with_law`, in one LTI pass when the law leaves x alone.
-
-    A sensor law (``law.output``, G = 0, no hold) adds to one output and leaves the
-    state recursion linear: its states are then :func:`greybox._lti.lti_states`
-    (modal, vectorized) instead of a Python loop over the samples (~18 us each:
-    1.8 s per candidate on 1e5 samples). Otherwise simulate_with_law itself.
-    """
-    if law.output is None or law.hold is not None or np.any(np.asarray(G, dtype=float)):
-        return simulate_with_law(model, G, law, u, x0)
-    A, B, C, D = (np.asarray(a, dtype=float) for a in (model.A, model.B, model.C, model.D))
-    x = lti_states(A, B @ u, np.asarray(x0, dtype=float))
-    with np.errstate(over="ignore", invalid="ignore"):  # diverged: _se gives inf
-        y = C @ x + D @ u
-        y[law.output] += law.evaluate(x, u)[0]
-    return y
 
 
 #: Samples of the law's own estimate kept for its figure (plot_law)

@@ -95,7 +95,6 @@ from scipy.optimize import least_squares
 
 from ._blas import one_blas_thread
 from ._validation import (
-    MAX_MAGNITUDE,
     check_covariance,
     check_flag,
     check_parsimony,
@@ -116,13 +115,9 @@ from .metrics import (
     OutputFit,
     WhitenessTest,
     autocorrelation,
-    correlation_band,
     criterion_scores,
-    cross_correlation,
     innovation_test,
     output_fit,
-    relative_error,
-    whiteness_test,
 )
 from .nonlinear import (
     add_law,
@@ -137,6 +132,7 @@ from .nonlinear import (
     with_unknown_inputs,
 )
 from .progress import ProgressClock
+from .plant_adapter import NonlinearPlant, bounded, validation
 from .recommend import recommend
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance, residual_colour, undetermined
@@ -144,7 +140,7 @@ from .terms import HINGE_KINDS, evaluate_terms, linear_part, term_kind
 from .trace.laws import _fit_static, _law_line
 from .trace.oe import _noise_floor, forward_select_oe
 from .update import UpdatedModel
-from .validate import ModelValidation, describe_before_after, undefined_error
+from .validate import ModelValidation, describe_before_after
 from .records import CRITERION, CandidateScore, Decision, Effect, LoopReport, choice_note
 
 __all__ = ["NonlinearUpdate", "close_the_loop_nonlinear", "nonlinear_update_of_linear"]
@@ -329,38 +325,6 @@ _OP_TEXT = ("the mean of the {what} filtered states and of the inputs over the e
             "record")
 
 
-def _validation_row(model_d, y, u, *, Q, R, x0, P0, name, lags, alpha, order,
-                    ) -> tuple[ModelValidation, FilterResult]:
-    """SE (simulation from the UKF's state at SKIP), PE and whiteness of the UKF predictor."""
-    C, D = linear_output_map(model_d)
-    kf = ukf(model_d, y, u, Q=Q, R=R, x0=x0, P0=P0)
-    y_pred = C @ kf.x_pred + D @ u
-    e = y - y_pred
-    y_sim = C @ kf.x_filt + D @ u
-    se_reason = ""
-    try:
-        sim = simulate_nonlinear(model_d, u[:, SKIP:], x0=kf.x_filt[:, SKIP])
-        y_sim[:, SKIP:] = C @ sim.x + D @ u[:, SKIP:]
-    except (GreyboxError, FloatingPointError) as ex:
-        se_reason = f"the simulation diverged ({ex}): its simulation error is undefined"
-    if not se_reason and not _bounded(y_sim):
-        se_reason = "the simulation diverged: its simulation error is undefined"
-    if se_reason:
-        y_sim = np.full(y.shape, np.nan)
-    m = u.shape[0]
-    row = ModelValidation(
-        name=name, order=order,
-        se=undefined_error(y.shape[0]) if se_reason else relative_error(y, y_sim, skip=SKIP),
-        pe=relative_error(y, y_pred, skip=SKIP),
-        whiteness=whiteness_test(e[:, SKIP:], lags, alpha=alpha),
-        autocorr=autocorrelation(e[:, SKIP:], lags),
-        crosscorr=cross_correlation(u[:, SKIP:], e[:, SKIP:], lags) if m else
-        np.zeros((0, y.shape[0], 2 * lags + 1)),
-        band=correlation_band(y.shape[1] - SKIP, 0.99), y_sim=y_sim, y_pred=y_pred,
-        residuals=e, output_labels=tuple(model_d.output_labels), se_reason=se_reason)
-    return row, kf
-
-
 def _se_from(model_d, u, x_start, y, C, D) -> float:
     """Estimation SE [%] of a model simulated from x_start at sample SKIP (inf: diverged)."""
     return _fit_from(model_d, u, x_start, y, C, D).se
@@ -374,17 +338,7 @@ def _fit_from(model_d, u, x_start, y, C, D) -> OutputFit:
         ys = C @ sim.x + D @ u[:, SKIP:]
     except GreyboxError:
         ys = np.full(y[:, SKIP:].shape, np.nan)
-    return output_fit(y[:, SKIP:], ys if _bounded(ys) else np.full(ys.shape, np.nan))
-
-
-def _bounded(y_sim: NDArray) -> bool:
-    """Finite and below the magnitude the metrics accept (else: a diverged simulation).
-
-    A simulation that diverges slowly can stay finite (e.g. 4e215 on the cascaded
-    tanks with a candidate law) and would make the metrics refuse it as bad data.
-    """
-    return bool(np.all(np.isfinite(y_sim)) and np.max(np.abs(y_sim), initial=0.0)
-                <= MAX_MAGNITUDE)
+    return output_fit(y[:, SKIP:], ys if bounded(ys) else np.full(ys.shape, np.nan))
 
 
 def _prior(C: NDArray, D: NDArray, y: NDArray, u: NDArray) -> tuple[NDArray, NDArray]:
@@ -1755,9 +1709,10 @@ class _NonlinearPass:
         P, S = self.P, self.S
         n = P.base.nstates
         P.tick("residual of the nominal model", 0, 1)
-        val_nom, _ = _validation_row(P.nominal_d, P.y_val, P.u_val, Q=P.Q, R=P.R,
-                                     x0=_prior(P.C, P.D, P.y_val, P.u_val)[0], P0=P.P0,
-                                     name="nominal", lags=S.lags, alpha=S.alpha, order=n)
+        val_nom = validation(NonlinearPlant(P.nominal_d, P.P0, order=n,
+                                            x0=_prior(P.C, P.D, P.y_val, P.u_val)[0]),
+                             P.y_val, P.u_val, Q=P.Q, R=P.R, name="nominal", lags=S.lags,
+                             alpha=S.alpha, skip=SKIP)
         kf = ukf(P.nominal_d, P.y, P.u, Q=P.Q, R=P.R, x0=P.x_guess, P0=P.P0)
         white = innovation_test(kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
         se_nom = _se_from(P.nominal_d, P.u, kf.x_filt[:, SKIP], P.y, P.C, P.D)
@@ -2098,19 +2053,19 @@ class _NonlinearPass:
         ref = None
         if c.oe_terms:
             self.note("generate", ch.name,
-                      f"d^ is mostly estimation noise: the law's terms were "
-                      f"chosen by output error on y (forward selection, BIC on the "
-                      f"effective sample count Ny / colour), its coefficients and "
-                      f"levels refined by output error")
+                      "d^ is mostly estimation noise: the law's terms were "
+                      "chosen by output error on y (forward selection, BIC on the "
+                      "effective sample count Ny / colour), its coefficients and "
+                      "levels refined by output error")
         elif c.refined and any(law.spec[j][1] in HINGE_KINDS
                                for j in np.flatnonzero(law.coef.any(0))):
             self.note("generate", ch.name,
-                      f"the law's saturation hinges alone, refined by output "
-                      f"error on y (coefficients and levels), were chosen over the full "
-                      f"d^ law")
+                      "the law's saturation hinges alone, refined by output "
+                      "error on y (coefficients and levels), were chosen over the full "
+                      "d^ law")
         elif c.refined:
-            self.note("generate", ch.name, f"the delayed d^ law was refined by output error on y "
-                                           f"before the channels were compared")
+            self.note("generate", ch.name, "the delayed d^ law was refined by output error on y "
+                                           "before the channels were compared")
         elif law.npar <= OE_MAX_TERMS:
             ref = _refine_law_oe(law, self.base, ch, P.disc, P.y, P.u, self.x0_of[ch.name], P.C,
                                  P.D, _noise_of(c.trace.filter_result, P.Q, P.R, self.kf.P_filt))
@@ -2267,10 +2222,10 @@ class _NonlinearPass:
         """
         P, S = self.P, self.S
         upd_d = P.disc(model)
-        row, _ = _validation_row(upd_d, P.y_val, P.u_val, Q=P.Q, R=P.R,
-                                 x0=_prior(P.C, P.D, P.y_val, P.u_val)[0], P0=P.P0,
-                                 name="updated", lags=S.lags, alpha=S.alpha,
-                                 order=P.base.nstates)
+        row = validation(NonlinearPlant(upd_d, P.P0, order=P.base.nstates,
+                                        x0=_prior(P.C, P.D, P.y_val, P.u_val)[0]),
+                         P.y_val, P.u_val, Q=P.Q, R=P.R, name="updated", lags=S.lags,
+                         alpha=S.alpha, skip=SKIP)
         kf_u = ukf(upd_d, P.y, P.u, Q=P.Q, R=P.R, x0=_prior(P.C, P.D, P.y, P.u)[0], P0=P.P0)
         x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
         nl = NonlinearUpdate(model=model, discrete=upd_d,

@@ -29,7 +29,7 @@ LAYER = {
     "ident": 4,
     "update": 5, "validate": 5,
     "trace": 6,
-    "records": 7, "recommend": 7, "workflow": 7, "workflow_nonlinear": 7, "nominal_refit": 7,
+    "records": 7, "recommend": 7, "plant_adapter": 7, "workflow": 7, "workflow_nonlinear": 7, "nominal_refit": 7,
     "reproduce": 8, "plotting": 8, "io": 8, "model_io": 8, "cli": 8, "__main__": 8,
     "fleet": 8,
     "__init__": 9,

@@ -12,7 +12,7 @@
   estimation record (``workflow._search_record``): on a record twice the
   window the same channel and law as on the whole record, and the report's
   trace still has the whole record (``workflow._with_record``).
-* ``workflow._simulate_law``: a sensor law's simulation in one LTI pass equals
+* ``plant_adapter.LawPlant.simulate``: a sensor law's simulation in one LTI pass equals
   ``simulate_with_law``'s sample loop.
 """
 
@@ -209,7 +209,7 @@ def test_search_window_gives_the_same_channel_and_law(monkeypatch):
 def test_sensor_law_simulation_in_one_pass_equals_the_sample_loop():
     from greybox.trace import simulate_with_law
     from greybox.trace.channels import output_channel
-    from greybox.workflow import _simulate_law
+    from greybox.plant_adapter import LawPlant
 
     y, u, _, _, Q, R = _records(3000)
     sys = gb.discretize(_osc(), DT)
@@ -219,12 +219,13 @@ def test_sensor_law_simulation_in_one_pass_equals_the_sample_loop():
     x0 = res.x_filt[:, 0]
     ref = simulate_with_law(res.sys, res.G, law, u, x0)
     # a modal recursion vs the sample loop: round-off only
-    np.testing.assert_allclose(_simulate_law(res.sys, res.G, law, u, x0), ref, rtol=1e-10,
+    np.testing.assert_allclose(LawPlant(res.sys, res.G, law, sys).simulate(u, x0), ref,
+                               rtol=1e-10,
                                atol=1e-12 * np.abs(ref).max())
     # a law in a state equation feeds back: the sample loop itself
     tr2 = trace_channel(sys, resolve_channel_spec(sys, None)[1], y, u, Q=Q, R=R, max_order=0)
     r2 = tr2.filter_result
-    np.testing.assert_array_equal(_simulate_law(r2.sys, r2.G, tr2.static, u, x0),
+    np.testing.assert_array_equal(LawPlant(r2.sys, r2.G, tr2.static, sys).simulate(u, x0),
                                   simulate_with_law(r2.sys, r2.G, tr2.static, u, x0))
 
 

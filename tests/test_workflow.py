@@ -332,7 +332,7 @@ def test_static_update_keeps_the_likelier_process_noise(case):
     out = _noise_by_likelihood(model, Qp, d.y, d.u, 20, notes)
     if case == "law right":
         np.testing.assert_array_equal(out.Q, Qp)
-        assert notes and "likelier without it" in notes[0]
+        assert notes and "likelier without it" in notes[0].reason and notes[0].stage == "gate"
     else:
         np.testing.assert_array_equal(out.Q, Qa)
         assert not notes

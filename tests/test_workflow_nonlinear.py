@@ -490,7 +490,8 @@ def test_a_candidate_simulation_diverging_to_finite_huge_values_scores_as_diverg
     candidate law's simulation reached 4e215, finite, and the metrics refused it
     as data "above 1e150" instead of the candidate being scored as diverged.
     """
-    from greybox.workflow_nonlinear import _se_from, _validation_row
+    from greybox.plant_adapter import NonlinearPlant, validation
+    from greybox.workflow_nonlinear import SKIP, _se_from
 
     huge = ct.nlsys(lambda t, x, u, p: np.minimum(10.0 * x + u, 1e200),
                     lambda t, x, u, p: x, dt=1.0, states=["x"], inputs=["u"],
@@ -500,6 +501,6 @@ def test_a_candidate_simulation_diverging_to_finite_huge_values_scores_as_diverg
     y = np.ones((1, N))
     C, D = np.eye(1), np.zeros((1, 1))
     assert _se_from(huge, u, np.ones(1), y, C, D) == np.inf
-    row, _ = _validation_row(huge, y, u, Q=np.eye(1), R=np.eye(1), x0=np.ones(1),
-                             P0=np.eye(1), name="updated", lags=5, alpha=1e-3, order=1)
+    row = validation(NonlinearPlant(huge, np.eye(1), order=1, x0=np.ones(1)), y, u,
+                     Q=np.eye(1), R=np.eye(1), name="updated", lags=5, alpha=1e-3, skip=SKIP)
     assert not row.se_defined and "diverged" in row.se_reason
