@@ -34,7 +34,8 @@ from .metrics import (
     whiteness_test,
 )
 
-__all__ = ["ModelValidation", "Run", "validate_model", "validation_row", "linear_run", "simulate_output", "estimate_initial_state",
+__all__ = ["ModelValidation", "Run", "validate_model", "validation_row", "linear_run",
+           "simulate_output", "estimate_initial_state",
            "unstable_reason", "undefined_error", "UNSTABLE_TOL", "before_after",
            "describe_before_after", "has_marginal_pole", "MARGINAL_TOL"]
 
