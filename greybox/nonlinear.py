@@ -46,6 +46,7 @@ from .signals import SimulationResult, _gaussian, _rng
 from .system import named_ss
 
 __all__ = [
+    "simulate_batch",
     "rk4_substeps",
     "rk4_substeps_for",
     "discretize_nonlinear",
@@ -431,6 +432,38 @@ def state_map(sys) -> StateMap:
 
         return StateMap(batch, True, n, m)
     return StateMap(loop, False, n, m)
+
+
+def simulate_batch(sys, u: NDArray, X0: NDArray) -> NDArray:
+    """Noise-free states of a discrete model from several initial states at once.
+
+    One pass over the samples with the model's batch evaluator
+    (:func:`state_map`): for a vectorized model, about the cost of one
+    simulation. A start whose state becomes non-finite stays NaN from then on
+    (no error: the caller judges it).
+
+    Parameters
+    ----------
+    sys : control.NonlinearIOSystem or control.StateSpace
+        Discrete-time model.
+    u : ndarray, shape (ninputs, nsteps)
+    X0 : ndarray, shape (nstates, nstarts)
+
+    Returns
+    -------
+    ndarray, shape (nstates, nstarts, nsteps)
+    """
+    smap = state_map(sys)
+    u = np.asarray(u, dtype=float)
+    X0 = np.asarray(X0, dtype=float)
+    n, S, N = X0.shape[0], X0.shape[1], u.shape[1]
+    X = np.empty((n, S, N))
+    X[:, :, 0] = X0
+    dt = float(sys.dt)
+    for k in range(N - 1):
+        with np.errstate(all="ignore"):
+            X[:, :, k + 1] = smap.fun(k * dt, X[:, :, k], u[:, k])
+    return X
 
 
 def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None = None,

@@ -27,15 +27,17 @@ from dataclasses import dataclass, field
 import control as ct
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from ._lti import lti_states
 from ._validation import MAX_MAGNITUDE
 from .exceptions import GreyboxError
 from .filters import ukf
-from .nonlinear import linear_output_map, linearize_at, simulate_nonlinear
+from .nonlinear import linear_output_map, linearize_at, simulate_batch, simulate_nonlinear
 from .terms import term_kind
 from .trace.laws import StaticLaw, ekf_predict_with_law, simulate_with_law
 from .validate import (
+    SENSITIVE_REASON,
     ModelValidation,
     Run,
     estimate_initial_state,
@@ -44,7 +46,13 @@ from .validate import (
     validation_row,
 )
 
-__all__ = ["LinearPlant", "LawPlant", "NonlinearPlant", "validation", "bounded"]
+__all__ = ["LinearPlant", "LawPlant", "NonlinearPlant", "validation", "bounded", "SENSITIVE"]
+
+#: A nonlinear model's simulation error is undefined when its simulation started one
+#: standard deviation of the filter's state estimate away moves by at least this
+#: fraction of that error: the error then measures where the simulation started (a
+#: chaotic or strongly hardening plant), not the model, and PE compares models instead.
+SENSITIVE = 0.5
 
 
 def bounded(y_sim: NDArray) -> bool:
@@ -237,9 +245,14 @@ class NonlinearPlant:
 
     def run(self, y: NDArray, u: NDArray, *, Q, R, skip: int = 0) -> Run:
         """The unscented predictor from :meth:`initial_state`; the simulation from its
-        filtered state at sample ``skip`` (the filter's own estimate before that)."""
+        filtered state at sample ``skip`` (the filter's own estimate before that).
+
+        The simulation error is undefined when the simulation diverges, or when it
+        is sensitive to where it starts (:data:`SENSITIVE`, :meth:`_sensitivity`).
+        """
         C, D = linear_output_map(self.sys)
-        kf = ukf(self.sys, y, u, Q=Q, R=R, x0=self.initial_state(y, u), P0=self.P0)
+        x0 = self.initial_state(y, u)
+        kf = ukf(self.sys, y, u, Q=Q, R=R, x0=x0, P0=self.P0)
         y_pred = C @ kf.x_pred + D @ u
         y_sim = C @ kf.x_filt + D @ u
         se_reason = ""
@@ -250,9 +263,55 @@ class NonlinearPlant:
             se_reason = f"the simulation diverged ({ex}): its simulation error is undefined"
         if not se_reason and not bounded(y_sim):
             se_reason = "the simulation diverged: its simulation error is undefined"
+        if not se_reason:
+            # P[skip|skip]: the same filter over the first skip + 1 samples (the whole
+            # record's covariance history would cost n^2 N numbers)
+            head = ukf(self.sys, y[:, :skip + 1], u[:, :skip + 1], Q=Q, R=R, x0=x0,
+                       P0=self.P0)
+            se_reason = self._sensitivity(y, u, y_sim, kf.x_filt[:, skip], head.P_filt,
+                                          skip, R)
         if se_reason:
             y_sim = np.full(y.shape, np.nan)
         return Run(y_sim=y_sim, y_pred=y_pred, residuals=y - y_pred, se_reason=se_reason)
+
+    def _sensitivity(self, y, u, y_sim, x_start, P_start, skip: int, R) -> str:
+        """Why the simulation error says nothing of the model ("" when it does).
+
+        The filter knows the state at sample ``skip`` to within its 95 % ellipsoid
+        (covariance ``P_start``). The simulation is started at the ends of that
+        ellipsoid's principal axes (2 n starts). A stable model forgets its start; a
+        chaotic or neutrally stable one does not. When, over the record's last half,
+        the farthest start still moves the simulation by at least :data:`SENSITIVE`
+        of its error against y (or of the measurement noise, when that is larger; both
+        eq. 42's relative RMS, averaged over the outputs), the error measures where the
+        simulation started, not the model.
+        """
+        C, D = linear_output_map(self.sys)
+        n, N = x_start.size, y.shape[1] - skip
+        late = skip + N // 2
+        w, V = np.linalg.eigh(0.5 * (P_start + P_start.T))
+        axes = V * np.sqrt(np.clip(w, 0.0, None) * chi2.ppf(0.95, n))
+        yl, sl, ut = y[:, late:], y_sim[:, late:], u[:, skip:]
+        scale = np.sqrt(np.mean(yl ** 2, axis=1))
+        if not np.all(scale > 0):
+            return ""
+        err = float(np.mean(np.sqrt(np.mean((yl - sl) ** 2, axis=1)) / scale))
+        noise = float(np.mean(np.sqrt(np.clip(np.diag(np.atleast_2d(R)), 0.0, None)) / scale))
+        bar = SENSITIVE * max(err, noise)
+        X = simulate_batch(self.sys, ut, x_start[:, None] + np.hstack([axes, -axes]))
+        with np.errstate(all="ignore"):  # a diverged start: moved inf
+            alt = np.einsum("pn,nsk->psk", C, X[:, :, late - skip:]) + \
+                (D @ ut[:, late - skip:])[:, None]
+            dev = np.sqrt(np.mean((alt - sl[:, None]) ** 2, axis=2)) / scale[:, None]
+        ok = np.all(np.isfinite(dev), axis=0) & np.all(np.abs(alt) <= MAX_MAGNITUDE, axis=(0, 2))
+        moved = np.where(ok, np.mean(dev, axis=0), np.inf)
+        if float(np.max(moved)) >= bar:
+            return (f"{SENSITIVE_REASON}: started within the 95 % ellipsoid of the "
+                    f"filter's state estimate, over the record's last half it still "
+                    f"moves by {100 * float(np.max(moved)):.3g} % of y (its error against "
+                    f"y there: {100 * err:.3g} %), so its simulation error measures the "
+                    f"start, not the model; PE used")
+        return ""
 
     def linearize(self, x_op: NDArray, u_op: NDArray) -> ct.StateSpace:
         """The discrete linearization at (x_op, u_op) (:func:`greybox.linearize_at`)."""

@@ -37,7 +37,11 @@ from .metrics import (
 __all__ = ["ModelValidation", "Run", "validate_model", "validation_row", "linear_run",
            "simulate_output", "estimate_initial_state",
            "unstable_reason", "undefined_error", "UNSTABLE_TOL", "before_after",
-           "describe_before_after", "has_marginal_pole", "MARGINAL_TOL"]
+           "describe_before_after", "has_marginal_pole", "MARGINAL_TOL", "SENSITIVE_REASON"]
+
+#: How the reason of an undefined simulation error starts when the simulation depends on
+#: where it starts more than on the model (:class:`greybox.plant_adapter.NonlinearPlant`).
+SENSITIVE_REASON = "the simulation is sensitive to where it starts"
 
 #: A discrete model whose spectral radius exceeds ``1 + UNSTABLE_TOL`` is unstable:
 #: its simulation error is undefined (the simulation diverges from any error in x0).
@@ -453,5 +457,7 @@ def describe_before_after(table: dict) -> str:
     txt = f"validation {what} {v0:.3g}% -> {v1:.3g}% ({ratio:.1f}x)"
     if what == "PE":
         which = "nominal" if not table["nominal"].se_defined else "updated"
-        txt = f"validation SE n/a (the {which} model is unstable); " + txt
+        why = "'s simulation is sensitive to its start" if \
+            table[which].se_reason.startswith(SENSITIVE_REASON) else " is unstable"
+        txt = f"validation SE n/a (the {which} model{why}); " + txt
     return txt

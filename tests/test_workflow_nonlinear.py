@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import greybox as gb
+from greybox.validate import before_after
 from greybox.exceptions import DataError, DimensionError, ModelError
 
 DT = 0.01
@@ -91,7 +92,13 @@ def test_over_seeds_right_model_kept_and_drag_found(seed):
     law = rep.effect.law
     j = [s[0] for s in law.spec].index("omega^3")
     np.testing.assert_allclose(law.coef[0, j], -C3, rtol=0.02)  # as the first test
-    assert rep.se_ratio() > 100
+    # the updated model simulates the validation record as the right model does (measured
+    # 1.438 vs 1.437 %, 1.316 vs 1.316 %); the nominal without its drag is far worse by
+    # the report's measure (SE 5514 % at seed 12; at seed 16 its simulation depends on
+    # where it starts, its SE is undefined, and PE 9.99 -> 1.32 %)
+    assert rep.table["updated"].se.value <= 1.02 * right.table["updated"].se.value
+    _, before, after = before_after(rep.table)
+    assert after < before / 5
 
 
 def test_updated_model_is_nonlinear_and_simulates_the_law_exactly():
