@@ -12,7 +12,9 @@ validation row asks the adapter, not the model's type:
   discretized with RK4) with a linear output map; its RK4 simulation and the
   unscented predictor.
 
-Every adapter has ``order``, ``output_labels``, ``run(y, u, Q=, R=, skip=)``
+Every adapter has ``order``, ``output_labels``, ``filter(y, u, Q=, R=)`` (its
+one-step predictor's :class:`~greybox.FilterResult` on a record: the residual
+stage's innovations), ``run(y, u, Q=, R=, skip=)``
 (a :class:`greybox.validate.Run`: simulation and prediction, with the reason
 when either is undefined), ``simulate(u, x0)`` (outputs, shape (noutputs,
 nsteps)) and ``linearize(x_op, u_op)`` (a discrete ``StateSpace``).
@@ -32,7 +34,7 @@ from scipy.stats import chi2
 from ._lti import lti_states
 from ._validation import MAX_MAGNITUDE
 from .exceptions import GreyboxError
-from .filters import ukf
+from .filters import FilterResult, kalman_filter, ukf
 from .nonlinear import linear_output_map, linearize_at, simulate_batch, simulate_nonlinear
 from .terms import term_kind
 from .trace.laws import StaticLaw, ekf_predict_with_law, simulate_with_law
@@ -101,6 +103,11 @@ class LinearPlant:
     def simulate(self, u: NDArray, x0: NDArray) -> NDArray:
         """Outputs from ``x0`` under the inputs ``u``, shape (noutputs, nsteps)."""
         return simulate_output(self.sys, u, x0)
+
+    def filter(self, y: NDArray, u: NDArray, *, Q, R) -> FilterResult:
+        """The Kalman filter on the record from its default start (zero state; the gain
+        settles within the record: :meth:`greybox.FilterResult.settled`)."""
+        return kalman_filter(self.sys, y, u, Q=Q, R=R)
 
     def run(self, y: NDArray, u: NDArray, *, Q, R, skip: int = 0) -> Run:
         """Simulation and Kalman prediction from :meth:`initial_state` (``skip`` unused: the
@@ -237,6 +244,10 @@ class NonlinearPlant:
         C, D = linear_output_map(self.sys)
         return np.linalg.lstsq(C, y[:, 0] - D @ u[:, 0], rcond=None)[0]
 
+    def filter(self, y: NDArray, u: NDArray, *, Q, R) -> FilterResult:
+        """The unscented Kalman filter on the record from :meth:`initial_state` and P0."""
+        return ukf(self.sys, y, u, Q=Q, R=R, x0=self.initial_state(y, u), P0=self.P0)
+
     def simulate(self, u: NDArray, x0: NDArray) -> NDArray:
         """Outputs from ``x0``, shape (noutputs, nsteps); raises GreyboxError (or
         FloatingPointError) when the simulation diverges."""
@@ -252,7 +263,7 @@ class NonlinearPlant:
         """
         C, D = linear_output_map(self.sys)
         x0 = self.initial_state(y, u)
-        kf = ukf(self.sys, y, u, Q=Q, R=R, x0=x0, P0=self.P0)
+        kf = self.filter(y, u, Q=Q, R=R)
         y_pred = C @ kf.x_pred + D @ u
         y_sim = C @ kf.x_filt + D @ u
         se_reason = ""

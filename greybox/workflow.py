@@ -75,7 +75,7 @@ from .trace.channels import (force_channel, input_channel, output_channel,
                              relative_coordinates)
 from .trace.laws import direction, sensor_states
 from .trace.screen import screen_equations, screen_sensors
-from .plant_adapter import LawPlant, validation
+from .plant_adapter import LawPlant, LinearPlant, validation
 from .update import Subsystem, UpdatedModel, delta_update
 from .workflow_nonlinear import close_the_loop_nonlinear, nonlinear_update_of_linear
 from .validate import (
@@ -608,7 +608,7 @@ class _Pass:
         t_pass = time.monotonic()  # the delta baseline's budget: this pass's time
         crit = CRITERION_PE if self.unstable else CRITERION
         P.tick("residual of the nominal model", 0, 1)
-        kf = kalman_filter(nominal, P.y, P.u, Q=self.Q, R=P.R)
+        kf = LinearPlant(nominal).filter(P.y, P.u, Q=self.Q, R=P.R)
         k0 = kf.settled(skip)
         white = innovation_test(kf.innovations[:, k0:], S.lags, alpha=S.alpha)
         sensors = _offset_sensors(nominal, kf, k0, white, S.alpha, self.decisions) \

@@ -1713,7 +1713,8 @@ class _NonlinearPass:
                                             x0=_prior(P.C, P.D, P.y_val, P.u_val)[0]),
                              P.y_val, P.u_val, Q=P.Q, R=P.R, name="nominal", lags=S.lags,
                              alpha=S.alpha, skip=SKIP)
-        kf = ukf(P.nominal_d, P.y, P.u, Q=P.Q, R=P.R, x0=P.x_guess, P0=P.P0)
+        kf = NonlinearPlant(P.nominal_d, P.P0, order=n, x0=P.x_guess).filter(P.y, P.u, Q=P.Q,
+                                                                           R=P.R)
         white = innovation_test(kf.innovations[:, SKIP:], S.lags, alpha=S.alpha)
         se_nom = _se_from(P.nominal_d, P.u, kf.x_filt[:, SKIP], P.y, P.C, P.D)
         x_op = kf.x_filt[:, SKIP:].mean(axis=1)
