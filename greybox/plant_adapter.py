@@ -280,7 +280,7 @@ class NonlinearPlant:
             head = ukf(self.sys, y[:, :skip + 1], u[:, :skip + 1], Q=Q, R=R, x0=x0,
                        P0=self.P0)
             se_reason = self._sensitivity(y, u, y_sim, kf.x_filt[:, skip], head.P_filt,
-                                          skip, R)
+                                          skip, R) if _worse(y, y_sim, y_pred, skip) else ""
         if se_reason:
             y_sim = np.full(y.shape, np.nan)
         return Run(y_sim=y_sim, y_pred=y_pred, residuals=y - y_pred, se_reason=se_reason)
@@ -327,6 +327,18 @@ class NonlinearPlant:
     def linearize(self, x_op: NDArray, u_op: NDArray) -> ct.StateSpace:
         """The discrete linearization at (x_op, u_op) (:func:`greybox.linearize_at`)."""
         return linearize_at(self.sys, x_op, u_op)
+
+
+def _worse(y: NDArray, y_sim: NDArray, y_pred: NDArray, skip: int) -> bool:
+    """Whether the simulation follows y worse than the one-step predictor does (eq. 42's
+    relative RMS after ``skip``, averaged over the outputs): only then can its error be
+    inflated by where it started (a simulation as good as the predictor is not)."""
+    yt = y[:, skip:]
+    scale = np.sqrt(np.mean(yt ** 2, axis=1))
+    with np.errstate(all="ignore"):
+        sim = np.mean(np.sqrt(np.mean((yt - y_sim[:, skip:]) ** 2, axis=1)) / scale)
+        pred = np.mean(np.sqrt(np.mean((yt - y_pred[:, skip:]) ** 2, axis=1)) / scale)
+    return not sim <= pred
 
 
 def validation(plant, y: NDArray, u: NDArray, *, Q, R, name: str, lags: int, alpha: float,
