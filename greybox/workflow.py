@@ -572,14 +572,13 @@ class _Pass:
         """How a model follows y on the search window: its SE (or PE, for an unstable
         nominal) [%] per output and the effective samples of its error
         (:class:`greybox.metrics.OutputFit`: what the criterion reads)."""
-        ys, us = self.P.ys, self.P.us
+        ys, us, plant = self.P.ys, self.P.us, LinearPlant(sys_)
         if not self.unstable:
-            return output_fit(ys, ysim() if ysim is not None else simulate_output(
-                sys_, us, estimate_initial_state(sys_, ys, us)), skip=self.SKIP)
+            return output_fit(ys, ysim() if ysim is not None else plant.simulate(
+                us, plant.initial_state(ys, us)), skip=self.SKIP)
         try:
             with np.errstate(all="ignore"):  # a diverging predictor loses, it does not warn
-                yp = ypred() if ypred is not None else kalman_filter(
-                    sys_, ys, us, Q=Q_, R=R_).y_pred
+                yp = ypred() if ypred is not None else plant.filter(ys, us, Q=Q_, R=R_).y_pred
         except (GreyboxError, np.linalg.LinAlgError, ValueError, FloatingPointError):
             yp = np.full(ys.shape, np.nan)
         return output_fit(ys, yp[:, :ys.shape[1]], skip=self.SKIP)
