@@ -45,15 +45,17 @@ from .validate import (
     estimate_initial_state,
     linear_run,
     simulate_output,
+    start_state,
     validation_row,
 )
 
 __all__ = ["LinearPlant", "LawPlant", "NonlinearPlant", "validation", "bounded", "SENSITIVE"]
 
-#: A nonlinear model's simulation error is undefined when its simulation started one
-#: standard deviation of the filter's state estimate away moves by at least this
-#: fraction of that error: the error then measures where the simulation started (a
-#: chaotic or strongly hardening plant), not the model, and PE compares models instead.
+#: A nonlinear model's simulation error is undefined when, over the record's last half,
+#: its simulation started within the 95 % ellipsoid of the filter's state estimate
+#: still moves by at least this fraction of that error (or of the measurement noise):
+#: the error then measures where the simulation started (a chaotic or neutrally stable
+#: plant), not the model, and PE compares models instead.
 SENSITIVE = 0.5
 
 
@@ -94,11 +96,7 @@ class LinearPlant:
 
     def initial_state(self, y: NDArray, u: NDArray) -> NDArray:
         """The state the record starts from, shape (nstates,)."""
-        if isinstance(self.x0, str):
-            return estimate_initial_state(self.sys, y, u)
-        if self.x0 is None:
-            return np.zeros(self.sys.nstates)
-        return np.asarray(self.x0, dtype=float)
+        return start_state(self.sys, self.x0, y, u)
 
     def simulate(self, u: NDArray, x0: NDArray) -> NDArray:
         """Outputs from ``x0`` under the inputs ``u``, shape (noutputs, nsteps)."""
@@ -262,7 +260,6 @@ class NonlinearPlant:
         is sensitive to where it starts (:data:`SENSITIVE`, :meth:`_sensitivity`).
         """
         C, D = linear_output_map(self.sys)
-        x0 = self.initial_state(y, u)
         kf = self.filter(y, u, Q=Q, R=R)
         y_pred = C @ kf.x_pred + D @ u
         y_sim = C @ kf.x_filt + D @ u
@@ -277,8 +274,7 @@ class NonlinearPlant:
         if not se_reason:
             # P[skip|skip]: the same filter over the first skip + 1 samples (the whole
             # record's covariance history would cost n^2 N numbers)
-            head = ukf(self.sys, y[:, :skip + 1], u[:, :skip + 1], Q=Q, R=R, x0=x0,
-                       P0=self.P0)
+            head = self.filter(y[:, :skip + 1], u[:, :skip + 1], Q=Q, R=R)
             se_reason = self._sensitivity(y, u, y_sim, kf.x_filt[:, skip], head.P_filt,
                                           skip, R) if _worse(y, y_sim, y_pred, skip) else ""
         if se_reason:
@@ -306,16 +302,16 @@ class NonlinearPlant:
         scale = np.sqrt(np.mean(yl ** 2, axis=1))
         if not np.all(scale > 0):
             return ""
-        err = float(np.mean(np.sqrt(np.mean((yl - sl) ** 2, axis=1)) / scale))
+        err = float(_relative_rms(yl, sl, scale))
         noise = float(np.mean(np.sqrt(np.clip(np.diag(np.atleast_2d(R)), 0.0, None)) / scale))
         bar = SENSITIVE * max(err, noise)
         X = simulate_batch(self.sys, ut, x_start[:, None] + np.hstack([axes, -axes]))
         with np.errstate(all="ignore"):  # a diverged start: moved inf
             alt = np.einsum("pn,nsk->psk", C, X[:, :, late - skip:]) + \
                 (D @ ut[:, late - skip:])[:, None]
-            dev = np.sqrt(np.mean((alt - sl[:, None]) ** 2, axis=2)) / scale[:, None]
-        ok = np.all(np.isfinite(dev), axis=0) & np.all(np.abs(alt) <= MAX_MAGNITUDE, axis=(0, 2))
-        moved = np.where(ok, np.mean(dev, axis=0), np.inf)
+        moved = _relative_rms(sl, alt, scale)  # against the simulation, not y
+        ok = np.isfinite(moved) & np.all(np.abs(alt) <= MAX_MAGNITUDE, axis=(0, 2))
+        moved = np.where(ok, moved, np.inf)
         if float(np.max(moved)) >= bar:
             return (f"{SENSITIVE_REASON}: started within the 95 % ellipsoid of the "
                     f"filter's state estimate, over the record's last half it still "
@@ -329,16 +325,23 @@ class NonlinearPlant:
         return linearize_at(self.sys, x_op, u_op)
 
 
+def _relative_rms(y: NDArray, y_hat: NDArray, scale: NDArray) -> NDArray:
+    """Eq. 42's relative RMS (a fraction) averaged over the outputs: y (p, N) against
+    y_hat (p, N) or (p, S, N) for S candidates; NaN or inf where y_hat is not finite."""
+    with np.errstate(all="ignore"):
+        dev = np.sqrt(np.mean((y_hat - (y if y_hat.ndim == 2 else y[:, None])) ** 2,
+                              axis=-1))
+        return np.mean(dev / (scale if y_hat.ndim == 2 else scale[:, None]), axis=0)
+
+
 def _worse(y: NDArray, y_sim: NDArray, y_pred: NDArray, skip: int) -> bool:
     """Whether the simulation follows y worse than the one-step predictor does (eq. 42's
     relative RMS after ``skip``, averaged over the outputs): only then can its error be
     inflated by where it started (a simulation as good as the predictor is not)."""
     yt = y[:, skip:]
     scale = np.sqrt(np.mean(yt ** 2, axis=1))
-    with np.errstate(all="ignore"):
-        sim = np.mean(np.sqrt(np.mean((yt - y_sim[:, skip:]) ** 2, axis=1)) / scale)
-        pred = np.mean(np.sqrt(np.mean((yt - y_pred[:, skip:]) ** 2, axis=1)) / scale)
-    return not sim <= pred
+    return not _relative_rms(yt, y_sim[:, skip:], scale) <= _relative_rms(
+        yt, y_pred[:, skip:], scale)
 
 
 def validation(plant, y: NDArray, u: NDArray, *, Q, R, name: str, lags: int, alpha: float,

@@ -35,6 +35,7 @@ from .metrics import (
 )
 
 __all__ = ["ModelValidation", "Run", "validate_model", "validation_row", "linear_run",
+           "start_state",
            "simulate_output", "estimate_initial_state",
            "unstable_reason", "undefined_error", "UNSTABLE_TOL", "before_after",
            "describe_before_after", "has_marginal_pole", "MARGINAL_TOL", "SENSITIVE_REASON"]
@@ -337,18 +338,24 @@ def validate_model(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLi
     y = check_signal(y, sys.noutputs, "y", min_steps=2 * lags + 2)
     u = check_signal(u, sys.ninputs, "u")
     check_same_length(("y", y), ("u", u))
-    if isinstance(x0, str):
-        if x0 != "estimate":
-            raise DimensionError(f"x0 must be an array, None or 'estimate'; found {x0!r}")
-        x0v = estimate_initial_state(sys, y, u)
-    elif x0 is None:
-        x0v = np.zeros(sys.nstates)
-    else:
-        x0v = check_vector(x0, sys.nstates, "x0")
+    x0v = start_state(sys, x0, y, u)
     return validation_row(linear_run(sys, y, u, Q=Q, R=R, x0=x0v), y, u,
                           name=name or (sys.name or "model"), order=sys.nstates,
                           output_labels=tuple(sys.output_labels), lags=lags, alpha=alpha,
                           skip=skip)
+
+
+def start_state(sys: ct.StateSpace, x0, y: NDArray, u: NDArray) -> NDArray:
+    """The state a record starts from, shape (nstates,): ``x0`` itself (checked), zero
+    (None), or "estimate": least squares on the record's first samples
+    (:func:`estimate_initial_state`)."""
+    if isinstance(x0, str):
+        if x0 != "estimate":
+            raise DimensionError(f"x0 must be an array, None or 'estimate'; found {x0!r}")
+        return estimate_initial_state(sys, y, u)
+    if x0 is None:
+        return np.zeros(sys.nstates)
+    return check_vector(x0, sys.nstates, "x0")
 
 
 @dataclass(frozen=True)
