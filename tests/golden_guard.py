@@ -34,6 +34,10 @@ from pathlib import Path
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 RTOL = 1e-6
+# Why a validation row has no SE is compared as text without its numbers: "sensitive to
+# where it starts ... moves by 2.81e+03 % of y" measures a simulation that amplifies its
+# start's rounding (an undamped pendulum's, tests/test_workflow_nonlinear.py seed 16:
+# 2.81e+03 and 2.94e+03 % in two runs of the same code); the verdict is the reason's words.
 # a number in text, not the digits of a name (p2, x1, sys[3] stay in the skeleton)
 _NUM = re.compile(r"(?<![\w.\[])[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 _SKIP_KEYS = {"notes", "decisions", "figures", "updated_model"}
@@ -94,6 +98,8 @@ def _diff(a, b, path="") -> list[str]:
     if isinstance(a, str) and isinstance(b, str):
         if _NUM.sub("#", a) != _NUM.sub("#", b):
             return [f"{path}: {a!r} -> {b!r}"]
+        if path.endswith(".se_reason"):  # its numbers measure a chaotic simulation (below)
+            return []
         for x, y in zip(_NUM.findall(a), _NUM.findall(b)):
             if abs(float(x) - float(y)) > 1.01 * max(_last_digit(x), _last_digit(y)):
                 return [f"{path}: {a!r} -> {b!r}"]
