@@ -69,7 +69,8 @@ from .trace.channel_trace import law_estimate_of, whole_inputs
 from .terms import BREAK_KINDS, term_kind
 from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
                              fit_sparse_dynamic)
-from .trace.shared_order2 import SharedLaw2, fit_input_lag2, fit_shared_order2
+from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
+    fit_shared_order2
 from .trace.joint import joint_effect, refine_jointly
 from .trace.channels import (force_channel, input_channel, output_channel,
                              relative_coordinates)
@@ -927,11 +928,44 @@ class _Pass:
         except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
             self.note("generate", ch.name, f"sparse dynamic law failed: {e}")
             return
-        if dl is None:
+        if dl is not None:
+            fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
+            self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, fit.se, dl.npar,
+                                             "ok"))
+            self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
+        if self.S.max_order >= 2 and not self.big:
+            self._hidden_part(tr_, dl, res_, k0s)
+
+    def _hidden_part(self, tr_, dl, res_, k0s) -> None:
+        """2b, order 2: a hidden part attached to the body of a one-state equation, driven
+        by that state alone (:func:`greybox.trace.shared_order2.fit_hidden_part2`), from
+        the poles of the channel's unstructured second-order law and around the sparse
+        first-order law's pole; scored."""
+        P, ch = self.P, tr_.channel
+        starts = []
+        sub = tr_.dynamic
+        if sub is not None and sub.order == 2:
+            with np.errstate(all="ignore"):
+                p = np.log(np.linalg.eigvals(sub.Ad).astype(complex)) / P.dt
+            starts.append((p[0], p[1]))
+        a = getattr(dl, "pole", None)
+        if a is not None and np.isfinite(a) and a < 0:
+            starts += [(a, 5.0 * a), (a * (0.3 + 0.95j), a * (0.3 - 0.95j))]
+        if not starts:
             return
-        fit = self.fit_error(dl.model.sys, dl.model.Q, dl.model.R)
-        self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 1, fit.se, dl.npar, "ok"))
-        self.scored.append(Candidate(fit.se, dl.npar, tr_, "sparse", dl, fit=fit))
+        try:
+            dl2 = fit_hidden_part2(self.sys, ch, P.y, P.u, Q=self.Q, R=P.R, dt=P.dt,
+                                   x0=res_.x_filt[:, 0], k0=k0s, poles=starts)
+        except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+            self.note("generate", ch.name, f"hidden second-order part failed: {e}")
+            return
+        if dl2 is None:
+            return
+        fit = self.fit_error(dl2.model.sys, dl2.model.Q, dl2.model.R)
+        state = ch.equations[0]
+        self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 2, fit.se, dl2.npar, "ok",
+                                         f"{state} alone: a hidden part attached to its body"))
+        self.scored.append(Candidate(fit.se, dl2.npar, replace(tr_), "sparse", dl2, fit=fit))
 
     def _shared(self, tr_, r: Residual) -> bool:
         """2c. Fit one shared state for the channel of ``tr_``; False if the fit failed."""
@@ -1156,13 +1190,18 @@ class _Pass:
         fitted on y), the choice's criterion against the nominal model on the output
         error (:func:`greybox.metrics.criterion_scores`; the nominal adds no parameter,
         penalty ``npar log n`` on the choice's effective samples), as the nonlinear
-        pipeline's gate reads a delayed channel; not for a model with a pole on the unit
+        pipeline's gate reads a delayed channel; the same for a law fitted by output error
+        on y (a "sparse" candidate: sparse, shared, hidden-part and actuator-lag laws),
+        whatever the channel's degree: d^ is not what it was fitted to, and a lightly damped
+        hidden mode's d^ can be so far from the law's (a flexible shaft's: correlation
+        0.65 for the true law on the filtered states) that the likelihood ratio on d^
+        rejects the true law; not for a model with a pole on the unit
         circle (:func:`greybox.validate.has_marginal_pole`: an integrator's simulation
         error drifts, its few effective samples judge nothing; EMPS, a double integrator,
         read 7)."""
         tr, kind = chosen.trace, chosen.kind
-        if tr.relative_degree >= 2 and r.fit is not None and chosen.fit is not None and \
-                not has_marginal_pole(self.nominal):
+        if (tr.relative_degree >= 2 or kind == "sparse") and r.fit is not None and \
+                chosen.fit is not None and not has_marginal_pole(self.nominal):
             n_eff = self.n_eff if self.n_eff is not None else chosen.fit.n_eff
             n = float(np.sum(n_eff))
             penalty = float(chosen.npar * np.log(max(n, 2.0)))

@@ -56,7 +56,7 @@ from .dynamic import SharedLaw, _augmented_models, _component_lines, _driver_nam
     _gauss_newton_step, _pm, driver_weights, input_scale
 from .oe import lowest_start, oe_window, robust_halfwidths, scaled_output_error, zoh
 
-__all__ = ["SharedLaw2", "fit_input_lag2", "fit_shared_order2"]
+__all__ = ["SharedLaw2", "fit_hidden_part2", "fit_input_lag2", "fit_shared_order2"]
 
 
 @dataclass(frozen=True)
@@ -353,6 +353,59 @@ def fit_input_lag2(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: 
         return None
     law = _law_from(sys, channel, *fit, Q, R)
     return replace(law, formula=law.formula + _reach2(sys, law, j, c))
+
+
+def fit_hidden_part2(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, *,
+                     Q: NDArray, R: NDArray, dt: float, x0: NDArray, k0: int,
+                     poles) -> SharedLaw2 | None:
+    """A hidden second-order part attached to one body: a load behind a flexible shaft,
+    a mass on a spring and damper, driven by the body's own state.
+
+    The law of a one-component channel along one state equation x_j' with x_j (a
+    velocity, a speed) its only driver, ``d = e x_j + (beta_1 s + beta_0)/(s^2 +
+    alpha_1 s + alpha_0) x_j``: a hidden body coupled to x_j's body by a spring and
+    a damper moves with the relative coordinate, whose rate is x_j minus its own
+    speed, so x_j alone drives it. Fitted by output error on y from each pair of
+    start ``poles`` (numerators and feedthrough from one Gauss-Newton step there,
+    :func:`_template`); terms whose interval contains 0 are dropped; the sparsest
+    fit within 1 % of the lowest output error is kept (:func:`_sparsest`).
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Continuous nominal model.
+    channel : Channel
+        md = 1, kind "equation", one state's equation.
+    y, u : ndarray, shapes (noutputs, nsteps), (ninputs, nsteps)
+        The estimation record.
+    Q, R : ndarray
+        Noise covariances of the discrete nominal model (for the intervals).
+    dt : float
+        Sampling period [s].
+    x0 : ndarray, shape (nstates,)
+        Initial state of the output-error simulation.
+    k0 : int
+        First sample of the output-error window.
+    poles : sequence of pairs of complex
+        Continuous start poles [1/s] (a conjugate pair or two real poles each).
+
+    Returns
+    -------
+    SharedLaw2 or None
+        None for another channel, or when no stable law with determined terms is found.
+    """
+    eqs = [e for e in channel.equations if e in sys.state_labels]
+    if channel.md != 1 or channel.kind != "equation" or len(eqs) != 1:
+        return None
+    own = [_driver_ref(sys)(eqs[0])]
+    args = (sys, channel, y, u, Q, R, dt, x0, k0)
+    fits = []
+    with single_thread_blas():
+        for p1, p2 in poles:
+            alpha = np.real([-(p1 + p2), p1 * p2])
+            if np.all(np.isfinite(alpha)) and np.all(alpha > 0):  # a stable start
+                fits.append(_template(args, own, alpha, np.zeros(0), 0))
+    return _sparsest(sys, channel, fits, Q, R)
 
 
 def _reach2(sys, law: SharedLaw2, j: int, c: float) -> str:
