@@ -44,7 +44,7 @@ from ..system import named_ss
 from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .channel_trace import _LOW_SNR
-from .oe import lowest_start, oe_window, robust_halfwidths, scaled_output_error, zoh
+from .oe import OutputError, lowest_start, zoh
 
 __all__ = ["DynamicLaw", "SharedLaw", "fit_input_lag", "fit_shared_dynamic",
            "fit_sparse_dynamic"]
@@ -122,11 +122,12 @@ class _DynProblem:
 
     def __init__(self, Ac, Bc, Gc, C, D, dt, y, u, x0, k0, drv):
         self.Ac, self.Bc, self.Gc, self.C, self.D, self.dt = Ac, Bc, Gc[:, 0], C, D, dt
-        win = oe_window(y.shape[0])
-        self.y, self.u = y[:, :k0 + win], u[:, :k0 + win]
         self.x0, self.k0, self.drv = np.r_[x0, 0.0], k0, drv
         self.n = Ac.shape[0]
-        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
+        Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
+        self.engine = OutputError(lambda theta: self.cont(theta), Ca, D, y, u, self.x0, k0,
+                                  dt=dt)
+        self.y, self.u, self.scale = self.engine.y, self.engine.u, self.engine.scale
 
     def cont(self, theta):
         n, k = self.n, len(self.drv)
@@ -142,30 +143,18 @@ class _DynProblem:
         return A, B
 
     def disc(self, theta):
-        return zoh(*self.cont(theta), self.dt)
+        return self.engine.model(theta)
 
     def resid(self, theta):
-        Ad, Bd = self.disc(theta)
-        Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 1))])
-        return scaled_output_error(Ad, Bd, Ca, self.D, self.y, self.u, self.x0, self.k0,
-                                   self.scale)
+        return self.engine.resid(theta)
 
     def fit(self, theta0):
-        from scipy.optimize import least_squares
-
-        with single_thread_blas():
-            return least_squares(self.resid, theta0, method="lm", x_scale="jac", max_nfev=80)
+        return self.engine.fit(theta0, max_nfev=80)
 
     def halfwidths(self, sol, Q, R):
-        with single_thread_blas():
-            return self._halfwidths(sol, Q, R)
-
-    def _halfwidths(self, sol, Q, R):
-        Ca = np.hstack([self.C, np.zeros((self.C.shape[0], 1))])
         Qa = np.zeros((self.n + 1, self.n + 1))
         Qa[:self.n, :self.n] = Q
-        return robust_halfwidths(sol, self.y.shape[0], self.disc(sol.x)[0], Ca, self.scale,
-                                 self.k0, Qa, R)
+        return self.engine.halfwidths(sol, Qa, R)
 
 
 def driver_weights(drv, n: int, m: int) -> NDArray[np.float64]:

@@ -36,7 +36,7 @@ from .channels import Channel
 from .dynamic import DynamicLaw, SharedLaw, _law_from, _problem, _shared_law_from, \
     _shared_problem
 from .laws import StaticLaw, _law_line, _one_direction, linear_part
-from .oe import oe_window, robust_halfwidths, scaled_output_error, zoh
+from .oe import OutputError, zoh
 from .shared_order2 import SharedLaw2
 from .shared_order2 import _law_from as _shared2_law_from
 from .shared_order2 import _Problem as _Shared2Problem
@@ -234,9 +234,9 @@ class _Joint:
 
     def __init__(self, A0, B0, C, D, ps, dt, y, u, x0, k0):
         self.A0, self.B0, self.C, self.D, self.ps, self.dt = A0, B0, C, D, ps, dt
-        win = oe_window(y.shape[0])
-        self.y, self.u, self.x0, self.k0 = y[:, :k0 + win], u[:, :k0 + win], x0, k0
-        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
+        self.x0, self.k0 = x0, k0
+        self.engine = OutputError(self.cont, C, D, y, u, x0, k0, dt=dt)
+        self.y, self.u, self.scale = self.engine.y, self.engine.u, self.engine.scale
 
     def cont(self, theta, active):
         A, B = self.A0.copy(), self.B0.copy()
@@ -246,23 +246,16 @@ class _Joint:
         return A, B
 
     def resid(self, theta, active):
-        Ad, Bd = zoh(*self.cont(theta, active), self.dt)
-        return scaled_output_error(Ad, Bd, self.C, self.D, self.y, self.u, self.x0, self.k0,
-                                   self.scale)
+        return self.engine.resid(theta, active)
 
     def se(self, theta, active) -> float:
-        r = self.resid(theta, active).reshape(self.y.shape[0], -1)
-        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))
+        return self.engine.se(theta, active)
 
     def fit(self, theta0, active):
-        from scipy.optimize import least_squares
-
-        return least_squares(self.resid, theta0, args=(active,), method="lm", x_scale="jac",
-                             max_nfev=60 * (len(active) + 1))
+        return self.engine.fit(theta0, active, max_nfev=60 * (len(active) + 1))
 
     def halfwidths(self, sol, active, Q, R):
-        Ad, _ = zoh(*self.cont(sol.x, active), self.dt)
-        return robust_halfwidths(sol, self.y.shape[0], Ad, self.C, self.scale, self.k0, Q, R)
+        return self.engine.halfwidths(sol, Q, R, active)
 
 
 def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: NDArray,

@@ -15,7 +15,7 @@ from .._lti import lti_output, lti_states
 from ..metrics import effective_samples, oe_criterion
 from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
-from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, _eval_terms, _law_line, _one_direction,
+from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, _law_line, _one_direction,
                    linear_part, siblings)
 
 # Output-error refinements of static laws run on at most this many samples
@@ -123,14 +123,79 @@ def robust_halfwidths(sol, nout: int, Ad: NDArray, C: NDArray, scale: NDArray, k
     return 1.96 * np.sqrt(np.clip(var, 0, None))
 
 
+class OutputError:
+    """The output error of a linear model whose matrices depend on parameters: the one
+    engine of every linear law's output-error fit (a static law folded into A and B, a
+    first-order or order-q subsystem, a shared state, the joint refit of several effects).
+
+    ``matrices(theta, *args) -> (A, B)``: continuous when ``dt`` is given (discretized
+    exactly by the zero-order hold, :func:`zoh`), discrete otherwise; ``args`` (a
+    selection of terms, the active parameters) pass through :meth:`resid`, :meth:`se`,
+    :meth:`fit` and :meth:`halfwidths`. The residual is the output error over at most
+    ``oe_window(noutputs)`` samples after ``k0``, scaled per output by its RMS there
+    (PAPER_NOTES §9.3: output-error fits are unbiased on a noisy d^), flat (output-major);
+    a diverged simulation counts as 1e6.
+
+    Parameters
+    ----------
+    matrices : callable
+    C : ndarray, shape (p, n)
+    D : ndarray, shape (p, m)
+    y : ndarray, shape (p, N)
+    u : ndarray, shape (m, N)
+    x0 : ndarray, shape (n,)
+        Initial state of the simulation (not fitted).
+    k0 : int
+        First compared sample.
+    dt : float, optional
+        Sampling period [s] of a continuous ``matrices``.
+    """
+
+    def __init__(self, matrices, C: NDArray, D: NDArray, y: NDArray, u: NDArray,
+                 x0: NDArray, k0: int, dt: float | None = None):
+        win = oe_window(y.shape[0])
+        self.matrices, self.C, self.D, self.x0, self.k0, self.dt = matrices, C, D, x0, k0, dt
+        self.y, self.u = y[:, :k0 + win], u[:, :k0 + win]
+        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
+
+    def model(self, theta, *args) -> tuple[NDArray, NDArray]:
+        """The discrete ``(Ad, Bd)`` at ``theta``."""
+        A, B = self.matrices(theta, *args)
+        return (A, B) if self.dt is None else zoh(A, B, self.dt)
+
+    def resid(self, theta, *args) -> NDArray[np.float64]:
+        """Scaled output error, flat; 1e6 where the simulation diverged."""
+        Ad, Bd = self.model(theta, *args)
+        return scaled_output_error(Ad, Bd, self.C, self.D, self.y, self.u, self.x0, self.k0,
+                                   self.scale)
+
+    def se(self, theta, *args) -> float:
+        """Simulation error of eq. (42) [%] on the window."""
+        r = self.resid(theta, *args).reshape(self.y.shape[0], -1)
+        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))  # |r| <= 1e6
+
+    def fit(self, theta0, *args, max_nfev: int = 60):
+        """Levenberg-Marquardt from ``theta0`` (forward-difference Jacobian); the result."""
+        from scipy.optimize import least_squares
+
+        with single_thread_blas():  # thin products: threads only cost (150x for a 6x6 expm)
+            return least_squares(self.resid, theta0, args=args, method="lm", x_scale="jac",
+                                 max_nfev=max_nfev)
+
+    def halfwidths(self, sol, Q: NDArray | None, R: NDArray | None,
+                   *args) -> NDArray[np.float64]:
+        """95 % half-widths of ``sol.x`` (:func:`robust_halfwidths`; Q sized as the model)."""
+        with single_thread_blas():
+            return robust_halfwidths(sol, self.y.shape[0], self.model(sol.x, *args)[0], self.C,
+                                     self.scale, self.k0, Q, R)
+
+
 class _OutputErrorLaw:
     """Simulation error on y of the model augmented with a linear static law.
 
     The law's selected terms ``sel`` (pairs (component of d, term index))
-    with coefficients ``theta`` are folded into A and B; the residual is the
-    output error over at most ``oe_window(noutputs)`` samples after ``k0``, scaled per
-    output by its RMS (PAPER_NOTES §9.3: output-error fits are unbiased on a
-    noisy d^).
+    with coefficients ``theta`` are folded into A and B, and the augmented model's
+    output error is :class:`OutputError`'s.
 
     With ``cont = (Ac, Bc, Gc, dt)`` (a continuous nominal model) the law is
     parametrized in continuous time, ``dx/dt = (Ac + Gc Dx) x + (Bc + Gc Du) u``,
@@ -143,60 +208,60 @@ class _OutputErrorLaw:
                  u: NDArray, x0: NDArray, k0: int, cont=None, noise=None):
         self.law, self.md, self.k0, self.x0 = law, md, k0, x0
         self.noise = noise  # (Q, R) of the discrete model, for the intervals
-        win = oe_window(y.shape[0])
-        self.y, self.u = y[:, :k0 + win], u[:, :k0 + win]
         m = model.ninputs - md
         Bf = np.asarray(model.B, dtype=float)
         self.A = np.asarray(model.A, dtype=float)
         self.B, self.G = Bf[:, :m], Bf[:, m:]
         self.C = np.asarray(model.C, dtype=float)
         self.D = np.asarray(model.D, dtype=float)[:, :m]
-        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
         self.cont = cont
         # with a direction dG (continuous models only), theta carries one more entry r
         # after the law's coefficients and d enters through Gc + r dG (a force's direction)
         self.dG = None
+        self.engine = OutputError(self._folded, self.C, self.D, y, u, x0, k0,
+                                  dt=None if cont is None else cont[3])
+        self.y, self.u, self.scale = self.engine.y, self.engine.u, self.engine.scale
 
     @property
     def nextra(self) -> int:
         """Entries of theta after the law's coefficients (1 with a free direction)."""
         return 0 if self.dG is None else 1
 
+    def _linear(self, sel, theta):
+        """The law's (Ddx, Ddu) for the terms ``sel`` at ``theta`` (the law's time base)."""
+        coef = np.zeros((self.md, len(self.law.spec)))
+        for (c, j), t in zip(sel, theta):
+            coef[c, j] = t
+        return linear_part(self.law.spec, coef, self.A.shape[0], self.B.shape[1])
+
+    def _folded(self, theta, sel):
+        """(A, B) with the law folded in, before discretization (the engine's map)."""
+        Ddx, Ddu = self._linear(sel, theta)
+        if self.cont is None:
+            return self.A + self.G @ Ddx, self.B + self.G @ Ddu
+        Ac, Bc, Gc, _ = self.cont
+        if self.dG is not None:
+            Gc = Gc + theta[-1] * self.dG
+        return Ac + Gc @ Ddx, Bc + Gc @ Ddu
+
     def matrices(self, sel, theta):
         """Discrete (A_aug, B_aug) and the law's (Ddx, Ddu) for the terms ``sel`` at ``theta``.
 
         Ddx, Ddu are in the law's time base (continuous when ``cont`` is given).
         """
-        coef = np.zeros((self.md, len(self.law.spec)))
-        for (c, j), t in zip(sel, theta):
-            coef[c, j] = t
-        Ddx, Ddu = linear_part(self.law.spec, coef, self.A.shape[0], self.B.shape[1])
-        if self.cont is None:
-            return self.A + self.G @ Ddx, self.B + self.G @ Ddu, Ddx, Ddu
-        Ac, Bc, Gc, dt = self.cont
-        if self.dG is not None:
-            Gc = Gc + theta[-1] * self.dG
-        Ad, Bd = zoh(Ac + Gc @ Ddx, Bc + Gc @ Ddu, dt)
-        return Ad, Bd, Ddx, Ddu
+        return (*self.engine.model(theta, sel), *self._linear(sel, theta))
 
     def resid(self, theta, sel):
         """Scaled output error, flattened; a diverged simulation counts as 1e6."""
-        Aa, Ba, _, _ = self.matrices(sel, theta)
-        return scaled_output_error(Aa, Ba, self.C, self.D, self.y, self.u, self.x0, self.k0,
-                                   self.scale)
+        return self.engine.resid(theta, sel)
 
     def se(self, theta, sel) -> float:
         """Simulation error of eq. (42) [%] on the window."""
-        r = self.resid(theta, sel).reshape(self.y.shape[0], -1)
-        return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))  # |r| <= 1e6
+        return self.engine.se(theta, sel)
 
     def fit(self, sel, start, max_nfev=60):
         """Levenberg-Marquardt from ``start``; returns the optimizer result."""
-        from scipy.optimize import least_squares
-
-        with single_thread_blas():  # thin products: threads only cost (150x for a 6x6 expm)
-            return least_squares(self.resid, start, args=(sel,), method="lm", x_scale="jac",
-                                 max_nfev=max_nfev)
+        return self.engine.fit(start, sel, max_nfev=max_nfev)
 
     def halfwidths(self, sol, sel) -> NDArray[np.float64]:
         """95 % half-widths of the coefficients of the last fit (inf: not determined).
@@ -210,9 +275,7 @@ class _OutputErrorLaw:
         if sol.jac is None:
             return np.full(sol.x.size, np.nan)
         Q, R = self.noise if self.noise is not None else (None, None)
-        with single_thread_blas():
-            h = robust_halfwidths(sol, self.y.shape[0], self.matrices(sel, sol.x)[0],
-                                  self.C, self.scale, self.k0, Q, R)
+        h = self.engine.halfwidths(sol, Q, R, sel)
         # a coefficient the data do not determine (collinear terms): "not determined" (inf),
         # never the half-width of a singular covariance; the prune drops it first
         h[undetermined(np.asarray(sol.jac))[:h.size]] = np.inf

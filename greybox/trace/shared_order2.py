@@ -54,7 +54,7 @@ from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .dynamic import SharedLaw, _augmented_models, _component_lines, _driver_name, \
     _gauss_newton_step, _pm, driver_weights, input_scale
-from .oe import lowest_start, oe_window, robust_halfwidths, scaled_output_error, zoh
+from .oe import OutputError, lowest_start, zoh
 
 __all__ = ["SharedLaw2", "fit_hidden_part2", "fit_input_lag2", "fit_shared_order2"]
 
@@ -170,14 +170,15 @@ class _Problem:
         self.G = np.asarray(channel.G, dtype=float)
         self.n, self.m, self.md, self.dt, self.ref = self.Ac.shape[0], self.Bc.shape[1], \
             self.G.shape[1], dt, ref
-        win = oe_window(y.shape[0])
-        self.y, self.u, self.k0 = y[:, :k0 + win], u[:, :k0 + win], k0
+        self.k0 = k0
         self.x0 = np.r_[x0, np.zeros(self.q)]
-        self.scale = np.sqrt(np.mean(self.y[:, k0:] ** 2, axis=1)) + 1e-300
         self.bterms, self.eterms = list(bterms), list(eterms)
         self.Wb = driver_weights([dv for _, dv in self.bterms], self.n, self.m)
         self.We = driver_weights([dv for _, dv in self.eterms], self.n, self.m)
         self.Ca = np.hstack([self.C, np.zeros((self.C.shape[0], self.q))])
+        self.engine = OutputError(lambda theta: self.cont(theta), self.Ca, self.D, y, u,
+                                  self.x0, k0, dt=dt)
+        self.y, self.u, self.scale = self.engine.y, self.engine.u, self.engine.scale
 
     def split(self, theta):
         """(alpha (q,), beta values, k with the reference's 1, e values)."""
@@ -209,22 +210,17 @@ class _Problem:
         return A, B
 
     def resid(self, theta):
-        Ad, Bd = zoh(*self.cont(theta), self.dt)
-        return scaled_output_error(Ad, Bd, self.Ca, self.D, self.y, self.u, self.x0, self.k0,
-                                   self.scale)
+        return self.engine.resid(theta)
 
     def fit(self, theta0):
-        from scipy.optimize import least_squares
-
-        return least_squares(self.resid, theta0, method="lm", x_scale="jac", max_nfev=60)
+        return self.engine.fit(theta0, max_nfev=60)
 
     def halfwidths(self, sol, Q, R, jac=None):
         n = self.n
         Qa = np.zeros((n + self.q, n + self.q))
         Qa[:n, :n] = Q
         s = sol if jac is None else SimpleNamespace(jac=jac, fun=sol.fun, x=sol.x)
-        Ad = zoh(*self.cont(sol.x), self.dt)[0]
-        return robust_halfwidths(s, self.y.shape[0], Ad, self.Ca, self.scale, self.k0, Qa, R)
+        return self.engine.halfwidths(s, Qa, R)
 
 
 def fit_shared_order2(sys: ct.StateSpace, channel: Channel, law: SharedLaw | SharedLaw2,
