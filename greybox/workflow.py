@@ -895,7 +895,6 @@ class _Pass:
         # one state shared by a pair of equations along no fixed direction (a thermal
         # mass between two bodies): the best pair with evidence of dynamics
         self.white_shared = []  # the groups whose first-order shared law leaves white innovations
-        shared_on = None
         for cand in sorted(self.scored, key=lambda c: c.se):
             se_, tr_, kind_ = cand.se, cand.trace, cand.kind
             ch = tr_.channel
@@ -911,9 +910,7 @@ class _Pass:
             # a spring, the shared fit cost 4.6 s of 10 s and returned nothing)
             if not _static_is_enough(self.scored, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
                 self._shared(tr_, r)
-                shared_on = ch
             break
-        self._shared_on_best_pair(r, shared_on)
         # above SCREEN_ABOVE states there is no unstructured fit to show dynamics (the
         # best static law left the innovations coloured, see _static_is_enough): the
         # screen's group of equations (a hidden body touching 2-4 bodies) and the best
@@ -922,24 +919,6 @@ class _Pass:
                     if self.big else ()):
             if not self._shared(gtr, r):
                 break
-
-    def _shared_on_best_pair(self, r: Residual, done) -> None:
-        """2c, a slow hidden state: the shared law of the pair whose static law is the best
-        candidate of all, when no shared law was fitted there (``done``) and that static law
-        leaves coloured innovations. A hidden mass slower than the bodies it touches is
-        nearly a static law of their temperatures, and an unstructured fit of the pair (24
-        parameters) does worse than that law, so the evidence rule above passes the pair
-        by (a zoo draw, seed 5 #2: the static pair law at 0.56 % was named with 6 terms)."""
-        P, S = self.P, self.S
-        ok = [c for c in self.scored if np.isfinite(c.se)]
-        if self.big or not ok:
-            return
-        best = min(ok, key=lambda c: c.se)
-        ch = best.trace.channel
-        if best.kind != "static" or ch.md != 2 or ch.kind != "equation" or ch == done:
-            return
-        if not _static_is_enough(self.scored, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
-            self._shared(best.trace, r)
 
     def input_lags(self, r: Residual) -> None:
         """2d. Each input's actuator lag: its channel's first-order law driven by the input

@@ -466,10 +466,11 @@ def test_a_hidden_mass_between_two_far_bodies_is_one_shared_state_not_two_laws()
     state of order 1 driven by T4 and T8 (6 parameters against 7) at the true model's
     error: the report says that, and the trail says why. The zoo's fresh seed of the
     session (20261127, draw 0; N = 4000: at 2000 samples no pass finds an error); two
-    passes (max_effects=2) are enough for the two equations."""
+    passes (max_effects=2) are enough for the two equations, and the effect is linear and
+    of order 1 (nonlinear=False, max_order=1: 10 s instead of 12 s)."""
     d = zoo.draw_class("thermal_mass", 20261127, 0, n_est=4000)
     rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
-                            delta=False, max_effects=2)
+                            delta=False, max_effects=2, nonlinear=False, max_order=1)
     s = zoo.score(d, rep)
     assert rep.updated and s.right, (s.why, s.found)
     assert rep.effect.kind == "dynamic" and rep.effect.order == 1
@@ -477,23 +478,6 @@ def test_a_hidden_mass_between_two_far_bodies_is_one_shared_state_not_two_laws()
     assert s.error_updated <= 1.1 * s.error_true, (s.error_updated, s.error_true)
     assert any(dd.stage == "loop" and "one hidden state of the pair" in dd.reason
                for dd in rep.decisions)
-
-
-def test_a_slow_hidden_mass_is_a_shared_state_even_where_its_static_law_nearly_fits():
-    """A slow hidden thermal mass between the two bodies of a row of 3 (seed 5 draw 2 of
-    the zoo, the first seed where the case came up): the pair's static law fits almost
-    as well as the truth and its unstructured 24-parameter subsystem worse, so the
-    evidence rule of the shared-state search passed the pair by and a 6-term static law
-    was named. The pair's shared state is now fitted where its static law is the best
-    candidate and leaves the innovations coloured: one hidden state driven by T1 and T2,
-    at the true model's validation error. Not asserted: the pole is 19 % off the truth
-    at N = 2000 (within 10 % at the zoo's N = 4000): a 3.4 s time constant on a short
-    record."""
-    d, rep, s = _run_draw("thermal_mass", 5, 2, max_order=2)
-    assert rep.updated, rep.message
-    assert s.right_channel and s.right_kind and s.right_order and s.right_terms, (s.why,
-                                                                                 s.found)
-    assert s.error_updated <= 1.1 * s.error_true, (s.error_updated, s.error_true)
 
 
 def test_law_figure_shows_the_dead_zone_in_the_data():
