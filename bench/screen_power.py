@@ -1,0 +1,58 @@
+"""How strongly the equation screen sees the missing spring of a chain, per size (issue 29).
+
+``python bench/screen_power.py [nsteps] [n_masses ...]`` (default 20000 and 16 32 64):
+the chain of ``bench/workflow.py chains`` (n_masses masses, the spring between the two
+middle ones missing from the model, all positions and velocities measured, and positions
+only), screened by :func:`greybox.trace.screen.screen_equations`. One row per case: the
+z-scores of the two equations the spring enters, the best other equation's, and the
+threshold the pass uses (``EquationScreen.ranked``'s 5). Where the targets fall below
+the threshold the pass traces nothing (the 64-mass, positions-only row of
+``bench/workflow.py chains``: "nothing traced").
+"""
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from plantlib import chain, draw  # noqa: E402
+
+from greybox.trace.screen import screen_equations  # noqa: E402
+
+
+def row(n_masses: int, measured: str, N: int) -> str:
+    i = n_masses // 2 - 1
+    meas = None if measured == "all" else [f"p{j + 1}" for j in range(n_masses)]
+    true = chain(n_masses, k=20.0)
+    nom = chain(n_masses, k=20.0, missing=[(i, i + 1)], measured=meas)
+    A, B = np.asarray(true.A), np.asarray(true.B)
+    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=2 * n_masses, dt=0.01,
+             rng=np.random.default_rng(1), q_std=np.array([0.0, 1e-4] * n_masses),
+             r_std=1e-3, n_est=N, n_val=3000, sub=2)
+    t = time.perf_counter()
+    s = screen_equations(nom, d.y, d.u, Q=d.Q, R=d.R, dt=d.dt)
+    el = time.perf_counter() - t
+    if not s.available:
+        return f"| {2 * n_masses} | {measured} | {N:.0e} | unavailable: {s.reason} | | | {el:.1f} |"
+    tg = [s.states.index(f"v{i + 1}"), s.states.index(f"v{i + 2}")]
+    other = max(float(s.score[j]) for j in range(len(s.states)) if j not in tg)
+    z = ", ".join(f"{s.states[j]} {s.score[j]:.3g}" for j in tg)
+    return f"| {2 * n_masses} | {measured} | {N:.0e} | {z} | {other:.3g} | 5 | {el:.1f} |"
+
+
+def main(argv):
+    N = int(argv[0]) if argv else 20000
+    sizes = [int(a) for a in argv[1:]] or [16, 32, 64]
+    print("| states | measured | N | target equations' z | best other z | threshold | "
+          "time [s] |")
+    print("|---|---|---|---|---|---|---|")
+    for nm in sizes:
+        for meas in ("all", "positions"):
+            print(row(nm, meas, N), flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
