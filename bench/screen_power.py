@@ -14,24 +14,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from plantlib import chain, draw  # noqa: E402
+from workflow import chain_data  # noqa: E402  (bench/workflow.py: the same chain cases)
 
 from greybox.trace.screen import screen_equations  # noqa: E402
 
 
 def row(n_masses: int, measured: str, N: int) -> str:
-    i = n_masses // 2 - 1
-    meas = None if measured == "all" else [f"p{j + 1}" for j in range(n_masses)]
-    true = chain(n_masses, k=20.0)
-    nom = chain(n_masses, k=20.0, missing=[(i, i + 1)], measured=meas)
-    A, B = np.asarray(true.A), np.asarray(true.B)
-    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=2 * n_masses, dt=0.01,
-             rng=np.random.default_rng(1), q_std=np.array([0.0, 1e-4] * n_masses),
-             r_std=1e-3, n_est=N, n_val=3000, sub=2)
+    nom, d, i, _ = chain_data(n_masses, measured, N)
     t = time.perf_counter()
     s = screen_equations(nom, d.y, d.u, Q=d.Q, R=d.R, dt=d.dt)
     el = time.perf_counter() - t

@@ -319,10 +319,10 @@ def main_csv(N=1_000_000, whole=False):
              if t.get("delta", {}).get("se") is not None else ""))
 
 
-def _chain_case(n_masses, measured, N, seed=1):
-    """One chain case in this process; prints one table row."""
-    import resource
-
+def chain_data(n_masses, measured, N, seed=1):
+    """``(nominal, data, i, meas)`` of one chain case: n_masses masses, the spring between
+    masses i + 1 and i + 2 (the two middle ones) missing from the nominal, all states
+    measured ("all") or the positions ``meas`` only ("positions")."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from plantlib import chain, draw
 
@@ -334,6 +334,15 @@ def _chain_case(n_masses, measured, N, seed=1):
     d = draw(nom, lambda x, u: A @ x + B @ u, n_true=2 * n_masses, dt=0.01,
              rng=np.random.default_rng(seed), q_std=np.array([0.0, 1e-4] * n_masses),
              r_std=1e-3, n_est=N, n_val=3000, sub=2)
+    return nom, d, i, meas
+
+
+def _chain_case(n_masses, measured, N, seed=1):
+    """One chain case in this process; prints one table row."""
+    import resource
+
+    nom, d, i, meas = chain_data(n_masses, measured, N, seed)
+    from plantlib import chain  # on the path chain_data put it on
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     t, c = time.perf_counter(), time.process_time()
     # the whole update, the parallel delta baseline included (its cost is bounded by
