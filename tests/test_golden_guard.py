@@ -54,3 +54,28 @@ def test_why_a_row_has_no_se_is_compared_by_its_words_not_its_numbers():
     assert g._diff(a, c)
     f1, f2 = {"formula": "-(0.502 ± 0.0074)*sign(v)"}, {"formula": "-(0.512 ± 0.0074)*sign(v)"}
     assert g._diff(f1, f2)
+
+
+def test_another_machine_compares_the_verdict_not_the_numbers():
+    """On a machine other than the recording one, numbers (BLAS kernels, optimizer paths)
+    are not compared; the verdict still is: a term, a channel, a pass or a fail."""
+    old = {"updated": True, "effect": {"formula": "d_x1 = -(2.03 ± 0.017)*max(x1 - (8.045 ± "
+                                                  "0.0093), 0)", "order": 0},
+           "gate": {"passed": {"bic": True}, "bic_gain": 72810.0},
+           "candidates": [{"npar": 4, "se_estimation": 70.47}]}
+    moved = {"updated": True, "effect": {"formula": "d_x1 = -(1.82 ± 0.054)*max(x1 - (7.943 ± "
+                                                    "0.029), 0)", "order": 0},
+             "gate": {"passed": {"bic": True}, "bic_gain": 19211.0},
+             "candidates": [{"npar": 3, "se_estimation": 68.2}]}
+    assert g._diff(old, moved)                      # the recording machine: numbers count
+    assert g._diff(old, moved, portable=True) == []
+    for wrong in ({**moved, "updated": False},
+                  {**moved, "gate": {"passed": {"bic": False}, "bic_gain": 1.0}},
+                  {**moved, "effect": {**moved["effect"], "formula": "d_x1 = -(1.82)*x1"}}):
+        assert g._diff(old, wrong, portable=True)
+
+
+def test_the_machine_signature_names_the_blas_kernels_and_versions():
+    sig = g.machine()
+    assert sig["blas"]
+    assert {"cpu", "numpy", "scipy", "control", "slycot"} <= set(sig)
