@@ -668,8 +668,9 @@ class _LawOutputError:
         """The Jacobian of :meth:`resid` at theta (one batched simulation)."""
         return self._eval(np.asarray(theta, dtype=float), sel)[1]
 
-    def fit(self, sel, start, max_nfev=20):
-        """Levenberg-Marquardt from ``start`` (Jacobian by one batched simulation)."""
+    def fit(self, sel, start, max_nfev=20, trial: bool = False):
+        """Levenberg-Marquardt from ``start`` (Jacobian by one batched simulation); every fit
+        stops at 1e-4 (``trial`` changes nothing here)."""
         return least_squares(self.resid, np.asarray(start, dtype=float), args=(sel,),
                              jac=lambda th, s: self._eval(th, s)[1], method="lm",
                              x_scale="jac", max_nfev=max_nfev, ftol=1e-4, xtol=1e-4)

@@ -28,7 +28,7 @@ class _Regression:
         cols = [j for _, j in sel]
         return self.y - (self.X[:, cols] @ np.asarray(theta) if cols else 0.0)
 
-    def fit(self, sel, start, max_nfev=100):
+    def fit(self, sel, start, max_nfev=100, trial=False):
         return least_squares(self.resid, np.asarray(start, dtype=float), args=(sel,),
                              method="lm", max_nfev=max(max_nfev, 10))
 

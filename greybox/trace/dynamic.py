@@ -44,7 +44,7 @@ from ..system import named_ss
 from ..update import UpdatedModel, free_state_names
 from .channels import Channel
 from .channel_trace import _LOW_SNR
-from .oe import OutputError, lowest_start, zoh
+from .oe import TRIAL_TOL, OutputError, lowest_start, zoh
 
 __all__ = ["DynamicLaw", "SharedLaw", "fit_input_lag", "fit_shared_dynamic",
            "fit_sparse_dynamic"]
@@ -148,8 +148,10 @@ class _DynProblem:
     def resid(self, theta):
         return self.engine.resid(theta)
 
-    def fit(self, theta0):
-        return self.engine.fit(theta0, max_nfev=80)
+    def fit(self, theta0, trial: bool = False):
+        """Levenberg-Marquardt from ``theta0``; ``trial``: a fit only compared by its
+        residual (a driver selection's trial, :data:`greybox.trace.oe.TRIAL_TOL`)."""
+        return self.engine.fit(theta0, max_nfev=80, tol=TRIAL_TOL if trial else 1e-8)
 
     def halfwidths(self, sol, Q, R):
         Qa = np.zeros((self.n + 1, self.n + 1))
@@ -411,7 +413,7 @@ def _select_drivers_oe(sys, channel, y, u, dt, x0, k0, cand, max_drivers, pole, 
                 if drv[-1] in seen:
                     continue
                 seen.add(drv[-1])
-                sol = _problem(sys, channel, y, u, dt, x0, k0, drv).fit(th)
+                sol = _problem(sys, channel, y, u, dt, x0, k0, drv).fit(th, trial=True)
                 if sol.x[0] < 0:
                     fits.append((bic(float(np.sum(sol.fun ** 2)), 1 + 2 * len(drv)), drv, sol.x))
                 if len(seen) >= _OE_TOP:
