@@ -261,9 +261,15 @@ def fit_sparse_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
                                  pole, _oe_candidates(sys, cand, w, d))
         if sel is not None:
             starts.append((np.nan, *sel))
+    def restart(drv, a):  # the least-squares start of these drivers at the pole a [1/s]
+        pole = float(np.exp(a * dt))
+        if not 0 < pole < 1:
+            return None
+        return _drivers_and_start(sys, w, d, dt, pole, max_drivers, drv, channel.relative)[1]
+
     best = None
     for _, drv, theta0 in starts:
-        dl = _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
+        dl = _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0, restart)
         if dl is not None and (best is None or dl.se_estimation < best.se_estimation):
             best = dl
     return best
@@ -503,24 +509,52 @@ def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers, drivers=None
     return float(np.sum(r**2)), drv, theta0
 
 
-def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0):
-    """Output error on y from one start (drivers and least-squares values from _start)."""
-    while True:
-        prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
-        sol = prob.fit(theta0)
-        hw = prob.halfwidths(sol, Q, R)
+def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0, restart=None):
+    """Output error on y from one start (drivers and least-squares values from _start).
+
+    Drivers whose two coefficients' intervals both contain 0 are dropped one at a time,
+    the weakest first, each drop refitted from the others' values. Where that refit
+    no longer simulates (the law without the driver leaves a diverging model the fit
+    cannot leave: a Maxwell element's p2 taken out beside p1 and v2, SE 1e8 %), it is
+    refitted from ``restart(drivers, a)`` (the least-squares start of the remaining
+    drivers on d^ at the fit's pole), and where that diverges too, the drop is not
+    taken and the next weakest is tried. Without this, whether a drop diverged
+    depended on the last bits of the fit (the BLAS kernels of the machine)."""
+    prob = _problem(sys, channel, y, u, dt, x0, k0, drv)
+    sol = prob.fit(theta0)
+    hw = prob.halfwidths(sol, Q, R)
+    while len(drv) > 1:
         k = len(drv)
         b, e = sol.x[1:1 + k], sol.x[1 + k:]
         hb, he = hw[1:1 + k], hw[1 + k:]
-        weak = [q for q in range(k) if abs(b[q]) < hb[q] and abs(e[q]) < he[q]]
-        if not weak or k == 1:
+        weak = sorted((q for q in range(k) if abs(b[q]) < hb[q] and abs(e[q]) < he[q]),
+                      key=lambda q: abs(b[q]) / hb[q] + abs(e[q]) / he[q])
+        for q in weak:
+            d2 = drv[:q] + drv[q + 1:]
+            p2 = _problem(sys, channel, y, u, dt, x0, k0, d2)
+            s2 = p2.fit(np.r_[sol.x[0], np.delete(b, q), np.delete(e, q)])
+            if not _converged(s2) and restart is not None:
+                t2 = restart(d2, float(sol.x[0]))
+                s2 = p2.fit(t2) if t2 is not None else s2
+            if _converged(s2):
+                drv, prob, sol = d2, p2, s2
+                hw = prob.halfwidths(sol, Q, R)
+                break
+        else:
             break
-        q = min(weak, key=lambda q: abs(b[q]) / hb[q] + abs(e[q]) / he[q])
-        drv = drv[:q] + drv[q + 1:]
-        theta0 = np.r_[sol.x[0], np.delete(b, q), np.delete(e, q)]
     if not float(sol.x[0]) < 0:
         return None
     return _law_from(sys, channel, prob, drv, sol.x, hw, Q, R)
+
+
+#: A scaled output error this large (the residual's clip is 1e6 per sample) is a
+#: simulation that diverged.
+_DIVERGED = 1e5
+
+
+def _converged(sol) -> bool:
+    """A first-order fit with a stable pole whose simulation did not diverge."""
+    return float(sol.x[0]) < 0 and float(np.max(np.abs(sol.fun))) < _DIVERGED
 
 
 def _law_from(sys, channel, prob, drv, theta, hw, Q, R, reach: bool = True) -> DynamicLaw:
