@@ -71,11 +71,27 @@ def test_another_machine_compares_the_verdict_not_the_numbers():
     assert g._diff(old, moved, portable=True) == []
     for wrong in ({**moved, "updated": False},
                   {**moved, "gate": {"passed": {"bic": False}, "bic_gain": 1.0}},
-                  {**moved, "effect": {**moved["effect"], "formula": "d_x1 = -(1.82)*x1"}}):
-        assert g._diff(old, wrong, portable=True)
+                  {**moved, "effect": {**moved["effect"], "order": 1}},
+                  {**moved, "explanation": [{"law": {"terms": [{"name": "x1"}]}}]}):
+        assert g._diff({**old, "explanation": [{"law": {"terms": [{"name": "x2"}]}}]},
+                       {"explanation": [{"law": {"terms": [{"name": "x2"}]}}], **wrong},
+                       portable=True)
 
 
 def test_the_machine_signature_names_the_blas_kernels_and_versions():
     sig = g.machine()
     assert sig["blas"]
     assert {"cpu", "numpy", "scipy", "control", "slycot"} <= set(sig)
+
+
+def test_a_key_survives_the_last_bits_of_another_machine():
+    """Data simulated on another machine differ in their last bits; the key does not (to
+    ~4.5 digits), so that machine still finds the snapshot. A real change of the data
+    (here 1e-3 relative) is another key."""
+    import numpy as np
+
+    y = np.random.default_rng(0).standard_normal((2, 500))
+    a = g.fingerprint((y,), {"Q": [[1.0]]})
+    assert g.fingerprint((y * (1 + 1e-13),), {"Q": [[1.0]]}) == a
+    assert g.fingerprint((y * (1 + 1e-3),), {"Q": [[1.0]]}) != a
+    assert g.fingerprint((y,), {"Q": [[2.0]]}) != a
