@@ -1025,7 +1025,7 @@ class _Pass:
             return
         if dl2 is None:
             return
-        if _undetermined_real_pole(dl2):
+        if dl2.undetermined_pole:
             # a real pole whose interval holds 0: an integrator of a state the model holds
             # already (a Maxwell element's spring read as s/(s (s + 1)) v2), a first-order
             # law in another form, not a hidden second-order part
@@ -1363,13 +1363,6 @@ class _Pass:
                           candidates=tuple(self.cands), gate=self.gate, criterion=r.crit,
                           nominal=self.nominal, model=v.model, table=table, trace=tr,
                           decisions=tuple(self.decisions))
-
-
-def _undetermined_real_pole(law) -> bool:
-    """Whether a real pole of an order-q law has a 95 % interval that holds 0."""
-    poles, ci = np.asarray(law.poles), np.asarray(law.pole_ci, dtype=float)
-    real = np.isreal(poles)
-    return bool(np.any(real[:ci.size] & ~(np.abs(poles.real[:ci.size]) > ci)))
 
 
 def _logdet_gain(d, r) -> float:

@@ -135,6 +135,14 @@ class SharedLaw2:
     continuous: ct.StateSpace = field(repr=False)
     dt: float
 
+    @property
+    def undetermined_pole(self) -> bool:
+        """Whether a real pole's 95 % interval holds 0 (the formula's "not determined by
+        the data"): an integrator, not a mode the data show."""
+        nreal = int(np.sum(np.isreal(self.poles)))
+        return any(not _determined(p, h) for p, h in
+                   zip(self.poles[:nreal].real, self.pole_ci[:nreal]))
+
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """The law's d, shape (md, K), on x (nstates, K) and u (ninputs, K).
 
@@ -447,6 +455,12 @@ def _template(args, own, alpha, kk, ref):
     return None if step is None else _drop_weak(*args, ob, oe, ref, step[1], order=q)
 
 
+def _determined(p: float, h: float) -> bool:
+    """Whether the real pole ``p`` [1/s] with 95 % half-width ``h`` is stable in its
+    whole interval (a finite interval that does not reach 0)."""
+    return bool(np.isfinite(h) and -p - h > 0)
+
+
 def _sparsest(sys, channel, fits, Q, R):
     """The record of the fewest terms among the fits within 1 % of the lowest output error.
 
@@ -625,7 +639,7 @@ def _law_from(sys, channel, prob, sol, hw, Q, R) -> SharedLaw2:
     desc = []
     for p, h in zip(pr, hp[:nreal]):
         lo, hi = -p - h, -p + h
-        span = (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if np.isfinite(h) and lo > 0
+        span = (f" (95 %: {1 / hi:.3g} .. {1 / lo:.3g} s)" if _determined(p, h)
                 else " (not determined by the data)")
         desc.append(f"{-1 / p:.3g} s{span}")
     parts = []
