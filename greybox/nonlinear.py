@@ -512,7 +512,7 @@ def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None 
     for k in range(N - 1):
         with np.errstate(all="ignore"):
             xn = smap.fun(k * dt, x[:, k:k + 1], u[:, k])[:, 0]
-        if not np.all(np.isfinite(xn)):
+        if not np.isfinite(xn).all():
             i = int(np.flatnonzero(~np.isfinite(xn))[0])
             raise DataError(f"the simulation of {sys.name} gave a non-finite state "
                             f"{sys.state_labels[i]!r} at step {k + 1}; check the inputs and "

@@ -544,7 +544,7 @@ def _run_columns(model, X0: NDArray, uu: NDArray, T: int | None = None) -> NDArr
             else:
                 X = np.asarray(upd(0.0, X, np.repeat(uu[:, k:k + 1], K, axis=1), par),
                                dtype=float).reshape(n, K)
-            bad = ~np.all(np.isfinite(X) & (np.abs(X) < 1e100), axis=0)
+            bad = ~(np.abs(X) < 1e100).all(axis=0)  # NaN and inf fail the comparison
             if bad.any():
                 if bad.all():
                     break

@@ -351,7 +351,7 @@ def _initial_states(A, B, C, D, K, ys, us, nmax: int = 1000) -> NDArray:
                 uk, yk = ue[:, k], ye[:, k]
                 res[k] = yk - C @ x - D @ uk
                 Phi[k] = Ak
-                if not (np.all(np.abs(res[k]) < _MAX_RMS) and np.all(np.abs(Ak) < _MAX_RMS)):
+                if not ((np.abs(res[k]) < _MAX_RMS).all() and (np.abs(Ak) < _MAX_RMS).all()):
                     # an unstable predictor overflows: fit on the rows before that
                     # (LAPACK must never see NaN, inf, or numbers whose squares overflow)
                     used = k
