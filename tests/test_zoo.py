@@ -442,15 +442,18 @@ def test_second_order_actuator_lag_is_named_with_its_mode(i):
     # issue's item 7 (intervals that mean something), open
 
 
-@pytest.mark.parametrize("i", [0, 1])
-def test_flexible_shaft_is_a_hidden_part_driven_by_the_speed_alone(i):
+@pytest.mark.parametrize("seed,i", [(3, 0), (3, 1), (5150, 1)])
+def test_flexible_shaft_is_a_hidden_part_driven_by_the_speed_alone(seed, i):
     """A DC motor whose model lacks the load behind a flexible shaft (random torsional
     mode, inertia ratio, damping, measured sets): the speed's equation, a dynamic law of
     order 2 driven by the speed alone (not by the voltage and current beside it, as the
     unstructured subsystem named it in 6 of 6 zoo draws before the hidden-part candidate),
     its poles within the zoo scorer's 10 %, validation SE within 1.5x the true model's.
-    Seed 3 (the first tried): its first six draws are all right at N = 2000."""
-    d, rep, s = _run_draw("flexible_shaft", 3, i, max_order=2)
+    Seed 3 (the first tried): its first six draws are all right at N = 2000. Seed 5150
+    draw 1 (a fresh seed's one wrong draw): the unstructured law, driven by V, i and om,
+    put the mode at 26.5 rad/s for a true 14.6, and output error from there diverged; the
+    hidden part is now also started from the best of a grid of lightly damped modes."""
+    d, rep, s = _run_draw("flexible_shaft", seed, i, max_order=2)
     assert rep.updated, rep.message
     assert s.right, (s.why, s.found)
     assert rep.effect.order == 2 and rep.effect.channel == "eq(om)", rep.effect.formula
