@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from greybox.trace.screen import screen_equations
-from plantlib import chain, draw
+from plantlib import LinearF, chain, draw
 
 
 def _screen(n_masses, measured, missing, seed=1, n_est=20000):
@@ -24,7 +24,7 @@ def _screen(n_masses, measured, missing, seed=1, n_est=20000):
     meas = None if measured == "all" else [f"p{j + 1}" for j in range(n_masses)]
     nom = chain(n_masses, k=20.0, missing=[(i, i + 1)] if missing else [], measured=meas)
     A, B = np.asarray(true.A), np.asarray(true.B)
-    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=2 * n_masses, dt=0.01,
+    d = draw(nom, LinearF(A, B), n_true=2 * n_masses, dt=0.01,
              rng=np.random.default_rng(seed), q_std=np.array([0.0, 1e-4] * n_masses),
              r_std=1e-3, n_est=n_est, n_val=10, sub=2)
     scr = screen_equations(nom, d.y, d.u, Q=d.Q, R=d.R, dt=d.dt)

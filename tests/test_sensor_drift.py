@@ -16,7 +16,7 @@ from functools import lru_cache
 import control as ct
 import numpy as np
 import pytest
-from plantlib import msd, rk4_simulate
+from plantlib import LinearF, msd, rk4_simulate
 
 import greybox as gb
 from greybox.exceptions import ModelError
@@ -45,7 +45,7 @@ def _case(rate: float = RATE, level: float = np.inf, seed: int = 5):
     out = []
     for n, q, t0 in ((4000, np.array([0.0, 1e-3]), 0.0), (3000, None, T_VAL)):
         u = gb.lowpass_noise(n, dt=DT, bandwidth=1.0, amplitude=4.0, rng=rng).reshape(1, -1)
-        x = rk4_simulate(lambda x, u: A @ x + B @ u, np.zeros(2), u, DT, q_std=q, rng=rng)
+        x = rk4_simulate(LinearF(A, B), np.zeros(2), u, DT, q_std=q, rng=rng)
         y = x.copy()
         y[0] = np.clip(y[0], -level, level) + off + rate * (t0 + DT * np.arange(n))
         out += [y + R_STD * rng.standard_normal((2, n)), u]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import greybox as gb
-from plantlib import chain, draw
+from plantlib import LinearF, chain, draw
 
 
 def _case(n_masses, measured, seed=1, n_est=20000):
@@ -22,7 +22,7 @@ def _case(n_masses, measured, seed=1, n_est=20000):
     meas = None if measured == "all" else [f"p{j + 1}" for j in range(n_masses)]
     nom = chain(n_masses, k=20.0, missing=[(i, i + 1)], measured=meas)
     A, B = np.asarray(true.A), np.asarray(true.B)
-    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=2 * n_masses, dt=0.01,
+    d = draw(nom, LinearF(A, B), n_true=2 * n_masses, dt=0.01,
              rng=np.random.default_rng(seed), q_std=np.array([0.0, 1e-4] * n_masses),
              r_std=1e-3, n_est=n_est, sub=2)
     rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
@@ -70,7 +70,7 @@ def test_chain_positions_only_right_pair():
 def test_correct_large_model_is_left_unchanged():
     true = chain(10, k=20.0)
     A, B = np.asarray(true.A), np.asarray(true.B)
-    d = draw(true, lambda x, u: A @ x + B @ u, n_true=20, dt=0.01,
+    d = draw(true, LinearF(A, B), n_true=20, dt=0.01,
              rng=np.random.default_rng(3), q_std=np.array([0.0, 1e-4] * 10), r_std=1e-3,
              n_est=20000, sub=2)
     rep = gb.close_the_loop(true, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
@@ -88,7 +88,7 @@ def test_two_effects_in_two_equations_named_with_their_coefficients(seed):
     A, B = np.asarray(nom.A).copy(), np.asarray(nom.B)
     A[1, 1] -= 0.8
     A[5, 4] -= 15.0
-    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=6, dt=0.01,
+    d = draw(nom, LinearF(A, B), n_true=6, dt=0.01,
              rng=np.random.default_rng(seed), q_std=np.array([0.0, 1e-4] * 3), r_std=1e-3)
     rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
                             delta=False)
@@ -187,7 +187,7 @@ def test_a_dense_single_equation_law_is_chosen_by_output_error_not_refined_term_
     true = chain(n_masses, k=20.0)
     nom = chain(n_masses, k=20.0, missing=[(7, 8)], measured=meas)
     A, B = np.asarray(true.A), np.asarray(true.B)
-    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=2 * n_masses, dt=0.01,
+    d = draw(nom, LinearF(A, B), n_true=2 * n_masses, dt=0.01,
              rng=np.random.default_rng(1), q_std=np.array([0.0, 1e-4] * n_masses),
              r_std=1e-3, n_est=50000, n_val=10, sub=2)
     ch = resolve_channel_spec(nom, ["v8"])[0]

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import greybox as gb
-from plantlib import chain, draw
+from plantlib import LinearF, chain, draw
 
 KM, TAU = 10.0, 0.1
 
@@ -86,7 +86,7 @@ def _chain_positions(seed):
     An[3] /= 2.0
     nom = gb.named_ss(An, B, nom.C, nom.D, 0, states=nom.state_labels, inputs=nom.input_labels,
                       outputs=nom.output_labels)
-    d = draw(nom, lambda x, u: A @ x + B @ u, n_true=4, dt=0.01,
+    d = draw(nom, LinearF(A, B), n_true=4, dt=0.01,
              rng=np.random.default_rng(seed), q_std=np.array([0.0, 1e-4] * 2), r_std=1e-3,
              n_est=20_000)
     return nom, d

@@ -327,12 +327,12 @@ def test_static_update_keeps_the_likelier_process_noise(case):
     """
     from greybox.update import UpdatedModel
     from greybox.workflow import _noise_by_likelihood
-    from plantlib import chain, draw
+    from plantlib import LinearF, chain, draw
 
     true = chain(2, k=20.0)
     A, B = np.asarray(true.A), np.asarray(true.B)
     q = np.array([0.0, 1e-4, 0.0, 1e-4]) * (10.0 if case == "Q understated" else 1.0)
-    d = draw(true, lambda x, u: A @ x + B @ u, n_true=4, dt=0.01,
+    d = draw(true, LinearF(A, B), n_true=4, dt=0.01,
              rng=np.random.default_rng(5), q_std=q, r_std=1e-3)
     Qp = np.diag(np.array([0.0, 1e-4, 0.0, 1e-4]) ** 2) + 1e-12 * np.eye(4)
     Qa = Qp + np.diag([0.0, 1e-6, 0.0, 1e-6])
