@@ -65,7 +65,6 @@ import sys
 import unicodedata
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 
 import control as ct
 import numpy as np

@@ -619,12 +619,10 @@ def with_unknown_inputs(sys, G: ArrayLike, labels=None) -> ct.NonlinearIOSystem:
         ud = np.asarray(ud, dtype=float)
         return np.asarray(f(t, x, ud[:m], params), dtype=float) + G @ ud[m:]
 
-    out = None
-    if h is not None:
-        def out(t, x, ud, params):
-            return h(t, x, np.asarray(ud, dtype=float)[:m], params)
+    def out(t, x, ud, params):
+        return h(t, x, np.asarray(ud, dtype=float)[:m], params)
 
-    return ct.nlsys(upd, out, states=list(base.state_labels),
+    return ct.nlsys(upd, out if h is not None else None, states=list(base.state_labels),
                     inputs=list(base.input_labels) + labels, outputs=list(base.output_labels),
                     dt=base.dt, params=dict(par or {}), name=f"{base.name}_with_d")
 

@@ -53,7 +53,7 @@ def _rk4_linear(f, x0, u, dt, sub, q_std, rng):
     2e4 samples), the noise drawn in the loop's order (one (N, q) block equals N draws of
     q from a numpy Generator)."""
     A, B = f.A, f.B
-    n, N, h = A.shape[0], u.shape[1], dt / sub
+    N, h = u.shape[1], dt / sub
     hA, eye = h * A, np.eye(A.shape[0])
     T = eye + hA @ (eye + hA @ (eye / 2 + hA @ (eye / 6 + hA / 24)))
     W = h * (eye + hA @ (eye / 2 + hA @ (eye / 6 + hA / 24))) @ B

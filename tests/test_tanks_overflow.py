@@ -16,7 +16,6 @@ import control as ct
 import numpy as np
 import pytest
 
-import greybox as gb
 from greybox.metrics import relative_error
 from greybox.workflow_nonlinear import SKIP, close_the_loop_nonlinear
 

@@ -12,7 +12,7 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
-from plantlib import draw, linear_f, msd
+from plantlib import draw, msd
 
 import greybox as gb
 from greybox.exceptions import DataError, DimensionError
