@@ -14,7 +14,7 @@ each solved by :func:`scipy.signal.lfilter` (compiled):
   unitary, so it is numerically benign even when Phi is not diagonalizable.
 
 The cost is O(n^2 N) vectorized work; time is processed in chunks of
-``_CHUNK`` samples so the temporaries stay O(n * _CHUNK). :class:`LTIRecursion`
+``CHUNK`` samples so the temporaries stay O(n * CHUNK). :class:`LTIRecursion`
 keeps the decomposition and runs chunk after chunk (carrying the state), so
 callers can fuse their own per-chunk work around it.
 """
@@ -32,7 +32,7 @@ __all__ = ["lti_states", "lti_output", "LTIRecursion", "single_thread_blas"]
 from ._blas import single_thread_blas  # noqa: E402  (re-exported for the filters)
 
 
-_CHUNK = 1 << 15
+CHUNK = 1 << 15
 #: Largest condition number of the eigenvector matrix for the modal path; its
 #: round-off is ~cond(V) * eps relative, the Schur path's ~eps.
 _MAX_COND = 1e3
@@ -216,8 +216,8 @@ def lti_states(Phi: NDArray, v: NDArray, x0: NDArray) -> NDArray[np.float64]:
     rec = LTIRecursion(Phi)
     xk = np.asarray(x0, dtype=float)
     with single_thread_blas(), np.errstate(over="ignore", invalid="ignore"):
-        for a in range(0, N, _CHUNK):
-            b = min(N, a + _CHUNK)
+        for a in range(0, N, CHUNK):
+            b = min(N, a + CHUNK)
             xk = rec.run(v[:, a:b], xk, x[:, a:b])
     return x
 
@@ -256,8 +256,8 @@ def lti_output(Phi: NDArray, B: NDArray, C: NDArray, D: NDArray, u: NDArray,
     WB, Cv = rec.Wr @ B, C @ rec.Vr
     xk = np.asarray(x0, dtype=float)
     with single_thread_blas(), np.errstate(over="ignore", invalid="ignore"):
-        for a in range(0, N, _CHUNK):
-            b = min(N, a + _CHUNK)
+        for a in range(0, N, CHUNK):
+            b = min(N, a + CHUNK)
             xk = rec._modal_chunk(WB @ u[:, a:b], xk, y[:, a:b], Cv)  # xk: x[b]
         y += D @ u
     return y

@@ -88,7 +88,7 @@ def check_positive(value, name: str, *, integer: bool = False, allow_zero: bool 
     return v
 
 
-def _float_array(x) -> NDArray[np.float64]:
+def float_array(x) -> NDArray[np.float64]:
     """``np.array(x, dtype=float)`` that refuses complex values instead of dropping them.
 
     Raises TypeError or ValueError (callers turn them into greybox errors).
@@ -119,7 +119,7 @@ def as_signal(y, name: str) -> NDArray[np.float64]:
     Only converts; shapes and finiteness are checked by :func:`check_signal`.
     """
     try:
-        return np.atleast_2d(_float_array(y))
+        return np.atleast_2d(float_array(y))
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
 
@@ -127,7 +127,7 @@ def as_signal(y, name: str) -> NDArray[np.float64]:
 def check_vector(v, n: int, name: str, *, what: str = "") -> NDArray[np.float64]:
     """Convert ``v`` to a finite float vector of length n (e.g. an initial state)."""
     try:
-        a = _float_array(v).reshape(-1)
+        a = float_array(v).reshape(-1)
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric vector of length {n}; could not "
                              f"convert it ({e})") from e
@@ -155,7 +155,7 @@ def check_matrix(M: ArrayLike, shape: tuple[int, int], name: str) -> NDArray[np.
     accepted for shape (n, 1) or (1, n) when unambiguous.
     """
     try:
-        A = _float_array(M)
+        A = float_array(M)
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
     if A.ndim == 0 and shape == (1, 1):
@@ -187,7 +187,7 @@ def check_covariance(
         semidefinite.
     """
     try:
-        A = _float_array(M) if not np.isscalar(M) else _float_array([[M]])
+        A = float_array(M) if not np.isscalar(M) else float_array([[M]])
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric ({n}, {n}) matrix or a length-{n} "
                              f"diagonal; could not convert it ({e})") from e
@@ -252,7 +252,7 @@ def check_signal(
         nrows = a.shape[0]
     else:
         try:
-            a = _float_array(y)
+            a = float_array(y)
         except (TypeError, ValueError) as e:
             raise DimensionError(f"{name} must be a numeric array; could not convert it "
                                  f"({e})") from e

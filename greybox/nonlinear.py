@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from ._validation import (check_covariance, check_input_record, check_positive,
                           check_vector)
 from .exceptions import DataError, DimensionError, ModelError
-from .signals import SimulationResult, _gaussian, _rng
+from .signals import SimulationResult, gaussian_noise, as_generator
 from .system import named_ss
 
 __all__ = [
@@ -504,10 +504,10 @@ def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None 
     N = u.shape[1]
     x = np.empty((n, N))
     x[:, 0] = np.zeros(n) if x0 is None else check_vector(x0, n, "x0")
-    g = _rng(rng)
+    g = as_generator(rng)
     w = None
     if Q is not None:
-        w = _gaussian(check_covariance(Q, n, "Q", definite=False), N, g)
+        w = gaussian_noise(check_covariance(Q, n, "Q", definite=False), N, g)
     dt = float(sys.dt)
     for k in range(N - 1):
         with np.errstate(all="ignore"):
@@ -527,7 +527,7 @@ def simulate_nonlinear(sys, u: ArrayLike | None = None, *, x0: ArrayLike | None 
                                        dtype=float).reshape(-1)
     y = y_clean.copy()
     if R is not None:
-        y = y + _gaussian(check_covariance(R, p, "R", definite=False), N, g)
+        y = y + gaussian_noise(check_covariance(R, p, "R", definite=False), N, g)
     return SimulationResult(t=np.arange(N) * dt, x=x, y=y, u=u, y_clean=y_clean, sys=sys)
 
 

@@ -44,7 +44,10 @@ def _check_size(nsignals: int, nsteps: int) -> None:
                         f"generated at once")
 
 
-def _rng(rng) -> np.random.Generator:
+def as_generator(rng) -> np.random.Generator:
+    """A numpy Generator from ``rng``: a Generator (returned as is), an integer seed or None.
+
+    Raises :class:`~greybox.exceptions.DimensionError` for anything else."""
     if isinstance(rng, np.random.Generator):
         return rng
     try:
@@ -80,7 +83,7 @@ def random_binary(nsteps: int, *, nsignals: int = 1, amplitude: float = 1.0,
     _check_size(nsignals, nsteps)
     hold = min(check_positive(hold, "hold", integer=True), nsteps)
     amplitude = check_real(amplitude, "amplitude")
-    g = _rng(rng)
+    g = as_generator(rng)
     nclk = -(-nsteps // hold)
     lv = g.choice([-1.0, 1.0], size=(nsignals, nclk))
     return amplitude * np.repeat(lv, hold, axis=1)[:, :nsteps]
@@ -127,7 +130,7 @@ def multisine(nsteps: int, *, dt: float, nsignals: int = 1, amplitude: float = 1
     if not 0 < fmin < fmax <= fs / 2:
         raise DataError(f"need 0 < fmin < fmax <= fs/2 = {fs / 2:g} Hz; found fmin={fmin:g}, "
                         f"fmax={fmax:g}")
-    g = _rng(rng)
+    g = as_generator(rng)
     f = np.geomspace(fmin, fmax, nfreq)
     t = np.arange(nsteps) * dt
     out = np.zeros((nsignals, nsteps))
@@ -173,7 +176,7 @@ def lowpass_noise(nsteps: int, *, dt: float, bandwidth: float, nsignals: int = 1
     if bandwidth >= 0.5 / dt:
         raise DataError(f"bandwidth {bandwidth:g} Hz must be below the Nyquist frequency "
                         f"{0.5 / dt:g} Hz")
-    g = _rng(rng)
+    g = as_generator(rng)
     sos = sps.butter(order, bandwidth, fs=1.0 / dt, output="sos")
     w = g.standard_normal((nsignals, nsteps))
     out = sps.sosfilt(sos, w, axis=1)
@@ -243,12 +246,12 @@ def simulate(sys: ct.StateSpace, u: ArrayLike | None = None, *, x0: ArrayLike | 
     u = check_input_record(u, m, nsteps)
     N = u.shape[1]
     x0 = np.zeros(n) if x0 is None else check_vector(x0, n, "x0")
-    g = _rng(rng)
+    g = as_generator(rng)
     A, B, C, D = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C, sys.D))
     drive = B @ u
     if Q is not None:
         Q = check_covariance(Q, n, "Q", definite=False)
-        drive = drive + _gaussian(Q, N, g)
+        drive = drive + gaussian_noise(Q, N, g)
     x = lti_states(A, drive, x0)
     if not np.all(np.isfinite(x)):
         raise DataError("the simulation diverged: the model is unstable over this record "
@@ -257,12 +260,12 @@ def simulate(sys: ct.StateSpace, u: ArrayLike | None = None, *, x0: ArrayLike | 
     y = y_clean.copy()  # never the same object as y_clean
     if R is not None:
         R = check_covariance(R, p, "R", definite=False)
-        y = y_clean + _gaussian(R, N, g)
+        y = y_clean + gaussian_noise(R, N, g)
     t = np.arange(N) * float(sys.dt)
     return SimulationResult(t=t, x=x, y=y, u=u, y_clean=y_clean, sys=sys)
 
 
-def _gaussian(S: NDArray, N: int, g: np.random.Generator) -> NDArray[np.float64]:
+def gaussian_noise(S: NDArray, N: int, g: np.random.Generator) -> NDArray[np.float64]:
     """N draws of a zero-mean Gaussian with covariance S (PSD allowed), shape (n, N)."""
     w, V = np.linalg.eigh(S)
     L = V * np.sqrt(np.clip(w, 0, None))

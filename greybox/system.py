@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ._validation import (
-    _float_array,
+    float_array,
     check_discrete,
     check_matrix,
     check_positive,
@@ -41,7 +41,7 @@ def _names(names, what):
 def _matrix(M, shape, name):
     """A real matrix of the given shape (any array with as many entries is reshaped)."""
     try:
-        a = _float_array(M)
+        a = float_array(M)
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a real numeric array; could not convert it "
                              f"({e})") from e

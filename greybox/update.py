@@ -692,14 +692,14 @@ def _n4sid_fits(data: NDArray, u: NDArray, orders, dt: float, horizon: int | Non
     from .ident._hankel import hankel_r, small_blas
     from .ident.n4sid import (
         DEFAULT_RTOL,
-        _choose_horizon,
-        _common_setup,
-        _n4sid_from_factor,
+        choose_horizon,
+        common_setup,
+        n4sid_from_factor,
     )
 
-    (ys, us, l, m, dt, il, ol, fed, _, _, rtol, sy, su) = _common_setup(
+    (ys, us, l, m, dt, il, ol, fed, _, _, rtol, sy, su) = common_setup(
         data, u, dt, None, None, False, None, max(orders), DEFAULT_RTOL)
-    i = _choose_horizon(horizon, None, [ys[0].shape[1]], m, l, max(orders), lambda k: 2 * k)
+    i = choose_horizon(horizon, None, [ys[0].shape[1]], m, l, max(orders), lambda k: 2 * k)
     h = hankel_r(ys, us, sy, su, 2 * i, chunk_size=None)
     out = {}
     with small_blas(), warnings.catch_warnings(), np.errstate(all="ignore"):
@@ -710,7 +710,7 @@ def _n4sid_fits(data: NDArray, u: NDArray, orders, dt: float, horizon: int | Non
             if late():
                 break
             try:
-                out[k] = _n4sid_from_factor(h, i, ys, us, l, m, dt, il, ol, fed, k, None,
+                out[k] = n4sid_from_factor(h, i, ys, us, l, m, dt, il, ol, fed, k, None,
                                             rtol, sy, su, "N4SID", "bic", "z")
             except (IdentificationError, np.linalg.LinAlgError):
                 continue

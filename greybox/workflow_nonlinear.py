@@ -137,8 +137,8 @@ from .recommend import recommend
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance, residual_colour, undetermined
 from .terms import HINGE_KINDS, evaluate_terms, linear_part, term_kind
-from .trace.laws import _fit_static, _law_line
-from .trace.oe import _noise_floor, forward_select_oe
+from .trace.laws import fit_static, law_line
+from .trace.oe import noise_floor, forward_select_oe
 from .update import UpdatedModel
 from .validate import ModelValidation, describe_before_after
 from .records import CRITERION, CandidateScore, Decision, Effect, LoopReport, choice_note
@@ -151,7 +151,7 @@ _ALTERNATING = -0.5
 """Below this lag-1 autocorrelation d^ is taken to alternate sign (as in the linear trace)."""
 FLOOR_NOTE = 2.0
 """An update whose estimation RMS simulation error is above this many times the noise
-model's (:func:`greybox.trace.oe._noise_floor`) gets a note: the law may be partial."""
+model's (:func:`greybox.trace.oe.noise_floor`) gets a note: the law may be partial."""
 OE_MAX_TERMS = 3
 """Laws with at most this many terms are refined by output error on y (cost ~ terms), and
 an output-error term selection stops at this many."""
@@ -470,7 +470,7 @@ def _with_intervals(law, sel, hinges, hw, ch, base):
     lines = []
     for c in range(law.coef.shape[0]):
         idx = np.flatnonzero(law.coef[c])
-        lines.append(_law_line(ch.labels[c], law.coef[c, idx],
+        lines.append(law_line(ch.labels[c], law.coef[c, idx],
                                [shown.get(j, law.spec[j][0]) for j in idx],
                                ch.units[c] if c < len(ch.units) else "", half[c, idx]))
     return replace(law, ci=half, formula="; ".join(lines), time_base="continuous"
@@ -836,7 +836,7 @@ def _noise_of(res: FilterResult, Q: NDArray, R: NDArray, P_nominal: NDArray):
 def _floor_ratio(model_d, se: float, y: NDArray, x_op, u_op, C, Q, R) -> float:
     """Mean squared simulation error (from SE [%]) over the noise model's, worst output.
 
-    The noise model's is :func:`greybox.trace.oe._noise_floor` on the model's
+    The noise model's is :func:`greybox.trace.oe.noise_floor` on the model's
     linearization at the operating point (1: the simulation is as good as
     (Q, R) allow).
     """
@@ -848,7 +848,7 @@ def _floor_ratio(model_d, se: float, y: NDArray, x_op, u_op, C, Q, R) -> float:
         return np.nan
     N = y.shape[1] - SKIP
     ms = (se / 100) ** 2 * np.mean(y[:, SKIP:] ** 2, axis=1)
-    fl = _noise_floor(A, C, Q, R, SKIP, N)
+    fl = noise_floor(A, C, Q, R, SKIP, N)
     with np.errstate(all="ignore"):
         return float(np.max(ms / fl))
 
@@ -1280,7 +1280,7 @@ def _hinge_law(law, d, x, u, sys, labels, units, align, relative):
     if not idx or len(idx) == law.npar:
         return None
     terms = _eval_law_terms(law, x, u)[idx]
-    return _fit_static(d, x, u, sys, True, labels, units, align, relative, whiten=True,
+    return fit_static(d, x, u, sys, True, labels, units, align, relative, whiten=True,
                        prebuilt=(terms, [law.spec[j] for j in idx], law.eps))
 
 
@@ -1875,7 +1875,7 @@ class _NonlinearPass:
             return
         labels = list(ch.labels)
         try:
-            law = _fit_static(dh.d_fit, dh.x, dh.u, r.lin_cont, S.nonlinear, labels, ch.units,
+            law = fit_static(dh.d_fit, dh.x, dh.u, r.lin_cont, S.nonlinear, labels, ch.units,
                               dh.weights, ch.relative, whiten=dh.r > 1,
                               saturation=S.nonlinear and dh.r > 1)
         except (GreyboxError, np.linalg.LinAlgError) as e:  # e.g. no finite d^ left

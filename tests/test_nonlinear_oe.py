@@ -16,7 +16,7 @@ import pytest
 import greybox as gb
 from greybox.system import discretize, named_ss
 from greybox.trace import StaticLaw, law_terms
-from greybox.trace.oe import _noise_floor, _refine_nonlinear_oe
+from greybox.trace.oe import noise_floor, _refine_nonlinear_oe
 
 DT = 0.05
 K3 = 2.0
@@ -82,11 +82,11 @@ def test_a_law_at_the_noise_floor_is_left_alone():
 def test_noise_floor_of_a_stable_scalar_model_matches_the_lyapunov_solution():
     """Oracle: x+ = a x + w, y = x + v: the floor tends to q / (1 - a^2) + r."""
     a, q, r = 0.5, 2.0, 0.3
-    f = _noise_floor(np.array([[a]]), np.eye(1), np.array([[q]]), np.array([[r]]), 200, 100)
+    f = noise_floor(np.array([[a]]), np.eye(1), np.array([[q]]), np.array([[r]]), 200, 100)
     # P_k = q (1 - a^2k) / (1 - a^2): after 200 samples the transient is 0.25^200 ~ 0
     np.testing.assert_allclose(f, [q / (1 - a**2) + r], rtol=1e-12)
     # a random walk's floor grows with the window (finite, not inf)
-    g = _noise_floor(np.eye(1), np.eye(1), np.array([[q]]), np.array([[r]]), 0, 10)
+    g = noise_floor(np.eye(1), np.eye(1), np.array([[q]]), np.array([[r]]), 0, 10)
     np.testing.assert_allclose(g, [q * np.mean(np.arange(10)) + r], rtol=1e-12)
 
 

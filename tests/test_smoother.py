@@ -274,7 +274,7 @@ def test_singular_prediction_covariance_is_an_error(random_system, rng):
 def test_smoothing_a_feedthrough_filter_result_equals_smooth_uikf(rng):
     """The sensor channels smooth the forward filter they already ran: the same estimate
     as smooth_uikf running it again (the same arithmetic: exact)."""
-    from greybox.filters.smoother import _smooth_feedthrough_of
+    from greybox.filters.smoother import smooth_feedthrough_of
 
     sys = gb.named_ss([[0.9, 0.1], [0.0, 0.8]], [[1.0, 0.0], [0.5, 0.0]],
                       [[1.0, 0.0], [0.0, 1.0]], [[0.0, 0.0], [0.0, 1.0]], 0.1,
@@ -283,7 +283,7 @@ def test_smoothing_a_feedthrough_filter_result_equals_smooth_uikf(rng):
     y = rng.standard_normal((2, 400))
     kw = dict(unknown="e", Q=1e-3 * np.eye(2), R=1e-2 * np.eye(2))
     fwd = gb.feedthrough_uikf(sys, y, u, **kw)
-    a = _smooth_feedthrough_of(fwd, sys, y, u, **kw)
+    a = smooth_feedthrough_of(fwd, sys, y, u, **kw)
     b = gb.smooth_uikf(sys, y, u, relative_degree=0, **kw)
     np.testing.assert_array_equal(a.x_filt, b.x_filt)
     np.testing.assert_array_equal(a.d_est, b.d_est)

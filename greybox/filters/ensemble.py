@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._validation import check_positive
 from ..exceptions import DataError
-from ..signals import _rng
+from ..signals import as_generator
 from .kernels import FilterResult, _check_options, _measurement_gains, check_rank_condition
 from .ukf import _check_d, _initial_G, _linearized_record_sys, _prepare_nl, _propagate
 
@@ -108,7 +108,7 @@ def ensemble_uikf(sys, y: ArrayLike, u: ArrayLike | None = None, *,
     """
     level, _, _ = _check_options(level, "auto", 1.0)
     ne = _check_members(nmembers)
-    g = _rng(rng)
+    g = as_generator(rng)
     pb = _prepare_nl(sys, y, u, unknown, Q, R, x0, P0, G, allow_no_unknown=False,
                      check_rank=True)
     Gk = _initial_G(pb)

@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import norm
 
-from .._lti import _CHUNK, LTIRecursion, single_thread_blas
+from .._lti import CHUNK, LTIRecursion, single_thread_blas
 from .._validation import (
-    _float_array,
+    float_array,
     check_covariance,
     check_discrete,
     check_positive,
@@ -255,7 +255,7 @@ def check_rank_condition(C: NDArray, G: NDArray, labels: Sequence[str] = ()) -> 
         Naming the condition and the offending channels.
     """
     try:
-        C, G = np.atleast_2d(_float_array(C)), _float_array(G)
+        C, G = np.atleast_2d(float_array(C)), float_array(G)
     except (TypeError, ValueError) as e:
         raise DimensionError(f"C and G must be real numeric arrays; could not convert them "
                              f"({e})") from e
@@ -616,8 +616,8 @@ def _constant_gain_run(A, B, C, D, G, K, M, F, kconv: int, y, u, x_filt, x_pred,
     if m:
         xk += B @ u[:, kconv - 1]
     with single_thread_blas():
-        for a in range(kconv, N, _CHUNK):
-            b = min(N, a + _CHUNK)
+        for a in range(kconv, N, CHUNK):
+            b = min(N, a + CHUNK)
             ys = y[:, a:b]
             drive = AL @ ys
             if m:

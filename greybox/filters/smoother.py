@@ -259,7 +259,7 @@ def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_cova
                    P_filt_history=Phist, smoothed=True)
 
 
-def _smooth_feedthrough_of(fwd: FilterResult, sys: ct.StateSpace, y, u, *, unknown, Q,
+def smooth_feedthrough_of(fwd: FilterResult, sys: ct.StateSpace, y, u, *, unknown, Q,
                            R) -> FilterResult:
     """``smooth_uikf(sys, y, u, unknown=unknown, Q=Q, R=R, relative_degree=0)``, from
     ``fwd = feedthrough_uikf(sys, y, u, unknown=unknown, Q=Q, R=R)`` (default options):

@@ -23,7 +23,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
-from .._validation import _float_array
+from .._validation import float_array
 from ..exceptions import DataError, DimensionError
 
 __all__: list[str] = []
@@ -49,7 +49,7 @@ def _as_signal(a, name: str, nrows: int | None) -> NDArray[np.float64]:
     copying long records; finiteness is checked in chunks.
     """
     try:
-        x = a if type(a) is np.ndarray and a.dtype == np.float64 else _float_array(a)
+        x = a if type(a) is np.ndarray and a.dtype == np.float64 else float_array(a)
     except (TypeError, ValueError) as e:
         raise DimensionError(f"{name} must be a numeric array; could not convert it ({e})") from e
     if x.ndim == 1 and nrows in (None, 1):

@@ -31,8 +31,8 @@ from .n4sid import (
     _Setup,
     _check_choice,
     _check_pe,
-    _choose_horizon,
-    _common_setup,
+    choose_horizon,
+    common_setup,
     _fit_orders,
     _finish,
     _regress,
@@ -158,14 +158,14 @@ def pbsid(
     0.9
     """
     _check_choice("criterion", criterion, ("bic", "aic"))
-    s = _Setup(*_common_setup(y, u, dt, input_labels, output_labels, feedthrough, order,
+    s = _Setup(*common_setup(y, u, dt, input_labels, output_labels, feedthrough, order,
                               max_order, rtol))
     return _pbsid_run(s, horizon, future, chunk_size, criterion, state_prefix)
 
 
 def _pbsid_run(s: _Setup, horizon, future, chunk_size, criterion, state_prefix):
     """The horizons, block-Hankel factor and model of :func:`pbsid` from its checked setup."""
-    p = _choose_horizon(horizon, s.order, s.lengths, s.m, s.l, s.max_order, lambda k: k + 1,
+    p = choose_horizon(horizon, s.order, s.lengths, s.m, s.l, s.max_order, lambda k: k + 1,
                         default=20)
     if future is None:
         f = p

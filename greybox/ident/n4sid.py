@@ -235,7 +235,7 @@ def _criterion_value(crit: str, Re: NDArray, n: int, l: int, m: int, nd: int, nc
     return ncols * logdet + pen * _npar(n, l, m, nd)
 
 
-def _choose_horizon(horizon, order, lengths, m, l, max_order, fixed_min_block, default=10):
+def choose_horizon(horizon, order, lengths, m, l, max_order, fixed_min_block, default=10):
     """Validate or choose the number of block rows.
 
     ``fixed_min_block`` is the number of extra block rows the method needs
@@ -422,8 +422,11 @@ def _finish(
 _MAX_RMS = 1e150
 
 
-def _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max_order, rtol,
+def common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max_order, rtol,
                   weighting_ok=True):
+    """The arguments of :func:`n4sid` and :func:`greybox.pbsid` checked once: the scaled
+    records, their sizes, labels, feedthrough, orders, tolerance and channel RMS (a
+    :class:`~greybox.exceptions.GreyboxError` that names the argument otherwise)."""
     ys, us, l, m = prepare_data(y, u)
     dt = check_positive(dt, "dt")
     input_labels = _check_labels(input_labels, m, "input_labels", "ninputs")
@@ -456,7 +459,7 @@ def _common_setup(y, u, dt, input_labels, output_labels, feedthrough, order, max
 @dataclass(frozen=True)
 class _Setup:
     """The checked data and options of :func:`n4sid` and :func:`~greybox.ident.pbsid`
-    (:func:`_common_setup`): experiments, sizes, labels and channel scales."""
+    (:func:`common_setup`): experiments, sizes, labels and channel scales."""
 
     ys: list
     us: list
@@ -600,7 +603,7 @@ def n4sid(
     """
     _check_choice("weighting", weighting, ("N4SID", "MOESP", "CVA"))
     _check_choice("criterion", criterion, ("bic", "aic"))
-    s = _Setup(*_common_setup(y, u, dt, input_labels, output_labels, feedthrough, order,
+    s = _Setup(*common_setup(y, u, dt, input_labels, output_labels, feedthrough, order,
                               max_order, rtol))
     return _n4sid_run(s, horizon, chunk_size, weighting, criterion, state_prefix)
 
@@ -614,10 +617,10 @@ def _check_choice(name: str, value, allowed: tuple[str, ...]) -> None:
 
 def _n4sid_run(s: _Setup, horizon, chunk_size, weighting, criterion, state_prefix):
     """The horizon, block-Hankel factor and model of :func:`n4sid` from its checked setup."""
-    i = _choose_horizon(horizon, s.order, s.lengths, s.m, s.l, s.max_order, lambda k: 2 * k)
+    i = choose_horizon(horizon, s.order, s.lengths, s.m, s.l, s.max_order, lambda k: 2 * k)
     h = hankel_r(s.ys, s.us, s.sy, s.su, 2 * i, chunk_size=chunk_size)
     with small_blas():
-        return _n4sid_from_factor(h, i, s.ys, s.us, s.l, s.m, s.dt, s.input_labels,
+        return n4sid_from_factor(h, i, s.ys, s.us, s.l, s.m, s.dt, s.input_labels,
                                   s.output_labels, s.fed, s.order, s.max_order, s.rtol, s.sy,
                                   s.su, weighting, criterion, state_prefix)
 
@@ -650,8 +653,10 @@ def _fit_orders(order, max_order, nmax, too_large, fit, residual_cov, criterion,
     return order, fits[order], crit, auto
 
 
-def _n4sid_from_factor(h, i, ys, us, l, m, dt, input_labels, output_labels, fed, order,
+def n4sid_from_factor(h, i, ys, us, l, m, dt, input_labels, output_labels, fed, order,
                        max_order, rtol, sy, su, weighting, criterion, state_prefix):
+    """N4SID's fit from the block-Hankel factor ``h`` (horizon ``i``) and the arguments
+    :func:`common_setup` checked: the identification result of :func:`n4sid`."""
     _check_pe(h, 2 * i, input_labels, "B and D")
 
     core = _N4SIDCore(h, i, weighting, fed, rtol)

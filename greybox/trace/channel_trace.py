@@ -25,7 +25,7 @@ from ..filters import (
     uikf,
 )
 from ..filters.delayed import first_order_hold
-from ..filters.smoother import _smooth_feedthrough_of
+from ..filters.smoother import smooth_feedthrough_of
 from ..metrics import autocorrelation
 from ..system import named_ss
 from ..terms import term_kind
@@ -36,8 +36,8 @@ from .laws import (
     LINEAR_KINDS,
     StaticLaw,
     _eval_terms,
-    _fit_static,
-    _law_line,
+    fit_static,
+    law_line,
     _static_subsystem,
     aligned,
     linear_part,
@@ -182,7 +182,7 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
     est = res
     if smooth is not False:  # the whole record: smoothed x^ and d^ (no delay here)
         try:
-            est = _smooth_feedthrough_of(res, model, y, u, unknown=labels, Q=Q, R=R)
+            est = smooth_feedthrough_of(res, model, y, u, unknown=labels, Q=Q, R=R)
         except (GreyboxError, np.linalg.LinAlgError) as e:
             notes.append(f"smoother failed ({e}); the law is fitted on the filter's d^")
     N = y.shape[1]
@@ -196,7 +196,7 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
     A, B = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)[:, :m]
     C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
     x, uu, d = est.x_filt[:, k0:N], u[:, k0:N], est.d_est[:, k0:N]
-    law = _fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units,
+    law = fit_static(d, x, uu, res.sys, nonlinear, labels, channel.units,
                       whiten=est.smoothed,
                       prebuilt=output_terms(x, uu, C[i], D[i], channel.output,
                                             nonlinear=nonlinear))
@@ -297,7 +297,7 @@ def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
                  f"simulation): estimation SE {se[0]:.3g}% -> {se[1]:.3g}%")
     return replace(law, coef=coef, ci=ci, Ddx=Ddx, Ddu=Ddu,
                    residual_var=np.array([float(np.mean(e_new**2))]),
-                   formula=_law_line(label, th, names, unit, ci[0, sel]))
+                   formula=law_line(label, th, names, unit, ci[0, sel]))
 
 
 def _nominal_states(A, B, x0, u):
@@ -532,7 +532,7 @@ def _fit_sensor_drift(law, model, i, y, u, xs, ks, noise, dxu, label, unit, out,
         th[-1] * (k0 + np.arange(d.shape[1])) * h
     r1 = d[0] - dpred
     bic_gain = _dhat_bic_gain(d[0], r1, len(th))
-    formula = _law_line(label, th, [sp[0] for sp in spec], unit, half) + \
+    formula = law_line(label, th, [sp[0] for sp in spec], unit, half) + \
         f"; t [s] from the record's first sample, the drift rate in {unit}/s"
     lg = StaticLaw(spec=tuple(spec), eps=np.zeros(1), coef=th[None, :], Ddx=Ddx, Ddu=Ddu,
                    nonlinear=False, residual_var=np.array([float(np.mean(r1**2))]),
@@ -716,7 +716,7 @@ def _check_enough(nleft: int, k0: int, nterms: int) -> None:
 
 def _law_on_dhat(est, u, nsteps: int, k0: int, nterms: int, align, r: int, channel: Channel,
                  notes: list, sys_f, nonlinear: bool, brk, foh):
-    """``(law data, law)``: the static law fitted on d^ (:func:`_law_data`, :func:`_fit_static`).
+    """``(law data, law)``: the static law fitted on d^ (:func:`_law_data`, :func:`fit_static`).
 
     With ``foh`` (an r = 1 estimate of a continuous model) the law is fitted on the states
     within each sample, the input held. Kept for a law of the states alone (a drag, a
@@ -725,7 +725,7 @@ def _law_on_dhat(est, u, nsteps: int, k0: int, nterms: int, align, r: int, chann
     held (a measured flow); such a law is fitted on the states at the sample's start.
     """
     def fit(ld):
-        return _fit_static(ld.d, ld.xw, ld.uw, sys_f, nonlinear, list(channel.labels),
+        return fit_static(ld.d, ld.xw, ld.uw, sys_f, nonlinear, list(channel.labels),
                            channel.units, None if ld.align.shape[1] == 1 and
                            np.allclose(ld.align, 1.0) else ld.align, channel.relative,
                            whiten=est.smoothed or r >= 2, breaks=brk)

@@ -35,7 +35,7 @@ from ..update import UpdatedModel
 from .channels import Channel
 from .dynamic import DynamicLaw, SharedLaw, _law_from, _problem, _shared_law_from, \
     _shared_problem
-from .laws import StaticLaw, _law_line, _one_direction, linear_part
+from .laws import StaticLaw, law_line, _one_direction, linear_part
 from .oe import OutputError, zoh
 from .shared_order2 import SharedLaw2
 from .shared_order2 import _law_from as _shared2_law_from
@@ -418,7 +418,7 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged=()):
         for c in range(coef.shape[0]):
             idx = list(np.flatnonzero(coef[c]))
             unit = ch.units[c] if c < len(ch.units) else ""
-            lines.append(_law_line(ch.labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
+            lines.append(law_line(ch.labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
                                    unit, half[c, idx]))
         if "one direction" in law.formula:
             x = lti_states(*zoh(np.asarray(base.A, float), np.asarray(base.B, float), dt),

@@ -302,7 +302,7 @@ def _whitening(e: NDArray, p: int) -> NDArray[np.float64]:
     return np.r_[1.0, -solve_toeplitz(acf[:p], acf[1:p + 1])]
 
 
-def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
+def fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
                 relative=(), whiten=False, prebuilt=None, saturation=False,
                 breaks=()) -> StaticLaw:
     """Sparse static law of every component of d^ on the terms of (x, u).
@@ -414,7 +414,7 @@ def _fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             lc = coef[c, :nlin]
         dx_, du_ = linear_part(spec[:nlin], lc[None, :], n, m)
         Ddx[c], Ddu[c] = dx_[0], du_[0]
-        lines.append(_law_line(labels[c], cf, [spec[j][0] for j in idx],
+        lines.append(law_line(labels[c], cf, [spec[j][0] for j in idx],
                                units[c] if c < len(units) else "", half[c, idx]))
         tcur = X = None
     held = None
@@ -475,7 +475,7 @@ def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Su
                      unknown_labels=tuple(res.unknown_labels))
 
 
-def _law_line(label: str, coefs, names, unit: str, half=None) -> str:
+def law_line(label: str, coefs, names, unit: str, half=None) -> str:
     """``"d_v2 = -(15 ± 0.3)*p2 [v2]/s"``: one component of a law, with its unit and intervals."""
     u = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
     return f"{label} = {_fmt_sum(coefs, names, half)}{u}"

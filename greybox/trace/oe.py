@@ -15,7 +15,7 @@ from .._lti import lti_output, lti_states
 from ..metrics import effective_samples, oe_criterion
 from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
-from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, _law_line, _one_direction,
+from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, law_line, _one_direction,
                    linear_part, siblings)
 
 # Output-error refinements of static laws run on at most this many samples
@@ -299,7 +299,7 @@ class _OutputErrorLaw:
         lines = []
         for c in range(self.md):
             idx = [j for (cc, j) in sel if cc == c]
-            lines.append(_law_line(labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
+            lines.append(law_line(labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
                                    units[c] if c < len(units) else "", half[c, idx]))
         if tscale is not None:
             lines += _one_direction(coef, tscale, labels)
@@ -509,7 +509,7 @@ class _OutputErrorNonlinearLaw:
 
 
 # A nonlinear law fitted on d^ is refitted by output error only when its simulation's mean
-# squared error is above this many times what the noise model alone gives (_noise_floor):
+# squared error is above this many times what the noise model alone gives (noise_floor):
 # 10x in RMS. Measured ratios: a right cubic law under process noise 0.7-44 (20 records of
 # tests/test_trace_delayed.py; the floor leaves out the initial state's error and the law's
 # nonlinearity), EMPS 0.8, Silverbox 344, a static law for a lagged damper 2e4 (windows of
@@ -517,7 +517,7 @@ class _OutputErrorNonlinearLaw:
 _FLOOR_FACTOR = 100.0
 
 
-def _noise_floor(A: NDArray, C: NDArray, Q: NDArray, R: NDArray, k0: int,
+def noise_floor(A: NDArray, C: NDArray, Q: NDArray, R: NDArray, k0: int,
                  W: int) -> NDArray[np.float64]:
     """Mean squared output error of the right model's simulation under (Q, R), per output.
 
@@ -571,7 +571,7 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
 
     The d^ fit is kept, and nothing is fitted, when its simulation's mean
     squared error on y is within ``_FLOOR_FACTOR`` times what the noise
-    model ``noise = (Q, R)`` alone gives (:func:`_noise_floor`): the law
+    model ``noise = (Q, R)`` alone gives (:func:`noise_floor`): the law
     already simulates as well as the noise allows. It is kept too when it
     agrees with the output-error fit: the Wald
     statistic of their difference under the output-error covariance (noise
@@ -618,7 +618,7 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     if noise is not None:  # the d^ law already simulates as well as the noise model allows
         r0 = prob.resid(theta0 / prob.theta_scale).reshape(prob.y.shape[0], -1)
         ms = np.mean(r0**2, axis=1) * prob.scale_y**2
-        floor = _noise_floor(prob.A_lin, prob.C, noise[0], noise[1], k0, W)
+        floor = noise_floor(prob.A_lin, prob.C, noise[0], noise[1], k0, W)
         if np.all(ms <= _FLOOR_FACTOR * floor):
             return law, se0, se0
     keep = list(range(len(sel)))
@@ -655,7 +655,7 @@ def _nl_law_with(law: StaticLaw, sel, keep, theta, half, labels, units, tscale=N
     lines = []
     for c in range(md):
         idx = [j for j in range(coef.shape[1]) if coef[c, j] != 0]
-        lines.append(_law_line(labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
+        lines.append(law_line(labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
                                units[c] if c < len(units) else "", ci[c, idx]))
     if tscale is not None:
         lines += _one_direction(coef, tscale, labels)
