@@ -155,12 +155,24 @@ class LawPlant:
         window: over a long one the law's nonlinearity biases x0). For an affine law
         (linear terms and a constant, an offset the linear part lacks that would
         otherwise be read as initial state) against the law's own free response from
-        x0 = 0, exact then; else against the linear part's."""
+        x0 = 0, exact then; else the better start, by the law's own simulation over the
+        same window, of the linear part's estimate and least squares through C on the
+        first sample: a law the linear part lacks (Coulomb friction) can make the first
+        wrong, and a mass the friction holds keeps a wrong start (a zoo draw's 'updated'
+        row read 4.6 % from it, 1.3 % from the second)."""
         law = self.law
         affine = all(term_kind(law.spec[j][1]).affine
                      for j in np.flatnonzero(np.any(law.coef != 0, axis=0)))
         if not affine:
-            return estimate_initial_state(self.linear, y, u, slow_modes=False)
+            starts = [estimate_initial_state(self.linear, y, u, slow_modes=False)]
+            C, D = (np.asarray(a, dtype=float) for a in (self.sys.C, self.sys.D))
+            starts.append(np.linalg.lstsq(C, y[:, 0] - D @ u[:, 0], rcond=None)[0])
+            k = min(y.shape[1], max(10 * self.sys.nstates, 50))
+            with np.errstate(all="ignore"):
+                sse = [float(np.sum((y[:, :k] - self.simulate(u[:, :k], x0)) ** 2))
+                       for x0 in starts]
+            # NaN (a diverging start) is never the better; ties keep the linear estimate
+            return starts[1] if sse[1] < sse[0] or not np.isfinite(sse[0]) else starts[0]
         return estimate_initial_state(self.linear, y, u, slow_modes=False,
                                       free=lambda k: self.simulate(
                                           u[:, :k], np.zeros(self.sys.nstates)))
