@@ -164,9 +164,8 @@ class LawPlant:
         affine = all(term_kind(law.spec[j][1]).affine
                      for j in np.flatnonzero(np.any(law.coef != 0, axis=0)))
         if not affine:
-            starts = [estimate_initial_state(self.linear, y, u, slow_modes=False)]
-            C, D = (np.asarray(a, dtype=float) for a in (self.sys.C, self.sys.D))
-            starts.append(np.linalg.lstsq(C, y[:, 0] - D @ u[:, 0], rcond=None)[0])
+            starts = [estimate_initial_state(self.linear, y, u, slow_modes=False),
+                      first_sample_state(self.sys.C, self.sys.D, y, u)]
             k = min(y.shape[1], max(10 * self.sys.nstates, 50))
             with np.errstate(all="ignore"):
                 sse = [float(np.sum((y[:, :k] - self.simulate(u[:, :k], x0)) ** 2))
@@ -221,6 +220,13 @@ class LawPlant:
         return self.linear
 
 
+def first_sample_state(C, D, y: NDArray, u: NDArray) -> NDArray:
+    """x0 from the first sample alone: least squares through ``y[0] = C x0 + D u[0]``
+    (minimum norm where C does not see a state), shape (nstates,)."""
+    C, D = np.asarray(C, dtype=float), np.asarray(D, dtype=float)
+    return np.linalg.lstsq(C, y[:, 0] - D @ u[:, 0], rcond=None)[0]
+
+
 @dataclass(frozen=True)
 class NonlinearPlant:
     """A discrete ``NonlinearIOSystem`` with a linear output map y = C x + D u.
@@ -251,8 +257,7 @@ class NonlinearPlant:
         """The given ``x0``, or x0 from the first sample: least squares through C."""
         if self.x0 is not None:
             return np.asarray(self.x0, dtype=float)
-        C, D = linear_output_map(self.sys)
-        return np.linalg.lstsq(C, y[:, 0] - D @ u[:, 0], rcond=None)[0]
+        return first_sample_state(*linear_output_map(self.sys), y, u)
 
     def filter(self, y: NDArray, u: NDArray, *, Q, R) -> FilterResult:
         """The unscented Kalman filter on the record from :meth:`initial_state` and P0."""
