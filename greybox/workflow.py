@@ -75,7 +75,7 @@ from .trace.joint import joint_effect, refine_jointly
 from .trace.channels import (force_channel, input_channel, output_channel,
                              relative_coordinates)
 from .trace.laws import direction, sensor_states
-from .trace.screen import screen_equations, screen_sensors
+from .trace.screen import screen_equations, screen_sensor_laws, screen_sensors
 from .plant_adapter import LawPlant, LinearPlant, validation
 from .update import Subsystem, UpdatedModel, delta_update
 from .workflow_nonlinear import close_the_loop_nonlinear, nonlinear_update_of_linear
@@ -104,6 +104,12 @@ SCREEN_REL = 0.25
 # moves the direction only part way: 64-state chain, positions only, -0.90 -> -0.976 ->
 # -1.00); at most this many re-traces, each kept only if it is better.
 _MAX_RETRACE = 3
+# A model with more outputs than default_channels offers sensor channels for (6) has its
+# sensors offered by evidence instead: an offset that explains the innovations' mean
+# (_offset_sensors), and the SENSOR_TOP outputs whose own sensor law explains most of the
+# nominal simulation error (_sensor_law_candidates: a sensor error stays in its own
+# output's simulation error). The criterion still chooses among them and the equations.
+SENSOR_TOP = 2
 # A sparse first-order law is fitted for a channel only when its unstructured dynamic
 # fit beats its static law's estimation SE by this factor (evidence of dynamics).
 SPARSE_IF = 0.8
@@ -742,7 +748,12 @@ class _Pass:
             # as noise: above SCREEN_ABOVE states only the sparse first-order law is tried
             first_max = 0
         have = {c.output for c in self.chans if c.kind == "output"}
-        self.chans = tuple(self.chans) + tuple(output_channel(self.sys, o) for o in r.sensors
+        offered = list(r.sensors)
+        if not have and self.S.channels is None:  # no sensor offered by default: by evidence
+            offered += [o for o in _sensor_law_candidates(
+                self.nominal, self.P.ys, self.P.us, r.x0n, self.P.dt, r.white, r.unstable,
+                self.decisions) if o not in offered]
+        self.chans = tuple(self.chans) + tuple(output_channel(self.sys, o) for o in offered
                                                if o not in have)
         defs = definitions(P.sys) if S.channels is None else []
         if defs:
@@ -1627,6 +1638,26 @@ def _offset_sensors(nominal: ct.StateSpace, kf, k0: int, white: WhitenessTest, a
                                         for o, b, m in keep)
             + f" (limits {one:.3g} and {limit:.3g})"))
     return tuple(o for o, _, _ in keep)
+
+
+def _sensor_law_candidates(nominal: ct.StateSpace, ys: np.ndarray, us: np.ndarray, x0: np.ndarray,
+                           dt: float, white: WhitenessTest, unstable: str | None,
+                           notes: list[Decision]) -> tuple[str, ...]:
+    """The ``SENSOR_TOP`` sensors whose own law (gain, offset, lag, drift) explains most of
+    the nominal simulation error (:func:`greybox.trace.screen.screen_sensor_laws`),
+    offered as sensor channels where none is offered by default (above ``_AUTO_OUTPUTS``
+    outputs). Not for a model whose simulation is not compared (unstable: its simulation
+    error grows without a sensor error)."""
+    if white.all_white or nominal.noutputs < 2 or unstable:
+        return ()
+    scr = screen_sensor_laws(ys, simulate_output(nominal, us, x0), dt,
+                             list(nominal.output_labels))
+    top = list(scr.outputs[:SENSOR_TOP])
+    notes.append(Decision("screen", "", "sensors offered by the share of the simulation error "
+                          "their own law (gain, offset, lag, drift) explains: " + ", ".join(
+                              f"output({o}) {e / max(scr.total, 1e-300):.0%}"
+                              for o, e in zip(top, scr.explained))))
+    return tuple(top)
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:

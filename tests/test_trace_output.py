@@ -137,3 +137,27 @@ def test_simulate_with_an_output_law_adds_to_that_output_only():
     np.testing.assert_allclose(ys[0], np.abs(y0[0]) * law.coef[0, 2] +
                                y0[0] * (1 + law.coef[0, 0]) + law.coef[0, 3] +
                                law.coef[0, 1] * y0[0] ** 3, rtol=1e-12, atol=1e-15)
+
+
+def test_sensor_law_screen_points_to_the_sensor_whose_own_law_explains_its_error():
+    """Known truth: five outputs, a nominal simulation, and the measurement equal to it plus
+    white noise, except output 'y2', read through a 0.05 s lag, a gain 1.1 and an offset.
+    The screen ranks y2 first with nearly the whole error explained, the others near 0."""
+    from scipy.signal import lfilter
+
+    from greybox.trace.screen import screen_sensor_laws
+
+    rng = np.random.default_rng(4)
+    dt, N, p = 0.01, 5000, 5
+    w = rng.standard_normal((p, N))
+    ysim = lfilter([4e-4], [1.0, -1.96, 0.9604], w, axis=1)  # smooth: two 0.5 s lags
+    y = ysim + 1e-3 * rng.standard_normal((p, N))
+    a = np.exp(-dt / 0.05)
+    y[2] = 1.1 * lfilter([1 - a], [1.0, -a], ysim[2]) + 0.05 + 1e-3 * rng.standard_normal(N)
+    scr = screen_sensor_laws(y, ysim, dt, [f"y{j}" for j in range(p)])
+    assert scr.outputs[0] == "y2"
+    # tau dy/dt is the lag's first order only (tau^2 d2y/dt2 is left): measured 0.995 of
+    # the total on these smooth signals; a noise-only output's four fitted terms take ~4/N
+    # of its noise (measured 1e-7 against 0.29)
+    assert scr.explained[0] > 0.9 * scr.total
+    assert np.all(scr.explained[1:] < 0.01 * scr.explained[0])

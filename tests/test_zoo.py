@@ -555,3 +555,18 @@ def test_coulomb_friction_on_an_unmeasured_speed_is_named_as_friction(seed, i):
     assert "sign(" in rep.effect.formula, rep.effect.formula
     assert any("term form chosen by output error" in n for n in rep.notes), rep.notes
     assert s.error_updated < 0.2 * s.error_nominal  # and the model is far better than before
+
+
+# The first three seeds >= 1 whose sensor_lag draw has more than 6 outputs (chosen by size
+# alone, by scanning seeds 1, 2, ...; asserted below): above 6 outputs no sensor channel is
+# offered by default, so the sensor must come from the screen of sensor laws.
+@pytest.mark.parametrize("seed", [3, 9, 24])
+def test_a_lagging_sensor_among_many_outputs_is_named_as_the_sensor(seed):
+    d = zoo.draw_class("sensor_lag", seed, 0)
+    assert d.nominal.noutputs > 6
+    rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    s = zoo.score(d, rep)
+    assert rep.updated and s.right, (s.why, s.found)
+    assert s.covered == s.n_coefficients, s.found  # tau inside its 95 % interval
+    assert any("sensors offered by the share" in x.reason for x in rep.decisions)

@@ -23,7 +23,8 @@ from ..exceptions import GreyboxError
 from ..filters import delayed_uikf, uikf
 from .channels import Channel, channel_model
 
-__all__ = ["EquationScreen", "screen_equations", "SensorScreen", "screen_sensors"]
+__all__ = ["EquationScreen", "screen_equations", "SensorScreen", "screen_sensors",
+           "SensorLawScreen", "screen_sensor_laws"]
 
 # Samples per block mean in the screen's regression.
 BLOCK = 10
@@ -230,3 +231,68 @@ def screen_sensors(sys_d: ct.StateSpace, K: NDArray, e: NDArray, n_eff: NDArray
     labels = list(sys_d.output_labels)
     return SensorScreen(outputs=tuple(labels[j] for j in order), misfit=mis[order],
                         offset=b[order], null=float(np.sum(w * m ** 2)))
+
+
+@dataclass(frozen=True)
+class SensorLawScreen:
+    """How much of each output's simulation error a law of that sensor alone explains.
+
+    Attributes
+    ----------
+    outputs : tuple of str
+        The outputs ranked, best first (the largest explained share).
+    explained : ndarray, shape (len(outputs),)
+        Each one's sum of squares explained by its own sensor terms, in units of the
+        output's mean square (the simulation error's SE^2 scale), per sample.
+    total : float
+        The nominal simulation error's sum of squares over every output, in the same
+        units: a sensor error alone is explained almost whole by its own output's share.
+    """
+
+    outputs: tuple[str, ...]
+    explained: NDArray[np.float64]
+    total: float
+
+
+def screen_sensor_laws(y: NDArray, ysim: NDArray, dt: float, labels, skip: int = 20
+                       ) -> SensorLawScreen:
+    """Rank the sensors by how much of the nominal model's simulation error the terms of a
+    sensor law on that output alone explain: its gain and offset (``y^_j``, 1), its lag
+    (``dy^_j/dt``) and its drift (t), fitted by least squares to ``y_j - y^_j``.
+
+    A sensor error is read by its own output only and does not move the simulated states,
+    so it stays in that output's simulation error; a state-equation error spreads over
+    every output the states reach. One least-squares fit of four columns per output: the
+    cost of a few passes over the record.
+
+    Parameters
+    ----------
+    y, ysim : ndarray, shape (noutputs, nsteps)
+        The measured outputs and the nominal model's simulation of them.
+    dt : float
+        Sampling period [s].
+    labels : sequence of str
+        The output names.
+    skip : int
+        Leading samples left out (the simulation's start).
+
+    Returns
+    -------
+    SensorLawScreen
+    """
+    y, ysim = np.asarray(y, dtype=float)[:, skip:], np.asarray(ysim, dtype=float)[:, skip:]
+    p, N = y.shape
+    if N < 8:
+        return SensorLawScreen(tuple(labels), np.zeros(p), 0.0)
+    t = np.linspace(-1.0, 1.0, N)
+    expl, tot = np.zeros(p), 0.0
+    for j in range(p):
+        scale = float(np.mean(y[j] ** 2)) + 1e-300
+        r = y[j] - ysim[j]
+        W = np.column_stack([ysim[j], np.ones(N), np.gradient(ysim[j], dt), t])
+        coef = np.linalg.lstsq(W, r, rcond=None)[0]
+        fitted = W @ coef
+        expl[j] = float(np.sum(r ** 2) - np.sum((r - fitted) ** 2)) / (scale * N)
+        tot += float(np.sum(r ** 2)) / (scale * N)
+    order = np.argsort(-expl, kind="stable")
+    return SensorLawScreen(tuple(labels[j] for j in order), expl[order], tot)
