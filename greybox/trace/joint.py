@@ -421,8 +421,9 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged=()):
             lines.append(law_line(ch.labels[c], coef[c, idx], [law.spec[j][0] for j in idx],
                                    unit, half[c, idx]))
         if "one direction" in law.formula:
-            x = lti_states(*zoh(np.asarray(base.A, float), np.asarray(base.B, float), dt),
-                           u[:, :prob.y.shape[1]], np.zeros(base.nstates))
+            Ad, Bd = zoh(np.asarray(base.A, float), np.asarray(base.B, float), dt)
+            uw = u[:, :prob.y.shape[1]]
+            x = lti_states(Ad, Bd @ uw, np.zeros(base.nstates))
             lines += _one_direction(coef, law.term_scale(x, u[:, :x.shape[1]]), ch.labels)
         return replace(law, coef=coef, ci=half, Ddx=Ddx, Ddu=Ddu, formula="; ".join(lines),
                        npar=int(np.count_nonzero(coef)))
