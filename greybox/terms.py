@@ -165,6 +165,13 @@ class TermKind:
         (``drift``: the law carries its offset as a state)."""
         return None
 
+    def continuous_sensor(self, A: NDArray, B: NDArray, C: NDArray, D: NDArray, i: int,
+                          c: float) -> tuple[NDArray, NDArray, NDArray, NDArray] | None:
+        """The continuous model ``(A, B, C, D)`` read through this sensor law on output
+        ``i`` with coefficient c, the law's states last; None when the law has none or no
+        continuous form (a later pass then starts from the discrete updated model)."""
+        return None
+
     def column(self, index) -> tuple[str, int] | None:
         """``("A", i)`` or ``("B", j)``: the column of the nominal model's matrix a linear
         term of one state or input re-scales (a parameter note); None."""
@@ -727,6 +734,21 @@ class SensorLag(_NotStatic):
         return (f"sensor {out}: first-order lag 1/(tau s + 1), tau = {c:.4g}{pm} s "
                 f"(none in the model: the reading is the updated model's state "
                 f"{out}_sensor)")
+
+    def continuous_sensor(self, A, B, C, D, i, c):
+        """``dz/dt = (C_i x + D_i u - z) / tau``, output i reads z (tau = c)."""
+        if not (np.isfinite(c) and c > 0):
+            return None
+        n = A.shape[0]
+        Aa = np.zeros((n + 1, n + 1))
+        Aa[:n, :n], Aa[n, :n], Aa[n, n] = A, C[i] / c, -1.0 / c
+        Ba = np.vstack([B, D[i][None, :] / c])
+        Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
+        Ca[i] = 0.0
+        Ca[i, n] = 1.0
+        Da = D.copy()
+        Da[i] = 0.0
+        return Aa, Ba, Ca, Da
 
 
 @register

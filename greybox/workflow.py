@@ -335,6 +335,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
         rep = _loop(once, P.sys, P.nominal, P.Q, channels, P.chans, P.settings.delta,
                     P.settings.max_effects, P.dt, functools.partial(_joint, P))
         rep = _fused(P, rep)
+        rep = _split(P, rep)
         rep = _with_record(rep, P.y, P.u, P.Q, P.R, P.sys)
         P.tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
         return recommend(nonlinear_update_of_linear(rep), P.Q, P.R)
@@ -401,6 +402,109 @@ def _fused(P: Problem, rep: LoopReport) -> LoopReport:
     return replace(alt, table=table, decisions=kept + alt.decisions + (
         Decision("loop", "", what + ": one hidden state of the pair, a lower error with "
                              "no more parameters"),))
+
+
+def _effects_npar(rep: LoopReport) -> int:
+    """The parameters of every effect of a report (its laws' coefficients, poles, levels)."""
+    total = 0
+    for st in rep.steps or (EffectStep(effect=rep.effect, channel="", message="",
+                                       se_before=np.nan, se_after=np.nan),):
+        law = st.effect.dynamic_law if st.effect.dynamic_law is not None else st.effect.law
+        total += int(law.npar) if law is not None else 0
+    return total
+
+
+def _split(P: Problem, rep: LoopReport) -> LoopReport:
+    """One effect in the state equations that may be two of different kinds fused (issue 27
+    item 5): a sensor's error and a state equation's, absorbed by one law of the equations.
+
+    When the report is one linear effect in state equations with three parameters or more,
+    the pass is run again as two for the sensor the screen of sensor laws ranks first, if
+    it reads one of the effect's states (:func:`_split_sensor`): first that sensor alone,
+    then a linear static law of each equation of the effect's channel on the updated model
+    (the two refitted jointly, as in the loop: the lag's time constant with the law).
+    The one criterion (:func:`greybox.metrics.criterion_scores`, every effect's
+    parameters counted) on the estimation record decides which explanation is kept; the
+    decision trail says which and why."""
+    S = P.settings
+    if not rep.updated or len(rep.steps) > 1 or S.channels is not None or \
+            rep.effect.nonlinear or rep.channel is None or rep.channel.kind == "output" or \
+            not rep.channel.equations or S.max_effects < 2 or \
+            unstable_reason(P.nominal, P.y.shape[1]) or _effects_npar(rep) < 3:
+        return rep
+    sensor = _split_sensor(P, rep.channel)
+    if sensor is None:
+        return rep
+    eqs = [(e,) for e in rep.channel.equations]
+    what = f"{sensor.name} first, then " + ", ".join(f"eq({e})" for (e,) in eqs)
+    alt = _two_passes(P, sensor, eqs)
+    if isinstance(alt, str):
+        return rep.with_decision("loop", "", f"the effect in {rep.channel.name} "
+                                 f"({_effects_npar(rep)} parameters) tried as two: {what}: "
+                                 f"{alt}; the one effect kept")
+    reps, fits = (rep, alt), []
+    for r in reps:
+        plant = LinearPlant(r.model.sys)
+        fits.append(output_fit(P.ys, plant.simulate(P.us, plant.initial_state(P.ys, P.us)),
+                               skip=_Pass.SKIP))
+    npars = [_effects_npar(r) for r in reps]
+    best_fit = int(np.argmin([f.se for f in fits]))
+    crit = criterion_scores(fits, npars, n_eff=fits[best_fit].n_eff, factor=S.bic_factor)
+    what = (f"the effect in {rep.channel.name} tried as two of different kinds, by the "
+            f"criterion: one effect ({npars[0]} parameters, SE {fits[0].se:.3g} %) 0; {what} "
+            f"({npars[1]} parameters, SE {fits[1].se:.3g} %) {crit[1] - crit[0]:+.4g}")
+    if not crit[1] < crit[0]:
+        return rep.with_decision("loop", "", what + ": the one effect kept")
+    table = dict(alt.table)
+    if "delta" in rep.table:
+        table["delta"] = rep.table["delta"]
+    kept = tuple(d for d in rep.decisions if d.stage != "validate")
+    return replace(alt, table=table, decisions=kept + alt.decisions + (
+        Decision("loop", "", what + ": the two effects, a lower criterion"),))
+
+
+def _split_sensor(P: Problem, ch: Channel) -> Channel | None:
+    """The sensor a split tries: the one whose own law explains the most of the nominal
+    simulation error (:func:`greybox.trace.screen.screen_sensor_laws`), if it reads a
+    state whose equation is in the channel ``ch`` (a law of the equations can reproduce a
+    sensor's lag only there); None otherwise."""
+    x0 = estimate_initial_state(P.nominal, P.ys, P.us)
+    labels = list(P.sys.output_labels)
+    scr = screen_sensor_laws(P.ys, simulate_output(P.nominal, P.us, x0), P.dt, labels)
+    o = labels.index(scr.outputs[0])
+    C = np.asarray(P.sys.C, dtype=float)
+    states = list(P.sys.state_labels)
+    if not any(C[o, states.index(e)] != 0 for e in ch.equations):
+        return None
+    return output_channel(P.sys, scr.outputs[0])
+
+
+def _two_passes(P: Problem, sensor: Channel, eqs: list) -> LoopReport | str:
+    """The loop run as two passes: the sensor channel alone, then a linear static law of
+    each of the equations ``eqs`` alone on the updated model (the one linear law they
+    would replace is the alternative), both refitted jointly (a sensor lag's time constant is
+    biased by the equation's error until then); why not, as a string, when it finds
+    fewer than two effects."""
+    settings = [replace(P.settings, channels=[sensor]),
+                replace(P.settings, channels=eqs, max_order=0, nonlinear=False)]
+    calls: list[int] = []
+
+    def once(sys_, nominal_, Q_, chans_, delta_) -> LoopReport:
+        k = min(len(calls), 1)
+        calls.append(k)
+        return _Pass(replace(P, settings=settings[k]), sys_, nominal_, Q_, chans_,
+                     delta_).run()
+
+    try:
+        alt = _loop(once, P.sys, P.nominal, P.Q, eqs, (sensor,),
+                    False, 2, P.dt, functools.partial(_joint, P))
+    except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+        return f"failed ({e})"
+    if not alt.updated:
+        return "the sensor's law alone fails the gate"
+    if len(alt.steps) < 2:
+        return "no second effect"
+    return alt
 
 
 def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_order, alpha,
@@ -1702,7 +1806,36 @@ def _next_model(sys: ct.StateSpace, rep: LoopReport):
         return named_ss(A, B, sys.C, sys.D, 0, states=sys.state_labels,
                         inputs=sys.input_labels, outputs=sys.output_labels,
                         name=f"{sys.name or 'model'}_updated")
+    if eff.kind == "sensor" and law is not None and not ct.isdtime(sys, strict=True):
+        cont = _continuous_sensor(sys, rep)
+        if cont is not None:
+            return cont
     return rep.model.sys
+
+
+def _continuous_sensor(sys: ct.StateSpace, rep: LoopReport):
+    """The continuous nominal read through the sensor law of ``rep`` (a lag: its state
+    last, named as in the updated model), or None.
+
+    A later pass on the discrete updated model would lose every channel of relative
+    degree 2: a discrete G enters one state, so ``C G = 0`` when that state is read only
+    through the lag (zoo state_sensor, seed 424242: the damping error in eq(v1) was
+    skipped by the rank condition (17), and pass 2 named a cubic sensor law on p1). A
+    continuous G spreads over the sample (ZOH), and the delayed estimate reads it; and
+    the joint refit (greybox.trace.joint) refits the lag's time constant with the later
+    effects."""
+    law = rep.effect.law
+    sel = np.flatnonzero(law.coef[0]) if law.coef.shape[0] == 1 else np.zeros(0, int)
+    if sel.size != 1:
+        return None
+    _, kind, i = law.spec[sel[0]]
+    mats = [np.asarray(m, dtype=float) for m in (sys.A, sys.B, sys.C, sys.D)]
+    aug = term_kind(kind).continuous_sensor(*mats, int(i), float(law.coef[0, sel[0]]))
+    extra = list(rep.model.sys.state_labels[sys.nstates:])
+    if aug is None or aug[0].shape[0] != sys.nstates + len(extra):
+        return None
+    return named_ss(*aug, 0, states=list(sys.state_labels) + extra, inputs=sys.input_labels,
+                    outputs=sys.output_labels, name=f"{sys.name or 'model'}_updated")
 
 
 def _channels_for(sys: ct.StateSpace, spec, physical, n0: int):
@@ -1834,6 +1967,7 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
             if alt is not None:
                 jr, row, steps = alt
             table["updated"], model = row, jr.model
+            steps = _without_empty(steps)
     first = replace(first, effect=steps[0].effect)
     msg = (f"{len(steps)} effects found: " +
            "; then ".join(st.message.split(";")[0].replace("model error found in ", "")
@@ -1843,6 +1977,20 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
         nl = nonlinear_update_of_linear(last).nonlinear
     return replace(first, message=msg, model=model, table=table, steps=tuple(steps),
                    decisions=tuple(notes), nonlinear=nl)
+
+
+def _without_empty(steps: list) -> list:
+    """The steps whose effect kept a term after the joint refit (a static law whose every
+    term's interval contained 0 is no effect); the last kept step carries the final
+    model and error."""
+    def empty(st):
+        law = st.effect.law if st.effect.dynamic_law is None else None
+        return law is not None and int(law.npar) == 0
+    kept = [st for st in steps if not empty(st)]
+    if not kept or len(kept) == len(steps):
+        return steps
+    kept[-1] = replace(kept[-1], se_after=steps[-1].se_after, model=steps[-1].model)
+    return kept
 
 
 def _refit_jointly(joint, passes, final, Qf, notes):

@@ -114,13 +114,33 @@ class _Param:
         self.group = (eff,) if group == "effect" else group
 
 
+def _is_lag(law) -> bool:
+    """A sensor law that is one first-order lag (its coefficient tau [s])."""
+    return isinstance(law, StaticLaw) and law.output is not None and len(law.spec) == 1 \
+        and law.spec[0][1] == "yhat_lag"
+
+
+def _lag_param(i: int, ef: JointEffect, nf: int) -> _Param:
+    """A sensor lag's one coefficient, 1/tau: ``dz/dt = (C_i x + D_i u - z) / tau`` moves
+    the sensor state's row of A and B by (C_i, -1) and D_i per unit of 1/tau."""
+    base, out = ef.base, ef.law.output
+    n, m = base.nstates, base.ninputs
+    dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
+    dA[n, :n], dA[n, n] = np.asarray(base.C, dtype=float)[out], -1.0
+    dB[n] = np.asarray(base.D, dtype=float)[out]
+    return _Param(i, ("lag",), dA, dB, 1.0 / float(ef.law.coef[0, 0]),
+                  f"{ef.channel.name}: 1/tau", False)
+
+
 def _params(effects, nf: int, m: int) -> list[_Param]:
     out = []
     for i, ef in enumerate(effects):
         n = ef.base.nstates
         G = np.asarray(ef.channel.G, dtype=float)
         law = ef.law
-        if isinstance(law, StaticLaw):
+        if _is_lag(law):
+            out.append(_lag_param(i, ef, nf))
+        elif isinstance(law, StaticLaw):
             for c in range(law.coef.shape[0]):
                 for j in np.flatnonzero(law.coef[c]):
                     unit = np.zeros_like(law.coef)
@@ -315,7 +335,10 @@ def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: 
         nk = effects[k].base.nstates
         th = np.array([t if ps[q].eff < k else 0.0 for q, t in zip(active, sol.x)])
         Ak, Bk = prob.cont(th, active)
-        partials.append(named_ss(Ak[:nk, :nk], Bk[:nk], C[:, :nk], D, 0,
+        # the outputs as the first k effects read them (a later sensor lag rereads one)
+        Ck, Dk = (np.asarray(effects[k].base.C, dtype=float),
+                  np.asarray(effects[k].base.D, dtype=float))
+        partials.append(named_ss(Ak[:nk, :nk], Bk[:nk], Ck, Dk, 0,
                                  states=final.state_labels[:nk], inputs=final.input_labels,
                                  outputs=final.output_labels, name=final.name))
     return JointRefinement(laws=laws, continuous=cont,
@@ -405,6 +428,12 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged=()):
     :func:`_independent` folded into an earlier effect's same term)."""
     law, ch, base = ef.law, ef.channel, ef.base
     mine = [(q, p) for q, p in enumerate(ps) if p.eff == i]
+    if _is_lag(law):  # tau = 1 / a; its half-width by the delta method, h_a / a^2
+        a, ha = values[mine[0][0]], halves[mine[0][0]]
+        tau, htau = 1.0 / a, ha / a ** 2
+        return replace(law, coef=np.array([[tau]]), ci=np.array([[htau]]),
+                       formula=f"{ch.output} = {ch.output}_model / (tau s + 1), tau = "
+                               f"({tau:.4g} ± {htau:.2g}) [s]")
     if isinstance(law, StaticLaw):
         coef = np.zeros_like(law.coef)
         half = np.full_like(law.coef, np.nan)
@@ -538,8 +567,9 @@ def joint_effect(base: ct.StateSpace, channel: Channel, law) -> JointEffect | No
     Continuous-time linear static laws, sparse first-order laws and shared-state
     laws of order 1 and 2 qualify.
     """
-    if channel.kind == "output":  # a sensor law acts on C and D, not on the state equations
-        return None
+    if channel.kind == "output":  # a sensor law acts on C and D: only a lag has a state
+        return JointEffect(base=base, channel=channel, law=law) if _is_lag(law) and \
+            not ct.isdtime(base, strict=True) else None
     if isinstance(law, DynamicLaw) and channel.md == 1:
         return JointEffect(base=base, channel=channel, law=law)
     if isinstance(law, (SharedLaw, SharedLaw2)) and channel.md == law.k.size:
