@@ -14,7 +14,7 @@ and intervals), every step, the candidates' scores, the gate and the validation
 rows (SE and PE); a key the report gained since the snapshot is not a difference.
 Numbers match to ``RTOL`` relative (every test worker runs BLAS on one thread, so
 runs repeat to the last bit on one machine; 1e-6 leaves room for a different BLAS
-build's summation order); numbers printed inside text (a formula's
+build's summation order; a rejected candidate's score to ``RTOL_CANDIDATES``, below); numbers printed inside text (a formula's
 "0.502 ± 0.0074") to one unit of their last printed digit. Left out: the parallel
 delta baseline's row and notes (a comparison row whose cost is bounded by a time
 budget, so it depends on the machine's load) and the decision notes (text).
@@ -49,6 +49,13 @@ from pathlib import Path
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 RTOL = 1e-6
+# ... except a rejected candidate's score, which does not repeat to the last bit even on
+# one machine: a candidate fitted in a flat valley (a static law of eq(v4) at SE 91 %,
+# zoo state_sensor seed 4: its coefficients -1.4e5 and -6.2e5 in two runs of the same
+# code, the second run beside a busy process) moves its SE in the 5th digit
+# (91.00030 -> 91.00123). The candidates' numbers are compared to 1e-3 relative; the
+# chosen law, the steps, the gate and the validation rows to RTOL.
+RTOL_CANDIDATES = 1e-3
 # Why a validation row has no SE is compared as text without its numbers: "sensitive to
 # where it starts ... moves by 2.81e+03 % of y" measures a simulation that amplifies its
 # start's rounding (an undamped pendulum's, tests/test_workflow_nonlinear.py seed 16:
@@ -120,7 +127,8 @@ def _diff(a, b, path="", portable: bool = False) -> list[str]:
         if portable:  # a count (an order, a number of lags) is the verdict; a value is not
             both = isinstance(a, int) and isinstance(b, int)
             return [f"{path}: {a!r} -> {b!r}"] if both and a != b else []
-        ok = abs(a - b) <= RTOL * max(abs(a), abs(b)) + 1e-300
+        rtol = RTOL_CANDIDATES if path.startswith(".candidates") else RTOL
+        ok = abs(a - b) <= rtol * max(abs(a), abs(b)) + 1e-300
         return [] if ok else [f"{path}: {a!r} -> {b!r}"]
     if isinstance(a, str) and isinstance(b, str):
         if _NUM.sub("#", a) != _NUM.sub("#", b):
