@@ -405,13 +405,11 @@ def _fused(P: Problem, rep: LoopReport) -> LoopReport:
 
 
 def _effects_npar(rep: LoopReport) -> int:
-    """The parameters of every effect of a report (its laws' coefficients, poles, levels)."""
-    total = 0
-    for st in rep.steps or (EffectStep(effect=rep.effect, channel="", message="",
-                                       se_before=np.nan, se_after=np.nan),):
-        law = st.effect.dynamic_law if st.effect.dynamic_law is not None else st.effect.law
-        total += int(law.npar) if law is not None else 0
-    return total
+    """The parameters of every effect of an updated report (its laws' coefficients, poles,
+    levels): the loop gives every such report its steps, one per effect."""
+    laws = [st.effect.dynamic_law if st.effect.dynamic_law is not None else st.effect.law
+            for st in rep.steps]
+    return sum(int(law.npar) for law in laws if law is not None)
 
 
 def _split(P: Problem, rep: LoopReport) -> LoopReport:
