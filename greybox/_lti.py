@@ -291,16 +291,14 @@ def lti_output_sensitivities(Phi: NDArray, B: NDArray, C: NDArray, u: NDArray, x
     -------
     (Cx, dCx) : ndarrays, shapes (p, N) and (q, p, N), or None
         The outputs ``C x[k]`` (without a feedthrough) and ``d(C x[k]) / dtheta_j``; None
-        for an empty model or record. Phi without a well-conditioned eigenvector basis
-        takes the complex Schur form (the recursions run from the last coordinate up).
+        when Phi is neither diagonal nor diagonalizable with a well-conditioned eigenvector
+        matrix (callers fall back to differences).
     """
     n, N = Phi.shape[0], u.shape[1]
     q = dPhi.shape[0]
     rec = LTIRecursion(Phi) if n and N else None
-    if rec is None or rec.kind == "empty":
+    if rec is None or rec.kind not in ("modal", "diagonal"):
         return None
-    if rec.kind == "schur":
-        return _schur_sensitivities(rec, B, C, u, x0, dPhi, dB)
     if rec.kind == "diagonal":
         Vr = Wr = np.eye(n)
         lams, rows = [float(v) for v in rec.lam], [(i, False) for i in range(n)]
@@ -322,35 +320,6 @@ def lti_output_sensitivities(Phi: NDArray, B: NDArray, C: NDArray, u: NDArray, x
                 z[:, i, 1:] = lfilter([1.0], [1.0, -lam], w[:, i, :-1], axis=-1)
         Cv = np.asarray(C, dtype=float) @ Vr
         return Cv @ r, np.matmul(Cv, z)
-
-
-def _schur_sensitivities(rec: LTIRecursion, B, C, u, x0, dPhi, dB):
-    """:func:`lti_output_sensitivities` in the complex Schur coordinates ``z = Z^H x``."""
-    Z, ZH, T = rec.Z, rec.ZH, rec.T
-    with single_thread_blas(), np.errstate(over="ignore", invalid="ignore"):
-        z = _triangular_states(T, ZH @ (B @ u), ZH @ np.asarray(x0, dtype=complex))
-        w = np.matmul(ZH @ dPhi @ Z, z) + np.matmul(ZH @ dB, u)     # (q, n, N)
-        s = _triangular_states(T, w, np.zeros(w.shape[:-1], dtype=complex))
-        CZ = np.asarray(C, dtype=float) @ Z
-        return (CZ @ z).real, np.matmul(CZ, s).real
-
-
-def _triangular_states(T: NDArray, w: NDArray, z0: NDArray) -> NDArray[np.complex128]:
-    """``z[k+1] = T z[k] + w[k]`` for upper-triangular T, from the last coordinate up;
-    ``w`` (..., n, N) and ``z0`` (..., n) batched over leading axes."""
-    n, N = T.shape[0], w.shape[-1]
-    z = np.empty(w.shape, dtype=complex)
-    z[..., 0] = z0
-    for i in range(n - 1, -1, -1):
-        if N < 2:
-            break
-        drive = w[..., i, :-1].copy()
-        if i + 1 < n:
-            drive += np.einsum("k,...kt->...t", T[i, i + 1:], z[..., i + 1:, :-1])
-        lam = T[i, i]
-        z[..., i, 1:] = lfilter([1.0], [1.0, -lam], drive, axis=-1,
-                                zi=(lam * z0[..., i])[..., None])[0]
-    return z
 
 
 def _modal_states(lams, rows, w: NDArray, r0: NDArray) -> NDArray[np.float64]:

@@ -188,7 +188,7 @@ class OutputError:
         (:func:`~greybox._lti.lti_output_sensitivities`): one simulation's cost instead of
         one per parameter, and no difference step on the outputs. Rows where the residual
         is clipped (a diverged simulation) are zero. Forward differences of the residual
-        where the matrices' derivatives are not finite.
+        where the model has no modal form.
         """
         theta = np.asarray(theta, dtype=float)
         Ad, Bd = self.model(theta, *args)
