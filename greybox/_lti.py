@@ -27,8 +27,7 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-__all__ = ["lti_states", "lti_output", "lti_output_sensitivities", "LTIRecursion",
-           "single_thread_blas"]
+__all__ = ["lti_states", "lti_output", "LTIRecursion", "single_thread_blas"]
 
 from ._blas import single_thread_blas  # noqa: E402  (re-exported for the filters)
 
@@ -262,78 +261,3 @@ def lti_output(Phi: NDArray, B: NDArray, C: NDArray, D: NDArray, u: NDArray,
             xk = rec._modal_chunk(WB @ u[:, a:b], xk, y[:, a:b], Cv)  # xk: x[b]
         y += D @ u
     return y
-
-
-def lti_output_sensitivities(Phi: NDArray, B: NDArray, C: NDArray, u: NDArray, x0: NDArray,
-                             dPhi: NDArray, dB: NDArray) -> tuple[NDArray, NDArray] | None:
-    """Derivatives of the outputs ``C x[k]`` of ``x[k+1] = Phi x[k] + B u[k]`` (x[0] = x0
-    fixed) along q directions of (Phi, B), in one pass: None where Phi has no modal form.
-
-    The derivative ``s_j = dx/dtheta_j`` obeys ``s_j[k+1] = Phi s_j[k] + dPhi_j x[k] +
-    dB_j u[k]``, ``s_j[0] = 0``: every direction shares Phi, so one eigendecomposition and
-    one first-order recursion per mode (over the q directions at once) give all q, where a
-    forward-difference Jacobian simulates q perturbed models (q decompositions, q n
-    recursions). Exact for the given (dPhi, dB), without a difference step.
-
-    Parameters
-    ----------
-    Phi : ndarray, shape (n, n)
-    B : ndarray, shape (n, m)
-    C : ndarray, shape (p, n)
-    u : ndarray, shape (m, N)
-    x0 : ndarray, shape (n,)
-    dPhi : ndarray, shape (q, n, n)
-        Derivative of Phi along each of the q directions.
-    dB : ndarray, shape (q, n, m)
-        Derivative of B along each direction.
-
-    Returns
-    -------
-    (Cx, dCx) : ndarrays, shapes (p, N) and (q, p, N), or None
-        The outputs ``C x[k]`` (without a feedthrough) and ``d(C x[k]) / dtheta_j``; None
-        when Phi is neither diagonal nor diagonalizable with a well-conditioned eigenvector
-        matrix (callers fall back to differences).
-    """
-    n, N = Phi.shape[0], u.shape[1]
-    q = dPhi.shape[0]
-    rec = LTIRecursion(Phi) if n and N else None
-    if rec is None or rec.kind not in ("modal", "diagonal"):
-        return None
-    if rec.kind == "diagonal":
-        Vr = Wr = np.eye(n)
-        lams, rows = [float(v) for v in rec.lam], [(i, False) for i in range(n)]
-    else:
-        Vr, Wr, lams, rows = rec.Vr, rec.Wr, rec.mode_lam, rec.mode_rows
-    with single_thread_blas(), np.errstate(over="ignore", invalid="ignore"):
-        r = _modal_states(lams, rows, Wr @ B @ u, Wr @ np.asarray(x0, dtype=float))
-        # modal driving term of every direction: Wr (dPhi_j x + dB_j u), x = Vr r
-        w = np.matmul(Wr @ dPhi @ Vr, r) + np.matmul(Wr @ dB, u)     # (q, n, N)
-        z = np.empty((q, n, N))
-        z[:, :, 0] = 0.0
-        for lam, (i, pair) in zip(lams, rows):
-            if N < 2:
-                break
-            if pair:
-                zc = lfilter([1.0], [1.0, -lam], w[:, i, :-1] + 1j * w[:, i + 1, :-1], axis=-1)
-                z[:, i, 1:], z[:, i + 1, 1:] = zc.real, zc.imag
-            else:
-                z[:, i, 1:] = lfilter([1.0], [1.0, -lam], w[:, i, :-1], axis=-1)
-        Cv = np.asarray(C, dtype=float) @ Vr
-        return Cv @ r, np.matmul(Cv, z)
-
-
-def _modal_states(lams, rows, w: NDArray, r0: NDArray) -> NDArray[np.float64]:
-    """Real modal coordinates r[0..N-1] of ``r[k+1] = Lam r[k] + w[k]``, ``r[0] = r0``."""
-    n, N = w.shape
-    r = np.empty((n, N))
-    r[:, 0] = r0
-    for lam, (i, pair) in zip(lams, rows):
-        if N < 2:
-            break
-        if pair:
-            z = lfilter([1.0], [1.0, -lam], w[i, :-1] + 1j * w[i + 1, :-1],
-                        zi=[lam * complex(r0[i], r0[i + 1])])[0]
-            r[i, 1:], r[i + 1, 1:] = z.real, z.imag
-        else:
-            r[i, 1:] = lfilter([1.0], [1.0, -lam], w[i, :-1], zi=[lam * r0[i]])[0]
-    return r

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
-from .._lti import lti_output, lti_output_sensitivities, lti_states
+from .._lti import lti_output, lti_states
 from ..metrics import effective_samples, oe_criterion
 from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
@@ -26,11 +26,6 @@ _NL_OE_WINDOW = 2_000
 # ... and at most this many residuals (outputs x samples, but >= 2000 samples): with many
 # outputs every evaluation simulates a large model and the Jacobian grows with p.
 _OE_RESIDUALS = 200_000
-
-
-#: Relative step of the central differences of a model's matrices in
-#: :meth:`OutputError.jac` (their error ~ step^2, the round-off ~ eps / step: both ~1e-12).
-JAC_STEP = 1e-6
 
 
 def oe_window(noutputs: int) -> int:
@@ -179,62 +174,15 @@ class OutputError:
         r = self.resid(theta, *args).reshape(self.y.shape[0], -1)
         return float(100 * np.mean(np.sqrt(np.mean(r**2, axis=1))))  # |r| <= 1e6
 
-    def jac(self, theta, *args) -> NDArray[np.float64]:
-        """Jacobian of :meth:`resid` at ``theta``, shape (residuals, parameters).
-
-        The model's derivatives along each parameter (central differences of the small
-        ``(A, B)`` matrices and their discretization, step ``JAC_STEP`` relative) drive
-        the simulation's sensitivity recursions, all in one pass
-        (:func:`~greybox._lti.lti_output_sensitivities`): one simulation's cost instead of
-        one per parameter, and no difference step on the outputs. Rows where the residual
-        is clipped (a diverged simulation) are zero. Forward differences of the residual
-        where the model has no modal form.
-        """
-        theta = np.asarray(theta, dtype=float)
-        Ad, Bd = self.model(theta, *args)
-        sens = None
-        if np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd)):
-            h = JAC_STEP * np.maximum(1.0, np.abs(theta))
-            dA = np.empty((theta.size, *Ad.shape))
-            dB = np.empty((theta.size, *Bd.shape))
-            for j in range(theta.size):
-                e = np.zeros_like(theta)
-                e[j] = h[j]
-                (Ap, Bp), (Am, Bm) = self.model(theta + e, *args), self.model(theta - e, *args)
-                dA[j], dB[j] = (Ap - Am) / (2 * h[j]), (Bp - Bm) / (2 * h[j])
-            if np.all(np.isfinite(dA)) and np.all(np.isfinite(dB)):
-                sens = lti_output_sensitivities(Ad, Bd, self.C, self.u, self.x0, dA, dB)
-        if sens is None:
-            return self._difference_jac(theta, *args)
-        cx, dcx = sens
-        k0, s = self.k0, self.scale[:, None]
-        with np.errstate(all="ignore"):
-            r = ((self.y - cx - self.D @ self.u)[:, k0:] / s).ravel()
-            J = -(dcx[:, :, k0:] / s).reshape(theta.size, -1).T
-        J[~(np.isfinite(r) & (np.abs(r) < 1e6))] = 0.0
-        return np.where(np.isfinite(J), J, 0.0)
-
-    def _difference_jac(self, theta, *args) -> NDArray[np.float64]:
-        """Forward differences of :meth:`resid` (scipy's '2-point' step)."""
-        f0 = self.resid(theta, *args)
-        J = np.empty((f0.size, theta.size))
-        for j in range(theta.size):
-            h = np.finfo(float).eps ** 0.5 * (1.0 if theta[j] >= 0 else -1.0) \
-                * max(1.0, abs(theta[j]))
-            e = np.zeros_like(theta)
-            e[j] = h
-            J[:, j] = (self.resid(theta + e, *args) - f0) / ((theta[j] + h) - theta[j])
-        return J
-
     def fit(self, theta0, *args, max_nfev: int = 60, tol: float = 1e-8):
-        """Levenberg-Marquardt from ``theta0`` (the Jacobian of :meth:`jac`); the result.
+        """Levenberg-Marquardt from ``theta0`` (forward-difference Jacobian); the result.
         ``tol``: MINPACK's ftol and xtol (relative changes of the sum of squares and of
         the parameters at which it stops)."""
         from scipy.optimize import least_squares
 
         with single_thread_blas():  # thin products: threads only cost (150x for a 6x6 expm)
-            return least_squares(self.resid, theta0, jac=self.jac, args=args, method="lm",
-                                 x_scale="jac", max_nfev=max_nfev, ftol=tol, xtol=tol)
+            return least_squares(self.resid, theta0, args=args, method="lm", x_scale="jac",
+                                 max_nfev=max_nfev, ftol=tol, xtol=tol)
 
     def halfwidths(self, sol, Q: NDArray | None, R: NDArray | None,
                    *args) -> NDArray[np.float64]:
