@@ -160,7 +160,7 @@ def test_finds_channel_kind_and_reduces_se(case, equations, kind):
         # time constant c/k = 1 s (interval ~0.1 %; 2 % allows the discretization), in v2
         # alone or in p2 with its feedthrough (-20*p2 + 20/(s + 1)*p2 is -20/(s + 1)*v2),
         # never a second-order part with an undetermined pole (machine-dependent until
-        # dynamic._fit_from refitted a diverging drop: an integrator of v2, tau 1e4 s)
+        # dynamic._fit_scored refitted a diverging drop: an integrator of v2, tau 1e4 s)
         dl = rep.effect.dynamic_law
         assert rep.effect.order == 1 and set(dl.drivers) <= {"p2", "v2"}, rep.effect.formula
         np.testing.assert_allclose(dl.tau, 1.0, rtol=0.02)

@@ -355,7 +355,8 @@ def fit_input_lag(sys: ct.StateSpace, channel: Channel, j: int, y: NDArray, u: N
                                            np.geomspace(2.0, 500.0, ntau) * dt])
     if theta0 is None:
         return None
-    return _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
+    fit = _fit_scored(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0)
+    return None if fit is None else fit[0]
 
 # Output-error driver selection (noise-dominated d^): start poles (time constants in
 # samples), candidates kept per step after the score test, and at most this many
@@ -520,12 +521,6 @@ def _start(sys, channel, w, d, y, u, dt, x0, k0, pole, max_drivers, drivers=None
     with single_thread_blas():
         r = _problem(sys, channel, y, u, dt, x0, k0, drv).resid(theta0)
     return float(np.sum(r**2)), drv, theta0
-
-
-def _fit_from(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0, restart=None):
-    """:func:`_fit_scored`'s law alone (None when no stable law)."""
-    out = _fit_scored(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0, restart)
-    return None if out is None else out[0]
 
 
 def _fit_scored(sys, channel, y, u, Q, R, dt, x0, k0, drv, theta0, restart=None):
