@@ -136,7 +136,7 @@ from .plant_adapter import NonlinearPlant, bounded, validation
 from .recommend import recommend
 from .trace import ChannelTrace, resolve_channel_spec
 from .trace.intervals import hac_covariance, residual_colour, undetermined
-from .terms import HINGE_KINDS, evaluate_terms, linear_part, term_kind
+from .terms import HINGE_KINDS, evaluate_terms, evaluator, linear_part, term_kind
 from .trace.laws import fit_static, law_line
 from .trace.oe import noise_floor, forward_select_oe
 from .update import UpdatedModel
@@ -505,8 +505,9 @@ class _LawColumns:
         for k, lw in enumerate(self._laws):
             groups.setdefault(lw._selected[1], []).append(k)
         K = len(self._laws)
-        # per group: (spec, columns (None: all), coefficients (md, nsel, ncolumns))
-        self._groups = [(spec, None if len(ks) == K else np.asarray(ks),
+        # per group: (evaluator of its terms, columns (None: all), coefficients (md, nsel,
+        # ncolumns)); the evaluator built once, not at every sample
+        self._groups = [(evaluator(spec, self._eps), None if len(ks) == K else np.asarray(ks),
                          np.stack([self._laws[k]._selected[0] for k in ks], axis=2))
                         for spec, ks in groups.items()]
 
@@ -514,12 +515,11 @@ class _LawColumns:
         if x.ndim == 1 or len(self._laws) == 1:
             return self._laws[0].evaluate(x, u)
         if len(self._groups) == 1:
-            spec, _, coef = self._groups[0]
-            return np.einsum("cjk,jk->ck", coef, evaluate_terms(spec, self._eps, x, u))
+            terms, _, coef = self._groups[0]
+            return np.einsum("cjk,jk->ck", coef, terms(x, u))
         out = np.empty((self._groups[0][2].shape[0], x.shape[1]))
-        for spec, ks, coef in self._groups:
-            out[:, ks] = np.einsum("cjk,jk->ck", coef,
-                                   evaluate_terms(spec, self._eps, x[:, ks], u[:, ks]))
+        for terms, ks, coef in self._groups:
+            out[:, ks] = np.einsum("cjk,jk->ck", coef, terms(x[:, ks], u[:, ks]))
         return out
 
 
@@ -602,9 +602,10 @@ class _LawOutputError:
         self.x_start = np.asarray(x_start, dtype=float)
         self.nres = self.yy.size
         self._spec, self._mask, self._th = [], np.zeros((law.coef.shape[0], 0)), None
+        self._terms = evaluator(self._spec, law.eps)
 
         def lawfun(x, u):  # the terms of the current sel at the current coefficient columns
-            terms = evaluate_terms(self._spec, law.eps, x, u)
+            terms = self._terms(x, u)
             th = self._th if terms.ndim == 2 else self._th[:, 0]
             return self._mask @ (th * terms)
 
@@ -615,6 +616,7 @@ class _LawOutputError:
 
     def _set(self, sel, TH):
         self._spec = [self.law.spec[j] for _, j in sel]
+        self._terms = evaluator(self._spec, self.law.eps)  # kinds looked up once per sel
         self._mask = np.zeros((self.law.coef.shape[0], len(sel)))
         for q, (c, _) in enumerate(sel):
             self._mask[c, q] = 1.0

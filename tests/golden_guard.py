@@ -45,6 +45,7 @@ import json
 import math
 import os
 import re
+import time
 from pathlib import Path
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
@@ -311,6 +312,22 @@ def check(rep, args=(), kwargs=None) -> None:
               "on their own, saying which numbers moved.")
 
 
+def _log_call(args, kwargs, seconds: float) -> None:
+    """With ``GREYBOX_CALL_LOG=<file>``, append one line per call: worker, test, key, time.
+
+    A measuring aid for the suite's cost: the same key on two workers (or twice on one)
+    is a run the suite pays for twice.
+    """
+    path = os.environ.get("GREYBOX_CALL_LOG")
+    if not path:
+        return
+    line = "\t".join([os.environ.get("PYTEST_XDIST_WORKER", "-"),
+                       os.environ.get("PYTEST_CURRENT_TEST", "-").split(" ")[0],
+                       fingerprint(args, kwargs), f"{seconds:.2f}"])
+    with open(path, "a", encoding="utf-8") as fh:
+        fh.write(line + "\n")
+
+
 def install() -> None:
     """Wrap the public entry points (before the test modules import them)."""
     import functools
@@ -322,7 +339,9 @@ def install() -> None:
     def wrap(fn):
         @functools.wraps(fn)
         def checked(*args, **kwargs):
+            t0 = time.perf_counter()
             rep = fn(*args, **kwargs)
+            _log_call(args, kwargs, time.perf_counter() - t0)
             check(rep, args, kwargs)
             return rep
         checked.__wrapped_by_golden__ = True

@@ -50,3 +50,24 @@ def test_refinement_rejects_unstable_start():
     u = np.ones((2, 100))
     with pytest.raises(IdentificationError, match="stable starting model"):
         refine_output_error(1.2 * A, B, C, u, np.zeros((2, 100)))
+
+
+def test_the_bracketed_condition_check_decides_as_the_singular_values_do():
+    """``_lti._conditioned`` (the modal path's gate) brackets cond_2 by the 1-norm condition
+    number and takes the singular values only between the brackets: its decision must be
+    ``np.linalg.cond(V) <= _MAX_COND`` for every V, well and badly conditioned alike (the
+    draws below span cond_2 from ~1 to ~1e6, a third of them near the threshold)."""
+    from greybox._lti import _MAX_COND, _conditioned
+
+    rng = np.random.default_rng(7)
+    near = 0
+    for trial in range(600):
+        n = int(rng.integers(1, 17))
+        U, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        W, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        top = 10 ** rng.uniform(0, 6) if trial % 3 else _MAX_COND * rng.uniform(0.5, 2)
+        V = U @ np.diag(np.geomspace(1.0, top, n)) @ W.T  # cond_2(V) = top (n > 1)
+        c2 = np.linalg.cond(V)
+        near += 0.5 * _MAX_COND < c2 < 2 * _MAX_COND
+        assert _conditioned(V, np.linalg.inv(V)) == (c2 <= _MAX_COND), (n, c2)
+    assert near > 100  # the threshold's neighbourhood was exercised

@@ -20,6 +20,10 @@ import greybox as gb
 from greybox.system import named_ss
 from greybox.workflow import LoopReport, close_the_loop
 
+# the cases' runs are cached per process (run_case): the module's tests in one worker
+# (--dist loadgroup), or a case asked by tests in two workers ran twice (~20 s)
+pytestmark = pytest.mark.xdist_group("test_workflow")
+
 DT = 0.01
 N_EST, N_VAL = 6000, 3000
 STATES = ["p1", "v1", "p2", "v2"]
