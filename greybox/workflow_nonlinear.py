@@ -601,8 +601,9 @@ class _LawOutputError:
         self.scale = np.maximum(np.std(self.yy, axis=1), 1e-300)
         self.x_start = np.asarray(x_start, dtype=float)
         self.nres = self.yy.size
-        self._spec, self._mask, self._th = [], np.zeros((law.coef.shape[0], 0)), None
-        self._terms = evaluator(self._spec, law.eps)
+        # the current sel's terms (evaluated at every sample: kinds looked up once per sel)
+        self._terms = evaluator([], law.eps)
+        self._mask, self._th = np.zeros((law.coef.shape[0], 0)), None
 
         def lawfun(x, u):  # the terms of the current sel at the current coefficient columns
             terms = self._terms(x, u)
@@ -615,8 +616,7 @@ class _LawOutputError:
         self._cache = (None, None, None)
 
     def _set(self, sel, TH):
-        self._spec = [self.law.spec[j] for _, j in sel]
-        self._terms = evaluator(self._spec, self.law.eps)  # kinds looked up once per sel
+        self._terms = evaluator([self.law.spec[j] for _, j in sel], self.law.eps)
         self._mask = np.zeros((self.law.coef.shape[0], len(sel)))
         for q, (c, _) in enumerate(sel):
             self._mask[c, q] = 1.0
