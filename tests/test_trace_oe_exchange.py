@@ -60,3 +60,38 @@ def test_the_swap_replaces_a_greedy_proxy_by_the_true_terms():
         sel, theta, _ = forward_select_oe(prob, cands, 2, prob.y.size)
         assert sorted(j for _, j in sel) == [0, 1], sel
         np.testing.assert_allclose(theta, 1.0, rtol=0.01)  # noise 0.05: error ~0.1 %
+
+
+def _one_state_law_problem():
+    """x[k+1] = 0.9 x[k] + u[k] + d[k], y = x, d = theta * x: 1 - 0.9 = 0.1 of margin, so
+    theta = -0.5 is stable (pole 0.4) and theta = 0.5 diverges (pole 1.4: past 1e100 in
+    ~700 of the 1000 samples)."""
+    import control as ct
+
+    from greybox.trace.laws import StaticLaw
+    from greybox.trace.oe import _OutputErrorNonlinearLaw
+
+    model = ct.ss([[0.9]], [[1.0, 1.0]], [[1.0]], [[0.0, 0.0]], 1.0)
+    u = np.random.default_rng(0).standard_normal((1, 1000))
+    law = StaticLaw(spec=(("x", "x", 0),), eps=np.ones(1), coef=np.zeros((1, 1)),
+                    Ddx=np.zeros((1, 1)), Ddu=np.zeros((1, 1)), nonlinear=False,
+                    residual_var=np.zeros(1), bic_gain=0.0, npar=0, formula="")
+    y = np.zeros((1, 1000))
+    return (lambda: _OutputErrorNonlinearLaw(law, model, 1, y, u, np.zeros(1), 0, [(0, 0)],
+                                             np.ones(1), window=1000))
+
+
+def test_a_diverging_trial_voids_only_itself_when_the_trials_are_isolated():
+    """The sibling screen's trials are independent: one that diverges must not void the
+    others (it did: every trial's residual was then the 1e6 clip, and which sibling
+    'simulated better' was decided by rounding). A fit's Jacobian keeps the shared stop."""
+    prob = _one_state_law_problem()()
+    alone = prob.simulate(np.array([[-0.5]]))[0]
+    both = prob.simulate(np.array([[-0.5, 0.5]]), isolate=True)
+    np.testing.assert_array_equal(both[0], alone)  # the stable trial, as if simulated alone
+    assert np.all(np.isfinite(alone))
+    k = np.flatnonzero(~np.isfinite(both[1, 0]))[0]  # the diverging one: NaN from its break
+    assert 600 < k < 800 and np.all(np.isnan(both[1, 0, k:]))
+    assert np.all(np.abs(both[1, 0, :k]) <= 1e100)
+    shared = prob.simulate(np.array([[-0.5, 0.5]]))  # without isolate: one stop for all
+    assert np.all(np.isnan(shared[0, 0, k:]))
