@@ -1121,9 +1121,10 @@ def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noi
     """The swaps ``(q, sibling term, coefficient)`` that already simulate better than the law
     as it is at a guessed coefficient, best first: the term's own of the same RMS times
     1/4 ... 4, the best refined by halving steps (``_SCREEN_REFINE``); each round one
-    simulation of every trial, the trials independent (see :func:`exchange_siblings`). A first-order screen (the derivative
-    at 0, as :func:`_by_score`) missed Coulomb friction for the linear damping it was
-    named as: the friction's effect on the motion is far from linear in its size."""
+    simulation of every trial, the trials independent (see :func:`exchange_siblings`).
+    A first-order screen (the derivative at 0, as :func:`_by_score`) missed Coulomb
+    friction for the linear damping it was named as: the friction's effect on the
+    motion is far from linear in its size."""
     ext = sel + [(sel[q][0], j2) for q, j2 in sibs]
     th = np.r_[theta0, np.zeros(len(sibs))]
     prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, ext, th, noise, W)
