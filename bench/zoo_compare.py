@@ -27,7 +27,7 @@ def load(path: str) -> dict[tuple, dict]:
     """The draws of one ``--jsonl`` file keyed by (class, seed, draw); the last record wins."""
     out = {}
     with open(path) as fh:
-        for n, line in enumerate(fh, 1):
+        for line in fh:
             if not line.strip():
                 continue
             r = json.loads(line)

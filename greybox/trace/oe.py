@@ -1131,7 +1131,7 @@ def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noi
     size = np.array([_same_size(theta0[q], tscale, sel[q][1], j2) for q, j2 in sibs])
 
     def rss_at(fac):  # fac (nsibs, k): each sibling alone in its term's place at these sizes
-        cols = []
+        cols = [th]  # and the law as it is (its rss first)
         for s, (q, _) in enumerate(sibs):
             for f in fac[s]:
                 col = th.copy()
@@ -1140,16 +1140,15 @@ def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noi
                 cols.append(col)
         with np.errstate(all="ignore"):  # trials independent: one diverging voids only itself
             R = prob._resid(prob.simulate(np.array(cols).T, isolate=True))
-        r = np.sum(R ** 2, axis=1)
-        return np.where(np.isfinite(r), r, np.inf).reshape(fac.shape)
+        r = np.sum(R ** 2, axis=1)  # _resid counts a diverged sample as 1e6: finite
+        return r[0], r[1:].reshape(fac.shape)
 
-    base = float(np.sum(prob._resid(prob.simulate(th[:, None]))[0] ** 2))
     fac = np.tile(np.array(_SCREEN_FACTORS), (len(sibs), 1))
-    rss = rss_at(fac)
+    base, rss = rss_at(fac)
     f_best, r_best = fac[np.arange(len(sibs)), rss.argmin(1)], rss.min(1)
     for step in _SCREEN_REFINE:  # each sibling's best size, refined around the grid's
         fac = f_best[:, None] * 2.0 ** np.array([-step, step])
-        rss = rss_at(fac)
+        rss = rss_at(fac)[1]
         better = rss.min(1) < r_best
         f_best = np.where(better, fac[np.arange(len(sibs)), rss.argmin(1)], f_best)
         r_best = np.minimum(r_best, rss.min(1))
