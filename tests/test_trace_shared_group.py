@@ -36,11 +36,19 @@ def _true_law(nominal, true_d):
             "e": np.array([At[i, i] - A[i, i] for i in idx])}
 
 
+# 5000 estimation samples: the output-error fits' cost grows with the record up to their
+# window, and at 5000 the assertions below held on seeds 1-8 (the three tested and five
+# more: right group, 9 parameters, within 1.5x the true model's error, every coefficient
+# within 3 half-widths); the half-widths widen by sqrt(2) against 10000, and the tests
+# compare with them, not with fixed tolerances.
+N_EST = 5000
+
+
 @pytest.fixture(scope="module")
 def runs():
     out = {}
     for seed in SEEDS:
-        nom, d, true = thermal_row(seed, n_est=10000)
+        nom, d, true = thermal_row(seed, n_est=N_EST)
         rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
                                 delta=False)
         out[seed] = (nom, true, rep, true_floor(true, d))
