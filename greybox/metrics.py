@@ -371,7 +371,7 @@ def independent_samples(e: ArrayLike) -> NDArray[np.float64]:
     return np.maximum(n * (m_eff + (m - k)) / m, 1.0)
 
 
-def oe_criterion(e: ArrayLike, npar: int, n_eff: ArrayLike) -> float:
+def oe_criterion(e: ArrayLike, npar: int, n_eff: ArrayLike, factor: float = 1.0) -> float:
     """The one selection criterion of greybox: an output-error BIC on effective samples.
 
     ``sum_i n_i log(mean(e_i^2)) + npar log(sum_i n_i)`` with ``n_i`` the
@@ -388,13 +388,19 @@ def oe_criterion(e: ArrayLike, npar: int, n_eff: ArrayLike) -> float:
     npar : int
         Parameters of the candidate (a breakpoint or a pole counts as one).
     n_eff : array_like, shape (noutputs,)
+    factor : float
+        The evidence each parameter must bring, in units of its BIC penalty (1: the
+        BIC; close the loop chooses its candidates and prunes the chosen law's terms
+        at its ``bic_factor``, :func:`criterion_scores`).
 
     Returns
     -------
     float
     """
     e = np.atleast_2d(np.asarray(e, dtype=float))
-    return _criterion(np.mean(e ** 2, axis=1), npar, n_eff)
+    n = np.asarray(n_eff, dtype=float).reshape(-1)
+    return _criterion(np.mean(e ** 2, axis=1), 0, n) + \
+        float(factor) * int(npar) * np.log(max(float(n.sum()), 2.0))
 
 
 def _criterion(mse, npar: int, n_eff) -> float:

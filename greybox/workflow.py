@@ -1315,7 +1315,7 @@ class _Pass:
         n_before = len(self.scored)
         try:
             tr = self._trace(pick.trace.channel, nonlinear=self.S.nonlinear, max_order=0,
-                             breaks=breaks, prune=True)
+                             breaks=breaks, prune=self.S.bic_factor)
         except (GreyboxError, np.linalg.LinAlgError) as e:
             self.note("choose", pick.trace.channel.name, f"criterion prune failed: {e}")
             return pick

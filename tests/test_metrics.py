@@ -186,3 +186,45 @@ def test_criterion_factor_charges_each_parameter_factor_times_its_penalty():
     logn = np.log(np.sum(n))
     np.testing.assert_allclose((s10 - s1) - (s10[0] - s1[0]),
                                9.0 * (np.array(npars) - npars[0]) * logn, rtol=1e-12)
+
+
+def test_oe_criterion_factor_is_the_choices_price():
+    """The prune's criterion (:func:`oe_criterion`) prices a parameter as the choice does
+    (:func:`criterion_scores`): the same numbers for any factor, and the factor-1 value
+    is the BIC on effective samples as before."""
+    rng = np.random.default_rng(5)
+    fits, npars = _candidates(rng, 2000, 0.1)
+    n = fits[0].n_eff
+    for f in (1.0, 10.0):
+        cs = metrics.criterion_scores(fits, npars, n_eff=n, factor=f)
+        for fit, k, c in zip(fits, npars, cs):
+            e = np.tile((fit.per_output / 100.0)[:, None], (1, 4))  # mean square = SE^2
+            assert metrics.oe_criterion(e, k, n, f) == pytest.approx(c, rel=1e-12)
+    e = rng.standard_normal((1, 500))
+    bic = float(np.sum(n * np.log(np.mean(e**2, axis=1))) + 3 * np.log(np.sum(n)))
+    assert metrics.oe_criterion(e, 3, n) == pytest.approx(bic, rel=1e-12)
+
+
+@pytest.mark.parametrize("worth, factor, kept", [(3.0, 1.0, True), (3.0, 10.0, False),
+                                                 (30.0, 10.0, True)])
+def test_backward_prune_keeps_a_term_only_above_its_price(worth, factor, kept):
+    """A term that lowers the output error by ``worth`` BIC penalties (n_eff log of the
+    mean-square ratio) is kept at a price of ``factor`` penalties only if worth > factor:
+    close the loop prunes the chosen law at its bic_factor (10), the price its choice
+    between candidates pays, so a tiny proxy term beside the right one (worth 3) goes."""
+    from greybox.metrics import effective_samples
+    from greybox.trace.oe import backward_by_criterion
+
+    rng = np.random.default_rng(3)
+    w = rng.standard_normal((1, 4000))
+    ne = float(np.sum(effective_samples(w)))
+    ratio = np.exp(worth * np.log(ne) / ne)  # the mean square without term 1, over with
+
+    def resid(keep, th):
+        if keep == [0, 1]:
+            return w
+        return w * (np.sqrt(ratio) if keep == [0] else 10.0)  # term 0 is the main one
+
+    keep, _ = backward_by_criterion(2, np.ones(2), lambda keep, start: start, resid, 1,
+                                    factor=factor)
+    assert keep == ([0, 1] if kept else [0])

@@ -603,3 +603,15 @@ def test_a_sensor_lag_found_first_is_refitted_with_the_state_law_found_after_it(
                             delta=False)
     s = zoo.score(d, rep)
     assert rep.updated and s.right, (s.why, s.found)
+
+
+def test_a_proxy_term_beside_an_input_gain_error_is_pruned_at_the_choices_price():
+    """zoo actuator_gain, seed 1386191387, draw 1 (a 30 % gain error on F, 10 states,
+    positions only, binary input): the chosen input law held ``-0.00371*p4`` beside
+    ``+0.308*F`` when its terms were pruned at the BIC's own price while candidates were
+    chosen at ``bic_factor`` (10) times it. Pruned at the choice's price, the law is the
+    gain error alone, within 10 % of the truth, at the true model's error."""
+    d, rep, s = _run_full_draw("actuator_gain", 1386191387, 1)
+    assert rep.updated and s.right, (s.why, s.found)
+    assert s.coefficients_within and s.false_flags == 0, s.found
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)

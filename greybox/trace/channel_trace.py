@@ -836,7 +836,7 @@ def _dynamic_fit(res, min_order: int, max_order: int, k0: int) -> Subsystem:
 
 def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whitened: bool,
                  averaged: bool, excess: float, oe_ok: bool, fit_data, at, notes,
-                 prune: bool = False):
+                 prune: float = 0.0):
     """The static law fitted on d^, refined by output error on y where that is defined:
     chosen by output error when d^ is mostly noise or the d^ law is not sparse, its
     coefficients refined (linear or nonlinear), then its terms kept only where the one
@@ -888,7 +888,8 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
     if prune and oe_ok and law.npar > 1 and not has_marginal_pole(model):
         law, more = prune_by_criterion(law, model, channel.md, y, u, x0, k0,
                                        labels, channel.units, law.term_scale(x, uu),
-                                       cont if law.time_base == "continuous" else None, noise)
+                                       cont if law.time_base == "continuous" else None, noise,
+                                       factor=float(prune))
         notes += more
     # a delayed d^ cannot tell a variable's forms apart (v or sign(v)): output error does
     if whitened and law.npar and oe_ok and not has_marginal_pole(model):
@@ -902,7 +903,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
                   max_order: int = 2, min_order: int = 1, skip: int | None = None,
                   cond_tol: float = 1e-6, smooth: bool | str = "auto",
-                  breaks: bool = False, prune: bool = False) -> ChannelTrace:
+                  breaks: bool = False, prune: float = 0.0) -> ChannelTrace:
     """Run the unknown-input filter for one channel and fit static and dynamic laws.
 
     Parameters
@@ -932,12 +933,14 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         whose whole effect passes through this channel (:func:`whole_inputs`;
         :data:`greybox.trace.laws.BREAK_KINDS`). Close the loop traces such
         a channel twice, without and with them, and lets its criterion choose.
-    prune : bool
-        Keep the static law's terms only where the one criterion supports
-        them (:func:`greybox.trace.oe.prune_by_criterion`: each term refitted
-        by output error and dropped while the output-error BIC on effective
-        samples falls). Close the loop asks it for the candidate it chose
-        (pruning every candidate cost 2-6x the trace).
+    prune : float
+        Above 0: keep the static law's terms only where the one criterion
+        supports them (:func:`greybox.trace.oe.prune_by_criterion`: each term
+        refitted by output error and dropped while the output-error BIC on
+        effective samples, each parameter priced at ``prune`` times its BIC
+        penalty, falls; True is 1, the BIC). Close the loop asks it for the
+        candidate it chose, at its ``bic_factor``: the price its choice between
+        candidates pays (pruning every candidate cost 2-6x the trace).
     smooth : bool or "auto"
         Fit the static law on the fixed-interval smoothed d^ and x^
         (:func:`greybox.smooth_uikf`, the whole record is available) rather

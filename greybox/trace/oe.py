@@ -946,7 +946,8 @@ def forward_select_oe(prob, cands, max_terms: int, nres: int, rank=None, colour=
 
 
 # --------------------------------------------------------------------------- the criterion
-def backward_by_criterion(n: int, theta: NDArray, refit, resid, nout: int, weight=None):
+def backward_by_criterion(n: int, theta: NDArray, refit, resid, nout: int, weight=None,
+                          factor: float = 1.0):
     """Drop terms while the output-error criterion falls (:func:`greybox.metrics.oe_criterion`).
 
     ``refit(keep, start) -> theta`` fits the terms ``keep`` (indices 0..n-1);
@@ -956,7 +957,9 @@ def backward_by_criterion(n: int, theta: NDArray, refit, resid, nout: int, weigh
     refits the law without each term in turn and drops the one whose removal
     lowers the criterion most; it stops when none does. ``weight[q]``: the
     parameters term q carries (2 for a breakpoint term: its coefficient and
-    its level; default 1). Returns ``(keep, theta)``.
+    its level; default 1). ``factor``: the criterion's price per parameter in units
+    of the BIC penalty (close the loop passes its ``bic_factor``, the price its choice
+    of candidates pays). Returns ``(keep, theta)``.
     """
     w = np.ones(n, dtype=int) if weight is None else np.asarray(weight, dtype=int)
     keep, theta = list(range(n)), np.asarray(theta, dtype=float)
@@ -964,14 +967,15 @@ def backward_by_criterion(n: int, theta: NDArray, refit, resid, nout: int, weigh
     if not np.all(np.abs(r0) < 1e6):
         return keep, theta
     neff = effective_samples(r0)
-    cur = oe_criterion(r0, int(w[keep].sum()), neff)
+    cur = oe_criterion(r0, int(w[keep].sum()), neff, factor)
     while len(keep) > 1:
         best = None
         for q in range(len(keep)):
             sub = keep[:q] + keep[q + 1:]
             th = np.asarray(refit(sub, np.delete(theta, q)), dtype=float)
             r = np.asarray(resid(sub, th)).reshape(nout, -1)
-            c = oe_criterion(r, int(w[sub].sum()), neff) if np.all(np.abs(r) < 1e6) else np.inf
+            c = (oe_criterion(r, int(w[sub].sum()), neff, factor)
+                 if np.all(np.abs(r) < 1e6) else np.inf)
             if best is None or c < best[0]:
                 best = (c, sub, th)
         if not best[0] < cur:
@@ -982,7 +986,7 @@ def backward_by_criterion(n: int, theta: NDArray, refit, resid, nout: int, weigh
 
 def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
                        x0: NDArray, k0: int, labels, units, tscale=None, cont=None,
-                       noise=None) -> tuple[StaticLaw, list[str]]:
+                       noise=None, factor: float = 1.0) -> tuple[StaticLaw, list[str]]:
     """A static law's terms kept only where the data support them, by the one criterion.
 
     The law's selected terms are refitted by output error on y (the linear
@@ -1021,7 +1025,7 @@ def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray
         def refit(keep, start):
             return prob.fit([sel[q] for q in keep], start).x
     theta_all = refit(list(range(len(sel))), theta0)
-    keep, theta = backward_by_criterion(len(sel), theta_all, refit, resid, p, weight)
+    keep, theta = backward_by_criterion(len(sel), theta_all, refit, resid, p, weight, factor)
     if len(keep) == len(sel):
         return law, []
     dropped = [law.spec[sel[q][1]][0] for q in range(len(sel)) if q not in keep]
