@@ -49,6 +49,7 @@ from .oe import (
     _refine_static_oe,
     _select_static_oe,
     exchange_siblings,
+    checked_intervals,
     prune_by_criterion,
     noise_covariance,
     oe_window,
@@ -845,6 +846,7 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
     d, xw, uw, align = fit_data
     x, uu = at
     labels = list(channel.labels)
+    law_d = law  # the d^ fit (its intervals are the regression's, not output error's)
     # (a delayed or smoothed d^ is fitted by GLS, whose selection already weighs its coloured
     # noise: only an empty law sends it to output error; its raw variance is mostly
     # high-frequency noise that says nothing about the law, and Q may be overstated)
@@ -895,6 +897,11 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
     if whitened and law.npar and oe_ok and not has_marginal_pole(model):
         law, more = exchange_siblings(law, model, channel.md, y, u, x0, k0, labels,
                                       channel.units, law.term_scale(x, uu), noise)
+        notes += more
+    # an output-error fit's intervals, checked against the law's own simulation
+    if law is not law_d and law.nonlinear and oe_ok:
+        law, more = checked_intervals(law, model, channel.md, y, u, x0, k0, labels,
+                                      channel.units, law.term_scale(x, uu))
         notes += more
     return law
 
