@@ -398,13 +398,12 @@ def oe_criterion(e: ArrayLike, npar: int, n_eff: ArrayLike, factor: float = 1.0)
     float
     """
     e = np.atleast_2d(np.asarray(e, dtype=float))
-    n = np.asarray(n_eff, dtype=float).reshape(-1)
-    return _criterion(np.mean(e ** 2, axis=1), 0, n) + \
-        float(factor) * int(npar) * np.log(max(float(n.sum()), 2.0))
+    return _criterion(np.mean(e ** 2, axis=1), float(factor) * int(npar), n_eff)
 
 
-def _criterion(mse, npar: int, n_eff) -> float:
-    """``sum_i n_i log(mse_i) + npar log(sum_i n_i)`` (see :func:`oe_criterion`)."""
+def _criterion(mse, npar: float, n_eff) -> float:
+    """``sum_i n_i log(mse_i) + npar log(sum_i n_i)`` (see :func:`oe_criterion`); ``npar``
+    the parameters times their price in BIC penalties."""
     n = np.asarray(n_eff, dtype=float).reshape(-1)
     mse = np.maximum(np.asarray(mse, dtype=float).reshape(-1), 1e-300)
     return float(n @ np.log(mse) + npar * np.log(max(float(n.sum()), 2.0)))
@@ -508,7 +507,6 @@ def criterion_scores(fits, npars, n_eff: ArrayLike | None = None,
     n = fits[min(finite, key=lambda i: fits[i].se)].n_eff if n_eff is None else n_eff
     n = np.asarray(n, dtype=float).reshape(-1)
     for i in finite:
-        out[i] = _criterion((fits[i].per_output / 100.0) ** 2, 0, n) + \
-            float(factor) * int(npars[i]) * np.log(max(float(n.sum()), 2.0))
+        out[i] = _criterion((fits[i].per_output / 100.0) ** 2, float(factor) * int(npars[i]), n)
     return out
 
