@@ -135,3 +135,21 @@ def test_validation_row_with_an_undefined_pe_says_why():
     assert not v.pe_defined and v.se_defined
     d = v.as_dict()
     assert d["pe"] is None and d["pe_per_output"] is None and "diverged" in d["pe_reason"]
+
+
+def test_ekf_predictor_stops_where_the_innovation_covariance_is_singular(rng):
+    """A filter whose innovation covariance S = H P H' + R becomes singular has diverged:
+    the predictions are NaN from that sample on (the docstring's contract), where before
+    ``numpy.linalg.solve`` raised out of the validation of an updated model (zoo
+    cubic_force 1176755609 #1 ended in a traceback). Built here with P0 = 0 and R = 0:
+    S = 0 at the first sample."""
+    nd = oscillator()
+    _, spec, eps = law_terms(rng.standard_normal((2, 20)), rng.standard_normal((1, 20)),
+                             ["p", "v"], ["F"])
+    coef = np.zeros((1, len(spec)))
+    coef[0, [s[0] for s in spec].index("p")] = -1.0
+    law = make_law(spec, eps, coef)
+    y, u = rng.standard_normal((1, 50)), rng.standard_normal((1, 50))
+    yp = ekf_predict_with_law(nd, np.array([[0.0], [DT]]), law, y, u, np.zeros(2),
+                              Q=np.zeros((2, 2)), R=np.zeros((1, 1)), P0=np.zeros((2, 2)))
+    assert yp.shape == (1, 50) and np.isnan(yp).all()

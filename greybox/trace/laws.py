@@ -620,7 +620,11 @@ def ekf_predict_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, y: ND
             yp[:, k] = yk
             PH = P @ H.T
             S = H @ PH + R
-            Kk = np.linalg.solve(S, PH.T).T
+            try:
+                Kk = np.linalg.solve(S, PH.T).T
+            except np.linalg.LinAlgError:  # a singular innovation covariance: diverged
+                yp[:, k] = np.nan
+                break
             xf = xp + Kk @ (y[:, k] - yk)
             IKH = eye - Kk @ H
             P = IKH @ P @ IKH.T + Kk @ R @ Kk.T  # Joseph form: stays symmetric, PSD
