@@ -72,7 +72,7 @@ from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dyn
 from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
     fit_shared_order2
 from .trace.joint import joint_effect, refine_jointly
-from .trace.channels import (force_channel, input_channel, output_channel,
+from .trace.channels import (force_channel, input_channel, linked_forces, output_channel,
                              relative_coordinates)
 from .trace.laws import direction, sensor_states
 from .trace.screen import screen_equations, screen_sensor_laws, screen_sensors
@@ -561,9 +561,19 @@ def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
     """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs."""
     scr = screen_equations(sys, P.ys, P.us, Q=Q, R=P.R, dt=P.dt, skip=20)
     if not scr.available:
+        # on the nominal model only: a later pass starts from a model holding an effect,
+        # where the error left is small and each of n more candidates is one more chance
+        # for a spurious effect to pass the gate (a joint-refit chain took a third effect
+        # that raised its validation error)
+        eqs = [c.equations[0] for c in chans if c.kind == "equation" and c.md == 1]
+        forces = [f for f in linked_forces(sys, eqs) if not _kinematic_in(sys, f) and
+                  not _along_an_input(sys, f)] if sys is P.sys else []
         notes.append(Decision("screen", "", f"equation screen unavailable ({scr.reason}): "
-                              "every single equation is traced (cost grows with n)"))
-        return chans
+                              "every single equation is traced (cost grows with n)" +
+                              (f", and one force between each of the {len(forces)} pairs of "
+                               "bodies the model links, along the link's direction"
+                               if forces else "")))
+        return tuple(chans) + tuple(forces)
     top = scr.ranked(SCREEN_TOP)
     best = max((scr.score[scr.states.index(t)] for t in top), default=0.0)
     top = [t for t in top if scr.score[scr.states.index(t)] >= SCREEN_REL * best]

@@ -51,3 +51,43 @@ def test_a_missing_spring_is_singled_out(n_masses, measured):
     # (before the fix, neighbours scored 25-35 % of the pair's z and were traced too)
     assert scr.score[order[1]] > 20.0, scr.score[order[:3]]
     assert scr.score[order[2]] < 5.0, dict(zip(scr.states, np.round(scr.score, 1)))
+
+
+def test_linked_forces_act_between_the_bodies_the_model_connects():
+    """Where no screen ranks the equations, one force is traced between each two bodies
+    the model links (a spring or damper between them), along the link's own direction:
+    an element there acts equally and oppositely, 1/m_a : -1/m_b. A chain wall-m1-m2-m3-m4
+    (masses 1, 2, 1, 4) with the spring m2-m3 left out of the model: m1-m2 and m3-m4 are
+    linked, m2-m3 is not (no element, no shared state), nor are far bodies. A damper
+    between m2 and m3 (velocities only) links them too. A discrete model mixes its rows:
+    no force."""
+    import control as ct
+
+    from greybox.trace.channels import linked_forces
+
+    m = np.array([1.0, 2.0, 1.0, 4.0])
+    nom = chain(4, k=20.0, missing=[(1, 2)])
+    A = np.array(nom.A) / np.repeat(m, 2)[:, None]  # row of v_i (and p_i) over m_i
+    A[0::2] = np.array(nom.A)[0::2]                 # the kinematic rows stay dp/dt = v
+    B = np.array(nom.B) / np.repeat(m, 2)[:, None]
+
+    def model(A):
+        return ct.ss(A, B, nom.C, nom.D, states=list(nom.state_labels),
+                     inputs=list(nom.input_labels), outputs=list(nom.output_labels))
+
+    eqs = ["v1", "v2", "v3", "v4"]
+    forces = linked_forces(model(A), eqs)
+    assert [f.equations for f in forces] == [("v1", "v2"), ("v3", "v4")]
+    for f, (a, b) in zip(forces, [(0, 1), (2, 3)]):
+        g = f.G[:, 0]
+        assert f.kind == "force" and f.md == 1
+        assert np.count_nonzero(g) == 2  # only the two velocity equations
+        # equal and opposite forces: the ratio of the accelerations is -m_b / m_a
+        assert g[2 * a + 1] / g[2 * b + 1] == pytest.approx(-m[b] / m[a], rel=1e-12)
+        assert (2 * a, 2 * b) in f.relative and (2 * a + 1, 2 * b + 1) in f.relative
+    A[3, 5], A[5, 3] = 0.7 / m[1], 0.7 / m[2]  # a damper between m2 and m3
+    A[3, 3], A[5, 5] = A[3, 3] - 0.7 / m[1], A[5, 5] - 0.7 / m[2]
+    got = [f.equations for f in linked_forces(model(A), eqs)]
+    assert got == [("v1", "v2"), ("v2", "v3"), ("v3", "v4")], got
+    assert linked_forces(model(A), ["v1", "v4"]) == ()  # only the equations offered
+    assert linked_forces(ct.c2d(model(A), 0.01), eqs) == ()

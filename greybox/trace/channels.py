@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import control as ct
 import numpy as np
@@ -321,6 +321,51 @@ def relative_coordinates(sys: ct.StateSpace, pair: Channel) -> tuple[tuple[int, 
             rel.append((pa, pb))
     rel.append((a, b))
     return tuple(rel)
+
+
+def linked_forces(sys: ct.StateSpace, equations: Sequence[str]) -> tuple[Channel, ...]:
+    """One force between each two bodies the model already links, along the link's own
+    direction.
+
+    Equations a and b are linked when each reads the other's state (``A[a, b]`` and
+    ``A[b, a]`` nonzero) or, for a continuous model, the other's kinematic partner (the
+    position whose derivative it is): a spring, damper or heat path between two
+    bodies. An element there that the model has wrong, or lacks beside it, acts on
+    both bodies equally and oppositely, so it enters the two equations in the ratio
+    the link already has: ``(A[a, b'], -A[b, a'])`` (1/m_a : -1/m_b for a spring
+    between masses, 1/C_a : -1/C_b for a heat path), b', a' the linking columns. These
+    are the forces to trace when nothing ranks the equations (no equation screen):
+    one law (md = 1) per linked pair, which may use the two bodies' relative
+    coordinates (:func:`force_channel`). A discrete model mixes its rows (every pair
+    would read as linked): none returned.
+
+    Parameters
+    ----------
+    sys : control.StateSpace
+        Nominal model.
+    equations : sequence of str
+        State names: the candidate equations (kinematic identities left out).
+
+    Returns
+    -------
+    tuple of Channel
+        The forces (kind "force", md = 1), in state order of their pairs.
+    """
+    if ct.isdtime(sys, strict=True):
+        return ()
+    A = np.asarray(sys.A, dtype=float)
+    labels = list(sys.state_labels)
+    idx = sorted(labels.index(e) for e in equations)
+    out = []
+    for k, a in enumerate(idx):
+        for b in idx[k + 1:]:
+            pa, pb = kinematic_partner(A, a), kinematic_partner(A, b)
+            links = [(b, a)] + ([(pb, pa)] if pa is not None and pb is not None else [])
+            g = next((np.array([A[a, lb], -A[b, la]]) for lb, la in links[::-1]
+                      if A[a, lb] != 0 and A[b, la] != 0), None)
+            if g is not None:
+                out.append(force_channel(sys, _eq_channel(sys, [a, b]), g / np.abs(g).max()))
+    return tuple(out)
 
 
 def force_channel(sys: ct.StateSpace, pair: Channel, direction: NDArray) -> Channel:
