@@ -558,7 +558,8 @@ def _prepare(sys, y, u, y_val, u_val, *, Q, R, dt, channels, nonlinear, max_orde
 
 
 def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
-    """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs."""
+    """Above SCREEN_ABOVE states: the screened equations, their pairs, and the inputs; where
+    the screen is not available, every equation and (first pass) the linked forces."""
     scr = screen_equations(sys, P.ys, P.us, Q=Q, R=P.R, dt=P.dt, skip=20)
     if not scr.available:
         # on the nominal model only: a later pass starts from a model holding an effect,

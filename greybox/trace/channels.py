@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import control as ct
 import numpy as np
@@ -356,10 +356,11 @@ def linked_forces(sys: ct.StateSpace, equations: Sequence[str]) -> tuple[Channel
     A = np.asarray(sys.A, dtype=float)
     labels = list(sys.state_labels)
     idx = sorted(labels.index(e) for e in equations)
+    partner = {i: kinematic_partner(A, i) for i in idx}  # each an O(n^2) scan: once
     out = []
     for k, a in enumerate(idx):
         for b in idx[k + 1:]:
-            pa, pb = kinematic_partner(A, a), kinematic_partner(A, b)
+            pa, pb = partner[a], partner[b]
             links = [(b, a)] + ([(pb, pa)] if pa is not None and pb is not None else [])
             g = next((np.array([A[a, lb], -A[b, la]]) for lb, la in links[::-1]
                       if A[a, lb] != 0 and A[b, la] != 0), None)
