@@ -925,7 +925,9 @@ class _Pass:
                                   nonlinear=self.S.nonlinear, max_order=0)
                 if rtr.status == "ok":
                     self.score(rtr)
-            except (GreyboxError, np.linalg.LinAlgError) as e:
+            except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+                # (ValueError: a direction refitted again and again can run away until
+                # the filter's matrices overflow; that retrace is not taken)
                 self.note("generate", tr.channel.name,
                           f"traced again along its refitted direction: {e}")
             new = [c for c in self.scored[n_before:] if c.kind == "static" and c.fit is not None]

@@ -635,3 +635,4 @@ def test_a_wrong_link_between_two_bodies_is_named_where_no_screen_ranks_the_equa
     assert rep.updated and s.right, (s.why, s.found)
     assert s.coefficients_within and s.covered == s.n_coefficients, s.found
     assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+
