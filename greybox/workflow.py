@@ -336,6 +336,7 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
                     P.settings.max_effects, P.dt, functools.partial(_joint, P))
         rep = _fused(P, rep)
         rep = _split(P, rep)
+        rep = _reordered(P, rep)
         rep = _with_record(rep, P.y, P.u, P.Q, P.R, P.sys)
         P.tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
         return recommend(nonlinear_update_of_linear(rep), P.Q, P.R)
@@ -440,6 +441,18 @@ def _split(P: Problem, rep: LoopReport) -> LoopReport:
         return rep.with_decision("loop", "", f"the effect in {rep.channel.name} "
                                  f"({_effects_npar(rep)} parameters) tried as two: {what}: "
                                  f"{alt}; the one effect kept")
+    return _by_criterion(P, rep, alt, f"the effect in {rep.channel.name} tried as two of "
+                         "different kinds", "one effect", what,
+                         ("the one effect kept", "the two effects, a lower criterion"))
+
+
+def _by_criterion(P: Problem, rep: LoopReport, alt: LoopReport, tried: str, name0: str,
+                  name1: str, verdicts: tuple[str, str]) -> LoopReport:
+    """``rep`` or the alternative explanation ``alt`` of the same record, whichever the one
+    criterion (:func:`greybox.metrics.criterion_scores` at ``bic_factor``, every effect's
+    parameters counted, on the estimation record) prefers; the decision trail says which
+    and by how much (``tried``: what was tried; ``name0``, ``name1``: the two
+    explanations; ``verdicts``: the note when ``rep`` stays, when ``alt`` replaces it)."""
     reps, fits = (rep, alt), []
     for r in reps:
         plant = LinearPlant(r.model.sys)
@@ -447,18 +460,56 @@ def _split(P: Problem, rep: LoopReport) -> LoopReport:
                                skip=_Pass.SKIP))
     npars = [_effects_npar(r) for r in reps]
     best_fit = int(np.argmin([f.se for f in fits]))
-    crit = criterion_scores(fits, npars, n_eff=fits[best_fit].n_eff, factor=S.bic_factor)
-    what = (f"the effect in {rep.channel.name} tried as two of different kinds, by the "
-            f"criterion: one effect ({npars[0]} parameters, SE {fits[0].se:.3g} %) 0; {what} "
-            f"({npars[1]} parameters, SE {fits[1].se:.3g} %) {crit[1] - crit[0]:+.4g}")
+    crit = criterion_scores(fits, npars, n_eff=fits[best_fit].n_eff,
+                            factor=P.settings.bic_factor)
+    what = (f"{tried}, by the criterion: {name0} ({npars[0]} parameters, SE "
+            f"{fits[0].se:.3g} %) 0; {name1} ({npars[1]} parameters, SE {fits[1].se:.3g} %) "
+            f"{crit[1] - crit[0]:+.4g}")
     if not crit[1] < crit[0]:
-        return rep.with_decision("loop", "", what + ": the one effect kept")
+        return rep.with_decision("loop", "", f"{what}: {verdicts[0]}")
     table = dict(alt.table)
     if "delta" in rep.table:
         table["delta"] = rep.table["delta"]
     kept = tuple(d for d in rep.decisions if d.stage != "validate")
     return replace(alt, table=table, decisions=kept + alt.decisions + (
-        Decision("loop", "", what + ": the two effects, a lower criterion"),))
+        Decision("loop", "", f"{what}: {verdicts[1]}"),))
+
+
+def _reordered(P: Problem, rep: LoopReport) -> LoopReport:
+    """Effects in state equations found before a sensor's: the sensor tried first (issue 27).
+
+    A sensor's error (a lag, a gain) colours d^ in the equations of the states it reads,
+    and more the larger it is; a pass that traces those equations before the sensor fits
+    that colour too (a filter of order 1 or 2 where an equation lacks one static term),
+    and the sensor's law found after it cannot undo the choice (the joint refit refits
+    the laws it was given, the re-trace redoes only the last). When the loop's effects
+    are laws of state equations followed by one sensor's, the loop is run again as two
+    passes (:func:`_two_passes`): that sensor's channel alone, then a linear static law
+    of each of those equations on the updated model; the one criterion decides which
+    explanation is kept (:func:`_by_criterion`)."""
+    S = P.settings
+    if not rep.updated or len(rep.steps) < 2 or S.channels is not None or \
+            rep.effect.nonlinear or S.max_effects < 2 or \
+            unstable_reason(P.nominal, P.y.shape[1]):
+        return rep
+    by_name = {c.name: c for c in P.chans}
+    chans = [by_name.get(st.channel) for st in rep.steps]
+    if any(c is None for c in chans) or chans[-1].kind != "output" or \
+            any(c.kind != "equation" for c in chans[:-1]) or \
+            any(st.effect.nonlinear for st in rep.steps):
+        return rep
+    eqs = []
+    for c in chans[:-1]:
+        eqs += [(e,) for e in c.equations if (e,) not in eqs]
+    sensor = chans[-1]
+    what = f"{sensor.name} first, then " + ", ".join(f"eq({e})" for (e,) in eqs)
+    tried = (f"the effects in {', '.join(c.name for c in chans[:-1])} and then {sensor.name} "
+             "tried the other way round")
+    alt = _two_passes(P, sensor, eqs)
+    if isinstance(alt, str):
+        return rep.with_decision("loop", "", f"{tried}: {what}: {alt}; the effects kept")
+    return _by_criterion(P, rep, alt, tried, "as found", what,
+                         ("the effects kept as found", "the sensor first, a lower criterion"))
 
 
 def _split_sensor(P: Problem, ch: Channel) -> Channel | None:
