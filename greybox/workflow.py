@@ -999,7 +999,9 @@ class _Pass:
             res_ = tr_.filter_result
             k0s, Ns = res_.settled(20), res_.d_est.shape[1] - 1
             g = tr_.static.direction(res_.x_filt[:, k0s:Ns], u[:, k0s:Ns])
-            if g is None:
+            if g is None or np.min(np.abs(g)) <= 1e-9:
+                # (a pair law with no term in one equation acts in the other alone: that
+                # equation's own law, traced on its own, not a force between two bodies)
                 continue
             if _kinematic_in(sys, tr_.channel):
                 continue  # a force acts on momentum equations, not on dp/dt = v
