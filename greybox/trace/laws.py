@@ -390,9 +390,13 @@ def fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
                 level, X, cf, J = _refine_break(X, dw, brk[0], make, u[spec[idx[brk[0]]][2][0]])
                 tcur = tcur.copy()
                 tcur[idx[brk[0]]] = make(break_row, level, white=False)
-            sx = np.sqrt(np.mean(J**2, axis=1)) + 1e-300  # terms differ by decades (y^3, v^3)
+            sx = np.sqrt(np.mean(J**2, axis=1))  # terms differ by decades (y^3, v^3)
+            # a term identically 0 on the record (a dead zone's breakpoint refitted past the
+            # input's range) has no interval: "not determined" (inf), not 0/0
+            flat = ~(sx > 0)
+            sx = np.where(flat, 1.0, sx)
             cov = hac_covariance((J / sx[:, None]).T, dw - cf @ X, 1) / np.outer(sx, sx)
-            hw = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+            hw = np.where(flat, np.inf, 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None)))
             half[c, idx] = hw[:len(idx)]
             if brk:
                 j, sp = idx[brk[0]], spec[idx[brk[0]]]
