@@ -154,3 +154,20 @@ def test_terms_that_overflow_are_a_failed_channel_not_a_traceback():
     rng = np.random.default_rng(0)
     with pytest.raises(IdentificationError, match="overflow"):
         _ls_fit(1e200 * rng.normal(size=(2, 100)), rng.normal(size=100))
+
+
+def test_a_term_identically_zero_on_the_record_has_no_interval():
+    """A regressor row of zeros (a dead zone's breakpoint refitted past the input's range)
+    gets the half-width inf ("not determined"); it was 0/0 (1e-300 squared underflows),
+    a RuntimeWarning out of close_the_loop. The other rows keep the half-widths of the
+    regression without it (the zero column adds nothing to J'J)."""
+    from greybox.trace.laws import _regression_halfwidths
+    rng = np.random.default_rng(5)
+    J = rng.standard_normal((2, 500))
+    e = 0.1 * rng.standard_normal(500)
+    with np.errstate(all="raise"):
+        hw = _regression_halfwidths(np.vstack([J, np.zeros(500)]), e)
+    alone = _regression_halfwidths(J, e)
+    assert hw[2] == np.inf
+    np.testing.assert_allclose(hw[:2], alone, rtol=1e-9)
+    assert np.all(np.isfinite(alone)) and np.all(alone > 0)

@@ -181,6 +181,19 @@ def _fmt_sum(coefs, names, half=None) -> str:
 _MIN_DROP = 1e-4
 
 
+def _regression_halfwidths(J: NDArray, e: NDArray) -> NDArray[np.float64]:
+    """95 % half-widths of a regression's coefficients on d^, robust to its autocorrelation.
+
+    ``J`` (k, N): the regressors (with a breakpoint's derivative); ``e`` (N,): the
+    residual. A term identically 0 on the record (a dead zone's breakpoint refitted past
+    the input's range) has no interval: inf ("not determined"), not 0/0."""
+    sx = np.sqrt(np.mean(J**2, axis=1))  # terms differ by decades (y^3, v^3)
+    flat = ~(sx > 0)
+    sx = np.where(flat, 1.0, sx)
+    cov = hac_covariance((J / sx[:, None]).T, e, 1) / np.outer(sx, sx)
+    return np.where(flat, np.inf, 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None)))
+
+
 def _select(terms: NDArray, d: NDArray, names: Sequence[str], exclusive=None) -> SparseLaw:
     """Forward selection (BIC) with backward pruning, as used for every static law;
     ``exclusive``: alternatives never selected together (:func:`greybox.terms.shapes`)."""
@@ -390,13 +403,7 @@ def fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
                 level, X, cf, J = _refine_break(X, dw, brk[0], make, u[spec[idx[brk[0]]][2][0]])
                 tcur = tcur.copy()
                 tcur[idx[brk[0]]] = make(break_row, level, white=False)
-            sx = np.sqrt(np.mean(J**2, axis=1))  # terms differ by decades (y^3, v^3)
-            # a term identically 0 on the record (a dead zone's breakpoint refitted past the
-            # input's range) has no interval: "not determined" (inf), not 0/0
-            flat = ~(sx > 0)
-            sx = np.where(flat, 1.0, sx)
-            cov = hac_covariance((J / sx[:, None]).T, dw - cf @ X, 1) / np.outer(sx, sx)
-            hw = np.where(flat, np.inf, 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None)))
+            hw = _regression_halfwidths(J, dw - cf @ X)
             half[c, idx] = hw[:len(idx)]
             if brk:
                 j, sp = idx[brk[0]], spec[idx[brk[0]]]
