@@ -407,7 +407,7 @@ def fit_static(d, x, u, sys, nonlinear, labels, units, align=None,
             half[c, idx] = hw[:len(idx)]
             if brk:
                 j, sp = idx[brk[0]], spec[idx[brk[0]]]
-                hl = float(hw[-1]) if np.all(np.isfinite(cov)) else np.inf
+                hl = float(hw[-1]) if np.all(np.isfinite(hw)) else np.inf
                 spec[j] = term_kind(sp[1]).at_level(sp, level, hl)
                 names[j] = spec[j][0]
         coef[c, idx] = cf
