@@ -1074,6 +1074,7 @@ class _Pass:
         # one state shared by a pair of equations along no fixed direction (a thermal
         # mass between two bodies): the best pair with evidence of dynamics
         self.white_shared = []  # the groups whose first-order shared law leaves white innovations
+        tried = None
         for cand in sorted(self.scored, key=lambda c: c.se):
             se_, tr_, kind_ = cand.se, cand.trace, cand.kind
             ch = tr_.channel
@@ -1089,7 +1090,11 @@ class _Pass:
             # a spring, the shared fit cost 4.6 s of 10 s and returned nothing)
             if not _static_is_enough(self.scored, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
                 self._shared(tr_, r)
+            tried = ch
             break
+        # and the pair whose static law fits best, where no pair's unstructured fit showed
+        # dynamics there (a dense fit of 2 x (n + m) drivers can miss one hidden state)
+        self._shared_best_pair(r, tried)
         # above SCREEN_ABOVE states there is no unstructured fit to show dynamics (the
         # best static law left the innovations coloured, see _static_is_enough): the
         # screen's group of equations (a hidden body touching 2-4 bodies) and the best
@@ -1216,6 +1221,20 @@ class _Pass:
         self.cands.append(CandidateScore(ch.name, "dynamic (sparse)", 2, fit.se, dl2.npar, "ok",
                                          f"{state} alone: a hidden part attached to its body"))
         self.scored.append(Candidate(fit.se, dl2.npar, replace(tr_), "sparse", dl2, fit=fit))
+
+    def _shared_best_pair(self, r: Residual, tried) -> None:
+        """2c. One state shared by the pair of equations whose static law has the lowest
+        estimation error (unless it is ``tried``), when the best static law leaves
+        coloured innovations."""
+        P, S = self.P, self.S
+        pairs = [c for c in self.scored if c.kind == "static" and c.trace.channel.md == 2 and
+                 c.trace.channel.kind == "equation" and np.isfinite(c.se)]
+        if self.big or not pairs:
+            return
+        best = min(pairs, key=lambda c: c.se).trace
+        if best.channel != tried and not _static_is_enough(self.scored, P.y, P.u, self.Q, P.R,
+                                                           r.k0, S.lags, S.alpha):
+            self._shared(best, r)
 
     def _shared(self, tr_, r: Residual) -> bool:
         """2c. Fit one shared state for the channel of ``tr_``; False if the fit failed."""
