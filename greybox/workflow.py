@@ -425,11 +425,9 @@ def _split(P: Problem, rep: LoopReport) -> LoopReport:
     The one criterion (:func:`greybox.metrics.criterion_scores`, every effect's
     parameters counted) on the estimation record decides which explanation is kept; the
     decision trail says which and why."""
-    S = P.settings
-    if not rep.updated or len(rep.steps) > 1 or S.channels is not None or \
-            rep.effect.nonlinear or rep.channel is None or rep.channel.kind == "output" or \
-            not rep.channel.equations or S.max_effects < 2 or \
-            unstable_reason(P.nominal, P.y.shape[1]) or _effects_npar(rep) < 3:
+    if not _may_retry(P, rep) or len(rep.steps) > 1 or rep.channel is None or \
+            rep.channel.kind == "output" or not rep.channel.equations or \
+            _effects_npar(rep) < 3:
         return rep
     sensor = _split_sensor(P, rep.channel)
     if sensor is None:
@@ -444,6 +442,15 @@ def _split(P: Problem, rep: LoopReport) -> LoopReport:
     return _by_criterion(P, rep, alt, f"the effect in {rep.channel.name} tried as two of "
                          "different kinds", "one effect", what,
                          ("the one effect kept", "the two effects, a lower criterion"))
+
+
+def _may_retry(P: Problem, rep: LoopReport) -> bool:
+    """Whether a linear update may be tried as another set of effects (:func:`_split`,
+    :func:`_reordered`): greybox chose the channels, two effects are allowed, and the
+    nominal model has a simulation error to compare them by."""
+    S = P.settings
+    return rep.updated and S.channels is None and not rep.effect.nonlinear and \
+        S.max_effects >= 2 and not unstable_reason(P.nominal, P.y.shape[1])
 
 
 def _by_criterion(P: Problem, rep: LoopReport, alt: LoopReport, tried: str, name0: str,
@@ -487,10 +494,7 @@ def _reordered(P: Problem, rep: LoopReport) -> LoopReport:
     passes (:func:`_two_passes`): that sensor's channel alone, then a linear static law
     of each of those equations on the updated model; the one criterion decides which
     explanation is kept (:func:`_by_criterion`)."""
-    S = P.settings
-    if not rep.updated or len(rep.steps) < 2 or S.channels is not None or \
-            rep.effect.nonlinear or S.max_effects < 2 or \
-            unstable_reason(P.nominal, P.y.shape[1]):
+    if not _may_retry(P, rep) or len(rep.steps) < 2:
         return rep
     by_name = {c.name: c for c in P.chans}
     chans = [by_name.get(st.channel) for st in rep.steps]
@@ -771,6 +775,7 @@ class _Pass:
         self.n_eff = None  # the choice's effective samples, once it is made
         self.unstable = unstable_reason(nominal, P.y.shape[1])
         self.big = P.settings.channels is None and nominal.nstates > SCREEN_ABOVE
+        self._enough = None  # (the best static candidate, whether it leaves white innovations)
 
     def run(self) -> LoopReport:
         """The stages in order."""
@@ -1051,10 +1056,9 @@ class _Pass:
     def sparse_laws(self, r: Residual) -> None:
         """2b. Sparse first-order laws in continuous time for the best one-component
         channels; 2c. one state shared by a pair of equations or a screened group."""
-        P, S, sys = self.P, self.S, self.sys
+        S, sys = self.S, self.sys
         if not (S.max_order >= 1 and self.scored and not ct.isdtime(sys, strict=True)
-                and not self.unstable and not (self.big and _static_is_enough(
-                    self.scored, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha))):
+                and not self.unstable and not (self.big and self.static_is_enough(r))):
             return
         done = set()
         for cand in sorted(self.scored, key=lambda c: c.se):
@@ -1088,7 +1092,7 @@ class _Pass:
             # the evidence rule of the screened groups below: a static law that already
             # leaves white innovations needs no hidden state (on a 2-state model missing
             # a spring, the shared fit cost 4.6 s of 10 s and returned nothing)
-            if not _static_is_enough(self.scored, P.y, P.u, self.Q, P.R, r.k0, S.lags, S.alpha):
+            if not self.static_is_enough(r):
                 self._shared(tr_, r)
             tried = ch
             break
@@ -1226,15 +1230,24 @@ class _Pass:
         """2c. One state shared by the pair of equations whose static law has the lowest
         estimation error (unless it is ``tried``), when the best static law leaves
         coloured innovations."""
-        P, S = self.P, self.S
         pairs = [c for c in self.scored if c.kind == "static" and c.trace.channel.md == 2 and
                  c.trace.channel.kind == "equation" and np.isfinite(c.se)]
         if self.big or not pairs:
             return
         best = min(pairs, key=lambda c: c.se).trace
-        if best.channel != tried and not _static_is_enough(self.scored, P.y, P.u, self.Q, P.R,
-                                                           r.k0, S.lags, S.alpha):
+        if best.channel != tried and not self.static_is_enough(r):
             self._shared(best, r)
+
+    def static_is_enough(self, r: Residual) -> bool:
+        """:func:`_static_is_enough` on the pass's candidates: its Kalman filter over the
+        whole record runs once per best static candidate (three stages ask)."""
+        stat = [c for c in self.scored if c.kind == "static" and np.isfinite(c.se)]
+        best = min(stat, key=lambda c: c.se) if stat else None
+        if self._enough is None or self._enough[0] is not best:
+            P, S = self.P, self.S
+            self._enough = (best, _static_is_enough(self.scored, P.y, P.u, self.Q, P.R, r.k0,
+                                                    S.lags, S.alpha))
+        return self._enough[1]
 
     def _shared(self, tr_, r: Residual) -> bool:
         """2c. Fit one shared state for the channel of ``tr_``; False if the fit failed."""
