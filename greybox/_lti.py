@@ -184,7 +184,9 @@ class LTIRecursion:
         for lam, (r, pair) in zip(self.mode_lam, self.mode_rows):
             if pair:
                 z0 = complex(r0[r], r0[r + 1])
-                z = lfilter([1.0], [1.0, -lam], w[r] + 1j * w[r + 1], zi=[lam * z0])[0]
+                wc = np.empty(c, dtype=complex)
+                wc.real, wc.imag = w[r], w[r + 1]
+                z = lfilter([1.0], [1.0, -lam], wc, zi=[lam * z0])[0]
                 rr[r, 1:] = z.real
                 rr[r + 1, 1:] = z.imag
             else:
@@ -277,6 +279,9 @@ def lti_output(Phi: NDArray, B: NDArray, C: NDArray, D: NDArray, u: NDArray,
     with single_thread_blas(), np.errstate(over="ignore", invalid="ignore"):
         for a in range(0, N, CHUNK):
             b = min(N, a + CHUNK)
-            xk = rec._modal_chunk(WB @ u[:, a:b], xk, y[:, a:b], Cv)  # xk: x[b]
-        y += D @ u
+            # one input: an outer product (the same numbers as the matmul, faster)
+            w = WB * u[:, a:b] if WB.shape[1] == 1 else WB @ u[:, a:b]
+            xk = rec._modal_chunk(w, xk, y[:, a:b], Cv)  # xk: x[b]
+        if np.any(D):
+            y += D @ u
     return y
