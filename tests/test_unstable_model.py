@@ -108,3 +108,31 @@ def test_progress_must_be_callable():
                                 inputs=["u"], outputs=["y"]),
                        np.ones((1, 300)), np.ones((1, 300)), np.ones((1, 300)),
                        np.ones((1, 300)), Q=[[1e-4]], R=[[1e-2]], progress="yes")
+
+
+@pytest.mark.slow
+def test_an_unstable_plant_s_law_has_an_interval_that_covers_the_truth_over_draws():
+    """Twelve zoo draws of an open-loop unstable plant in closed loop (a chain of 1-3
+    bodies, LQR; one damping or actuator gain wrong): the law is refined by one-step
+    prediction error (the model's simulation diverges, so not by output error) and its
+    95 % interval covers the true coefficient. The d^ regression's own interval, which
+    the law kept before, covered it in 6 of these 12 draws (15 of 30 on seed 424201):
+    d^ and the state estimate its terms are formed from err together, a bias of ~0.1 %
+    the interval (~0.02 %) does not hold.
+
+    At least 10 of 12: the prediction-error interval covered 12 of 12 here, 28 of 30 on
+    seed 424201 and 20 of 20 on seeds 5191 and 777001 (`python bench/zoo.py --draws 30
+    --seed 424201 --classes unstable_closed_loop`); 10 of 12 or fewer has probability
+    ~2 % at the nominal 95 %."""
+    from greybox import zoo
+
+    covered = total = 0
+    for i in range(12):
+        d = zoo.draw_class("unstable_closed_loop", 20261128, i)
+        rep = close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                             delta=False)
+        sc = zoo.score(d, rep)
+        assert sc.right, (i, sc.description, sc.found, sc.why)
+        assert sc.error_updated <= 1.5 * sc.error_true, (i, sc.error_updated, sc.error_true)
+        covered, total = covered + sc.covered, total + sc.n_coefficients
+    assert total == 12 and covered >= 10, (covered, total)

@@ -47,6 +47,7 @@ from .intervals import hac_covariance
 from .oe import (
     _refine_nonlinear_oe,
     _refine_static_oe,
+    _refine_static_pe,
     _select_static_oe,
     exchange_siblings,
     checked_intervals,
@@ -878,6 +879,13 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
         if se_y < se_d:
             notes.append(f"static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
+    elif not oe_ok and not law.nonlinear and law.npar and noise is not None:  # unstable
+        law, pe_d, pe_y = _refine_static_pe(law, model, channel.md, y, u, x0, k0, labels,
+                                            channel.units, law.term_scale(x, uu), cont, noise)
+        if pe_y < pe_d:
+            notes.append(f"static law refined by one-step prediction error on y (the model's "
+                         f"steady-state Kalman predictor): RMS of the whitened innovations "
+                         f"{pe_d / 100:.4g} -> {pe_y / 100:.4g} (1 for the right model)")
     elif law.nonlinear and oe_ok:  # the same for a nonlinear law (simulated, pruned)
         law, se_d, se_y = _refine_nonlinear_oe(law, model, channel.md, y, u, x0,
                                                k0, labels, channel.units, law.term_scale(x, uu),
@@ -1004,7 +1012,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
     oe_ok = not unstable_reason(model, y.shape[1])
     if not oe_ok:
         notes.append("the nominal model is unstable: the static law is the least-squares fit "
-                     "on d^ (no output-error refinement)")
+                     "on d^ (no output-error refinement: its simulation diverges)")
     law = _refined_law(law, model, channel, y, u, res.x_filt[:, 0], k0, cont, (Q, R),
                        est.smoothed or r >= 2, averaged, excess, oe_ok, (d, xw, uw, align),
                        (x, uu), notes, prune)

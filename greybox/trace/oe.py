@@ -192,6 +192,116 @@ class OutputError:
                                      self.scale, self.k0, Q, R)
 
 
+def _refine_static_pe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
+                      u: NDArray, x0: NDArray, k0: int, labels, units, tscale=None, cont=None,
+                      noise=None):
+    """Refine a linear static law by one-step prediction error on y, for a model whose
+    simulation diverges (:class:`PredictionError`; ``noise = (Q, R)`` of the discrete
+    model required): the d^ fit's terms from its coefficients, then terms whose 95 %
+    interval contains 0 dropped one at a time (as :func:`_refine_static_oe`). Returns
+    ``(law, pe_before, pe_after)`` [% RMS of the whitened innovations]; the law unchanged
+    where the prediction error does not drop or no predictor exists."""
+    sel, theta0 = _selected(law)
+    if not sel or noise is None:
+        return law, np.nan, np.nan
+    try:
+        prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise, predictor=True)
+    except np.linalg.LinAlgError:
+        return law, np.nan, np.nan
+    pe0 = prob.se(theta0, sel)
+    sel1, sol, hw = _prune(prob, sel, prob.fit(sel, theta0))
+    theta = sol.x if sol is not None else np.zeros(0)
+    pe1 = prob.se(theta, sel1)
+    if not pe1 < pe0:
+        return law, pe0, pe0
+    return (prob.law_with(sel1, theta, labels, units, tscale, ci=hw, npar=len(sel1)),
+            pe0, pe1)
+
+
+class PredictionError(OutputError):
+    """The one-step prediction error of a linear model whose matrices depend on parameters:
+    :class:`OutputError` for a model whose simulation diverges (an unstable plant measured
+    in closed loop), where the simulation error means nothing.
+
+    The residual is the innovation ``y[t] - C x^[t|t-1] - D u[t]`` of the model's
+    steady-state Kalman predictor under the discrete model's noise ``(Q, R)`` (stable
+    for a detectable model, whatever the model's own poles), whitened by the innovation
+    covariance of the reference model ``A_ref`` (fixed, so that every trial's residual is
+    on one scale); the prediction-error method's estimate is consistent and its
+    intervals those of least squares on white residuals (Ljung, System Identification,
+    ch. 9), where a static law's regression on d^ is biased by the state estimate's
+    error (its interval then misses the truth). A trial whose predictor cannot be
+    formed (no stabilizing Riccati solution) counts as 1e6, as a diverged simulation.
+
+    Parameters
+    ----------
+    matrices, C, D, y, u, x0, k0, dt
+        As :class:`OutputError`.
+    Q : ndarray, shape (n, n)
+    R : ndarray, shape (p, p)
+        Process and measurement noise covariances of the discrete model.
+    A_ref : ndarray, shape (n, n)
+        Discrete state matrix whose innovation covariance whitens the residual.
+    """
+
+    def __init__(self, matrices, C: NDArray, D: NDArray, y: NDArray, u: NDArray,
+                 x0: NDArray, k0: int, Q: NDArray, R: NDArray, A_ref: NDArray,
+                 dt: float | None = None):
+        super().__init__(matrices, C, D, y, u, x0, k0, dt)
+        self.Q, self.R = np.asarray(Q, dtype=float), np.asarray(R, dtype=float)
+        gain = self._gain(np.asarray(A_ref, dtype=float))
+        if gain is None:
+            raise np.linalg.LinAlgError("no steady-state Kalman predictor of the model")
+        self.white = np.linalg.inv(np.linalg.cholesky(gain[1]))
+        self.yu = np.vstack([self.u, self.y])
+
+    def _gain(self, Ad: NDArray):
+        """(K (n, p), S (p, p)): the predictor's gain and innovation covariance, or None."""
+        from scipy.linalg import solve_discrete_are
+
+        C, R = self.C, self.R
+        try:
+            with np.errstate(all="ignore"):
+                P = solve_discrete_are(Ad.T, C.T, self.Q, R)
+                S = C @ P @ C.T + R
+                K = Ad @ P @ C.T @ np.linalg.inv(S)
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+        ok = np.all(np.isfinite(K)) and np.max(np.abs(np.linalg.eigvals(Ad - K @ C))) < 1.0
+        return (K, S) if ok else None
+
+    def resid(self, theta, *args) -> NDArray[np.float64]:
+        """Whitened innovations after ``k0``, flat (output-major); 1e6 where there is no
+        predictor."""
+        size = self.y[:, self.k0:].size
+        Ad, Bd = self.model(theta, *args)
+        if not (np.all(np.isfinite(Ad)) and np.all(np.isfinite(Bd))):
+            return np.full(size, 1e6)
+        gain = self._gain(Ad)
+        if gain is None:
+            return np.full(size, 1e6)
+        K = gain[0]
+        p = self.C.shape[0]
+        Bp = np.hstack([Bd - K @ self.D, K])
+        Dp = np.hstack([self.D, np.zeros((p, p))])
+        with np.errstate(all="ignore"):
+            e = self.y - lti_output(Ad - K @ self.C, Bp, self.C, Dp, self.yu, self.x0)
+            r = (self.white @ e[:, self.k0:]).ravel()
+        return np.clip(np.where(np.isfinite(r), r, 1e6), -1e6, 1e6)
+
+    def halfwidths(self, sol, Q: NDArray | None, R: NDArray | None,
+                   *args) -> NDArray[np.float64]:
+        """95 % half-widths of ``sol.x``: the covariance robust to the residual's
+        autocorrelation (:func:`hac_covariance`; the white innovations of the right model
+        make it least squares'). ``Q``, ``R``: unused (the residual is whitened)."""
+        jac = np.asarray(sol.jac)
+        if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
+            return np.full(sol.x.size, np.nan)
+        with single_thread_blas():
+            var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
+        return 1.96 * np.sqrt(np.clip(var, 0, None))
+
+
 class _OutputErrorLaw:
     """Simulation error on y of the model augmented with a linear static law.
 
@@ -207,7 +317,8 @@ class _OutputErrorLaw:
     """
 
     def __init__(self, law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
-                 u: NDArray, x0: NDArray, k0: int, cont=None, noise=None):
+                 u: NDArray, x0: NDArray, k0: int, cont=None, noise=None,
+                 predictor: bool = False):
         self.law, self.md, self.k0, self.x0 = law, md, k0, x0
         self.noise = noise  # (Q, R) of the discrete model, for the intervals
         m = model.ninputs - md
@@ -220,8 +331,12 @@ class _OutputErrorLaw:
         # with a direction dG (continuous models only), theta carries one more entry r
         # after the law's coefficients and d enters through Gc + r dG (a force's direction)
         self.dG = None
-        self.engine = OutputError(self._folded, self.C, self.D, y, u, x0, k0,
-                                  dt=None if cont is None else cont[3])
+        dt = None if cont is None else cont[3]
+        if predictor:  # one-step prediction error (``noise`` required): an unstable model
+            self.engine = PredictionError(self._folded, self.C, self.D, y, u, x0, k0,
+                                          *noise, self.A, dt=dt)
+        else:
+            self.engine = OutputError(self._folded, self.C, self.D, y, u, x0, k0, dt=dt)
         self.y, self.u, self.scale = self.engine.y, self.engine.u, self.engine.scale
 
     @property
