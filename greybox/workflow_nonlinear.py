@@ -348,6 +348,22 @@ def _prior(C: NDArray, D: NDArray, y: NDArray, u: NDArray) -> tuple[NDArray, NDA
     return x0, np.eye(n)
 
 
+def _settled_prior(model_d, x: NDArray, u: NDArray, Q: NDArray, R: NDArray):
+    """The steady-state covariance (n, n) of the Kalman filter of ``model_d``'s linearization
+    at ``(x, u)`` (a prior of the filter's own settled size, where P0 = I spreads the sigma
+    points too far), or None where the Riccati equation has no solution."""
+    from scipy.linalg import solve_discrete_are
+
+    lin = linearize_at(model_d, x, u)
+    A, C = np.asarray(lin.A, dtype=float), np.asarray(lin.C, dtype=float)
+    try:
+        with np.errstate(all="ignore"):
+            Pss = solve_discrete_are(A.T, C.T, Q, R)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    return 0.5 * (Pss + Pss.T) if np.all(np.isfinite(Pss)) else None
+
+
 def _delay_of(model_cd, labels, x_op, u_op, Q, R):
     """(r, G, align) for a channel: the delay chosen as the linear trace chooses it.
 
@@ -2226,11 +2242,26 @@ class _NonlinearPass:
         """
         P, S = self.P, self.S
         upd_d = P.disc(model)
-        row = validation(NonlinearPlant(upd_d, P.P0, order=P.base.nstates,
-                                        x0=_prior(P.C, P.D, P.y_val, P.u_val)[0]),
-                         P.y_val, P.u_val, Q=P.Q, R=P.R, name="updated", lags=S.lags,
-                         alpha=S.alpha, skip=SKIP)
-        kf_u = ukf(upd_d, P.y, P.u, Q=P.Q, R=P.R, x0=_prior(P.C, P.D, P.y, P.u)[0], P0=P.P0)
+        x0_val = _prior(P.C, P.D, P.y_val, P.u_val)[0]
+
+        def row_from(P0):
+            return validation(NonlinearPlant(upd_d, P0, order=P.base.nstates, x0=x0_val),
+                              P.y_val, P.u_val, Q=P.Q, R=P.R, name="updated", lags=S.lags,
+                              alpha=S.alpha, skip=SKIP)
+        P0 = P.P0
+        try:
+            row = row_from(P0)
+        except ModelError:  # the prior's sigma points where the law is stiff: a settled prior
+            P0 = _settled_prior(upd_d, x0_val, P.u_mean, P.Q, P.R)
+            if P0 is None:
+                raise
+            row = row_from(P0)  # a ModelError again: the model diverges (not handed over)
+            self.note("validate", "updated",
+                      "the updated model's predictor diverged from the prior P0 = I (its "
+                      "sigma points reach states where the law is stiff for the "
+                      "integration); validated and filtered from the steady-state "
+                      "covariance of its linearization at the first sample instead")
+        kf_u = ukf(upd_d, P.y, P.u, Q=P.Q, R=P.R, x0=_prior(P.C, P.D, P.y, P.u)[0], P0=P0)
         x_op_u = kf_u.x_filt[:, SKIP:].mean(axis=1)
         nl = NonlinearUpdate(model=model, discrete=upd_d,
                              linearization=linearize_at(upd_d, x_op_u, P.u_mean), x_op=x_op_u,

@@ -670,3 +670,21 @@ def test_a_hidden_mass_no_dense_fit_reveals_is_one_shared_state():
     assert rep.updated and s.right_channel and s.right_kind and s.right_order, (s.why, s.found)
     assert s.right_terms, (s.why, s.found)
     assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+
+
+@pytest.mark.parametrize("seed,i", [(31337, 5), (711567674, 2)])
+def test_a_stiff_cubic_law_is_validated_from_a_settled_prior_not_refused(seed, i):
+    """A pendulum whose speed is measured through its angle only, a cubic drag omitted
+    (-181 and -324 om^3): the law is found right, but the updated model's UKF diverged at
+    the validation's second sample from the prior P0 = I (sigma points at om = +-1.7 rad/s,
+    where -324 om^3 is stiff for one RK4 step) and the model was refused as "diverges on
+    the validation record" (SE 47.5 % and 34.8 % kept; the true model's 0.20 % and 0.13 %).
+    The validation now starts from the steady-state covariance of the updated model's
+    linearization: the law handed over, the error within 1.5x the true model's (the
+    issue's 2x for a nonlinear law is not needed). Both draws from two seeds not chosen
+    (the fresh seed of a benchmark run and one of the session's), 2 of 2 refused before,
+    4 of 4 such draws right after at this length."""
+    d, rep, s = _run_draw("nonlinear_model", seed, i)
+    assert rep.updated and s.right, (s.why, s.found, rep.message)
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+    assert any("settled" in n or "steady-state covariance" in n for n in rep.notes), rep.notes
