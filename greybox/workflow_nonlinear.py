@@ -110,6 +110,7 @@ from .filters import (
     ui_ukf,
     ukf,
 )
+from .filters.kernels import predicted_covariance
 from .nominal_refit import free_parameters, law_coordinates, refit_jointly
 from .metrics import (
     OutputFit,
@@ -352,16 +353,9 @@ def _settled_prior(model_d, x: NDArray, u: NDArray, Q: NDArray, R: NDArray):
     """The steady-state covariance (n, n) of the Kalman filter of ``model_d``'s linearization
     at ``(x, u)`` (a prior of the filter's own settled size, where P0 = I spreads the sigma
     points too far), or None where the Riccati equation has no solution."""
-    from scipy.linalg import solve_discrete_are
-
     lin = linearize_at(model_d, x, u)
-    A, C = np.asarray(lin.A, dtype=float), np.asarray(lin.C, dtype=float)
-    try:
-        with np.errstate(all="ignore"):
-            Pss = solve_discrete_are(A.T, C.T, Q, R)
-    except (np.linalg.LinAlgError, ValueError):
-        return None
-    return 0.5 * (Pss + Pss.T) if np.all(np.isfinite(Pss)) else None
+    return predicted_covariance(np.asarray(lin.A, dtype=float), np.asarray(lin.C, dtype=float),
+                                Q, R)
 
 
 def _delay_of(model_cd, labels, x_op, u_op, Q, R):

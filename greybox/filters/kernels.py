@@ -36,6 +36,7 @@ __all__ = [
     "SteadyStateFilter",
     "kalman_filter",
     "steady_state_filter",
+    "predicted_covariance",
     "check_rank_condition",
 ]
 
@@ -413,6 +414,22 @@ def _filter_statespace(A, B, C, D, G, L, M, model, labels):
     states = [f"{s}_pred" for s in model.state_labels]
     return named_ss(Af, Bf, Cf, Df, model.dt, states=states, inputs=ins, outputs=outs,
                     name="unknown_input_filter" if G.shape[1] else "kalman_filter")
+
+
+def predicted_covariance(A: NDArray, C: NDArray, Q: NDArray, R: NDArray) -> NDArray | None:
+    """The Kalman filter's steady-state predicted covariance ``P[k|k-1]`` (n, n) of a
+    discrete model (A, C) under (Q, R), from the Riccati equation (Schur method; an
+    unstable A is fine where (A, C) is detectable), or None where it has no stabilizing
+    solution. For a model's one-step predictor (gain ``A P C^T (C P C^T + R)^-1``) and a
+    filter's settled prior."""
+    from scipy.linalg import solve_discrete_are
+
+    try:
+        with np.errstate(all="ignore"):
+            P = solve_discrete_are(A.T, C.T, Q, R)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    return 0.5 * (P + P.T) if np.all(np.isfinite(P)) else None
 
 
 def _iterate_to_steady_state(A, C, G, Q, R, P0, tol, maxiter):

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
 from .._lti import lti_output, lti_states
+from ..filters.kernels import predicted_covariance
 from ..metrics import effective_samples, oe_criterion
 from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
@@ -257,16 +258,13 @@ class PredictionError(OutputError):
 
     def _gain(self, Ad: NDArray):
         """(K (n, p), S (p, p)): the predictor's gain and innovation covariance, or None."""
-        from scipy.linalg import solve_discrete_are
-
         C, R = self.C, self.R
-        try:
-            with np.errstate(all="ignore"):
-                P = solve_discrete_are(Ad.T, C.T, self.Q, R)
-                S = C @ P @ C.T + R
-                K = Ad @ P @ C.T @ np.linalg.inv(S)
-        except (np.linalg.LinAlgError, ValueError):
+        P = predicted_covariance(Ad, C, self.Q, R)
+        if P is None:
             return None
+        S = C @ P @ C.T + R
+        with np.errstate(all="ignore"):
+            K = Ad @ P @ C.T @ np.linalg.inv(S)
         ok = np.all(np.isfinite(K)) and np.max(np.abs(np.linalg.eigvals(Ad - K @ C))) < 1.0
         return (K, S) if ok else None
 
