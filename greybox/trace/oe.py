@@ -289,15 +289,10 @@ class PredictionError(OutputError):
 
     def halfwidths(self, sol, Q: NDArray | None, R: NDArray | None,
                    *args) -> NDArray[np.float64]:
-        """95 % half-widths of ``sol.x``: the covariance robust to the residual's
-        autocorrelation (:func:`hac_covariance`; the white innovations of the right model
-        make it least squares'). ``Q``, ``R``: unused (the residual is whitened)."""
-        jac = np.asarray(sol.jac)
-        if not np.all(np.isfinite(jac)) or np.max(np.abs(sol.fun)) >= 1e6:
-            return np.full(sol.x.size, np.nan)
-        with single_thread_blas():
-            var = np.diag(hac_covariance(jac, np.asarray(sol.fun), self.y.shape[0]))
-        return 1.96 * np.sqrt(np.clip(var, 0, None))
+        """95 % half-widths of ``sol.x``: :func:`robust_halfwidths` without the output-error
+        noise model (``Q``, ``R`` unused: the residual is whitened; the covariance robust to
+        its autocorrelation is least squares' for the right model's white innovations)."""
+        return super().halfwidths(sol, None, None, *args)
 
 
 class _OutputErrorLaw:
