@@ -24,12 +24,14 @@ TAU = 0.1  # [s] the position sensor's time constant
 
 
 @lru_cache(maxsize=None)
-def _lag_case(tau: float = TAU, seed: int = 3):
+def _lag_case(tau: float = TAU, seed: int = 3, n_val: int = 3000):
     """(nominal, y, u, y_val, u_val, Q, R, dt): pos read through 1/(tau s + 1); vel exact.
 
     ``tau = 0``: the sensor reads pos itself (the model is right). The truth
     has a third state, the sensor's reading z: dz/dt = (pos - z)/tau.
     Process noise on vel only (estimation data), measurement noise 1e-3 on both.
+    ``n_val``: validation samples, drawn after the estimation record (which they leave
+    unchanged); the tests that trace the estimation record alone take 10 (cheaper).
     """
     nom = msd()
     A, B = np.asarray(nom.A, dtype=float), np.asarray(nom.B, dtype=float)
@@ -40,7 +42,7 @@ def _lag_case(tau: float = TAU, seed: int = 3):
         return np.r_[A @ x[:2] + B @ u, (x[0] - x[2]) / (tau or 1.0)]
 
     out = []
-    for n, q in ((4000, np.array([0.0, 1e-3])), (3000, None)):
+    for n, q in ((4000, np.array([0.0, 1e-3])), (n_val, None)):
         u = gb.lowpass_noise(n, dt=dt, bandwidth=1.0, amplitude=4.0, rng=rng).reshape(1, -1)
         x = rk4_simulate(f, np.zeros(3), u, dt, q_std=q, rng=rng)
         y = x[[2 if tau else 0, 1]] + r_std * rng.standard_normal((2, n))
@@ -104,7 +106,7 @@ def test_lagging_sensor_is_traced_to_the_output():
 
 @pytest.mark.parametrize("tau", [0.05, 0.2])
 def test_tau_within_its_interval(tau):
-    nom, y, u, _, _, Q, R, dt = _lag_case(tau)
+    nom, y, u, _, _, Q, R, dt = _lag_case(tau, n_val=10)
     tr = trace_channel(nom, output_channel(nom, "pos"), y, u, Q=Q, R=R, dt=dt, max_order=0)
     got, half = _lag(tr)
     assert abs(got - tau) <= half and half < 0.05 * tau, (got, half)
@@ -125,7 +127,7 @@ def test_discrete_nominal_model_first_order_hold():
 
 
 def test_a_right_sensor_gets_no_lag():
-    nom, y, u, _, _, Q, R, dt = _lag_case(0.0)
+    nom, y, u, _, _, Q, R, dt = _lag_case(0.0, n_val=10)
     tr = trace_channel(nom, output_channel(nom, "pos"), y, u, Q=Q, R=R, dt=dt, max_order=0)
     assert "yhat_lag" not in [s[1] for s in tr.static.spec if tr.static.npar], tr.static.formula
     assert tr.static_model.sys.nstates == 2
@@ -144,7 +146,7 @@ def test_tau_interval_coverage_over_seeds():
     the spread of tau^ is ~0.85 of the reported sigma: the interval is conservative)."""
     hits, err = 0, []
     for seed in range(10, 18):
-        nom, y, u, _, _, Q, R, dt = _lag_case(TAU, seed)
+        nom, y, u, _, _, Q, R, dt = _lag_case(TAU, seed, n_val=10)
         tr = trace_channel(nom, output_channel(nom, "pos"), y, u, Q=Q, R=R, dt=dt, max_order=0)
         got, half = _lag(tr)
         hits += abs(got - TAU) <= half
