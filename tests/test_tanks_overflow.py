@@ -77,9 +77,9 @@ Q = R_STD ** 2 * np.eye(2)
 R = np.array([[R_STD ** 2]])
 
 
-def run(xmax, seed):
+def run(xmax, seed, n=1024):
     rng = np.random.default_rng(seed)
-    u, uv = multisine(rng, 1024), multisine(rng, 1024)
+    u, uv = multisine(rng, n), multisine(rng, n)
     (_, y), (xv, yv) = truth(u, xmax, rng), truth(uv, xmax, rng)
     # 4 RK4 sub-steps of 1 s (the default count is taken at the least-squares prior, where
     # the unmeasured x1 = 0 makes sqrt stiff)
@@ -133,8 +133,15 @@ def test_overflow_update_reaches_the_true_models_validation_error(overflow):
 
 @pytest.mark.slow
 def test_tanks_without_overflow_are_left_unchanged():
-    """The same pipeline on tanks that never overflow: no saturation is invented."""
-    rep, _ = run(np.inf, 6)
+    """The same pipeline on tanks that never overflow: no saturation is invented.
+
+    512 samples per record (half the overflow's): the same path as at 1024, innovations
+    not white (Ljung-Box p 2e-8; 1e-17 at 1024), eq(x2) traced and its law refused by the
+    gate, far from passing (BIC gain 26.6 against 10 x 12.4; estimation SE 0.559 ->
+    0.548 %, a 2 % drop where 20 % is asked; at 1024: 16.1 against 10 x 13.8, 0.491 ->
+    0.488 %).
+    """
+    rep, _ = run(np.inf, 6, n=512)
     assert not rep.updated, rep.message
 
 

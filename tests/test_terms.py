@@ -69,6 +69,11 @@ def test_an_unknown_kind_is_a_clear_model_error():
     assert all(KINDS[k].kind == k for k in KINDS)  # each registered under its own name
 
 
+# the two tests of a draw share its run (the cache below) only in one process: both run in
+# one worker (--dist loadgroup), or each of two workers ran the three draws (~18 s)
+DRAG_GROUP = pytest.mark.xdist_group("test_terms_drag")
+
+
 @functools.lru_cache(maxsize=None)
 def _drag(i):
     """Zoo quadratic_drag draw i (seed 90210) and its close-the-loop report, run once."""
@@ -80,6 +85,7 @@ def _drag(i):
     return d, rep, zoo.score(d, rep)
 
 
+@DRAG_GROUP
 @pytest.mark.parametrize("i", [0, 1, 2])
 def test_close_the_loop_names_a_quadratic_drag_alone_with_its_coefficient(i):
     """Zoo quadratic_drag draws (seed 90210): a chain of 1-6 masses with -cq v|v| on one
@@ -93,6 +99,7 @@ def test_close_the_loop_names_a_quadratic_drag_alone_with_its_coefficient(i):
     assert s.coefficients_within, s.found
 
 
+@DRAG_GROUP
 @pytest.mark.parametrize("i", [0, 1, 2])
 def test_a_quadratic_drag_update_simulates_as_well_as_the_true_model(i):
     """The zoo's bar: validation SE within 1.5x the true model's. Draw 2 (only v1

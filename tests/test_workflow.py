@@ -114,14 +114,15 @@ NOMINAL = {
 }
 
 
-def _run(case: str, rng: np.random.Generator) -> tuple[LoopReport, object]:
+def _run(case: str, rng: np.random.Generator, n_est: int = N_EST,
+         n_val: int = N_VAL) -> tuple[LoopReport, object]:
     """Simulate the case's true plant with ``rng`` and run close_the_loop."""
     nom = chain(**NOMINAL[case])
     C = np.asarray(nom.C, dtype=float)
     f, extra = true_dynamics(case)
     _simulate.extra = extra
-    u = gb.lowpass_noise(N_EST, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
-    uv = gb.lowpass_noise(N_VAL, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
+    u = gb.lowpass_noise(n_est, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
+    uv = gb.lowpass_noise(n_val, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
     y = _simulate(f, C, u, noise_q=True, rng=rng)
     yv = _simulate(f, C, uv, noise_q=False, rng=rng)
     R = R_STD**2 * np.eye(C.shape[0])
@@ -293,7 +294,11 @@ def test_bad_inputs_raise_greybox_exceptions():
 
 
 def _run_seeded(case, seed):
-    return _run(case, np.random.default_rng(1000 + seed))[0]
+    # a third of the standard records (2000 estimation, 1000 validation samples): the same
+    # verdicts on every seed (measured at 6000/3000 -> 2000/1000: the right model's median
+    # Ljung-Box p 0.62 -> 0.44, smallest 0.010 -> 0.035; the spring's SE drop 402-440x ->
+    # 326-492x)
+    return _run(case, np.random.default_rng(1000 + seed), N_EST // 3, N_VAL // 3)[0]
 
 
 @pytest.mark.slow

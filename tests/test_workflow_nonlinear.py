@@ -48,6 +48,13 @@ def data():
     return record(3000, 1, process_noise=True), record(2000, 2, process_noise=False)
 
 
+# The tests that read one cached run share it only in one process: they run in one worker
+# (--dist loadgroup), or two workers each ran it (run(0.0): ~5 s; the true positions-only
+# model of seeds 1 and 2, read by both positions-only tests: ~2-4 s each)
+RUN_GROUP = pytest.mark.xdist_group("test_workflow_nonlinear_run")
+THETA_GROUP = pytest.mark.xdist_group("test_workflow_nonlinear_theta_only")
+
+
 @lru_cache(maxsize=None)
 def run(nominal_c3: float, discrete: bool = False):
     est, val = data()
@@ -59,6 +66,7 @@ def run(nominal_c3: float, discrete: bool = False):
 
 
 # --------------------------------------------------------------------------- the workflow
+@RUN_GROUP
 def test_missing_cubic_drag_is_found_with_its_coefficient():
     rep, nom = run(0.0)
     assert rep.model_error_detected and rep.updated, rep.message
@@ -101,6 +109,7 @@ def test_over_seeds_right_model_kept_and_drag_found(seed):
     assert after < before / 5
 
 
+@RUN_GROUP
 def test_updated_model_is_nonlinear_and_simulates_the_law_exactly():
     rep, nom = run(0.0)
     nl = rep.nonlinear
@@ -127,6 +136,7 @@ def test_updated_model_is_nonlinear_and_simulates_the_law_exactly():
     assert nl.substeps >= 1 and "RK4" in " ".join(rep.notes)
 
 
+@RUN_GROUP
 def test_linearization_is_a_statespace_for_control_design():
     rep, _ = run(0.0)
     nl = rep.nonlinear
@@ -227,6 +237,7 @@ def run_theta_only(c3: float, seed: int = 1, alpha: float = 1e-3):
 
 
 @pytest.mark.slow
+@THETA_GROUP
 @pytest.mark.parametrize("seed", [1, 2], ids=lambda s: f"seed{s}")
 def test_positions_only_drag_is_found_through_the_delayed_channel(seed):
     """theta alone: the omega equation reaches y through C G ~ dt^2/2 (relative degree 2).
@@ -268,6 +279,7 @@ def test_positions_only_drag_is_found_through_the_delayed_channel(seed):
     assert rep.table["nominal"].se.value > 100 * se  # the drag-free model is far off
 
 
+@THETA_GROUP
 @pytest.mark.parametrize("seed", [1, 2, 3], ids=lambda s: f"seed{s}")
 def test_positions_only_true_model_is_left_unchanged(seed):
     """The false-alarm side: the true pendulum (with its drag), theta alone, stays unchanged.
