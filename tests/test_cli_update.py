@@ -12,7 +12,7 @@ import pytest
 
 from greybox.cli import main
 from greybox.model_io import model_to_dict, read_model
-from test_workflow import DT, QD, run_case
+from test_workflow import DT, QD, case_data
 
 
 # the first 2000 estimation and 1000 validation samples of test_workflow's draw (6000 +
@@ -22,7 +22,7 @@ N_EST, N_VAL = 2000, 1000
 
 
 def _write_case(tmp_path, case, *, time_column=True):
-    _, (y, u, yv, uv, nom, R) = run_case(case)
+    y, u, yv, uv, nom, R = case_data(case)
     y, u, yv, uv = y[:, :N_EST], u[:, :N_EST], yv[:, :N_VAL], uv[:, :N_VAL]
     model = tmp_path / "model.json"
     model.write_text(json.dumps(model_to_dict(nom, QD + 1e-12 * np.eye(4), R, Ts=DT)))

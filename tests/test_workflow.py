@@ -114,9 +114,8 @@ NOMINAL = {
 }
 
 
-def _run(case: str, rng: np.random.Generator, n_est: int = N_EST,
-         n_val: int = N_VAL) -> tuple[LoopReport, object]:
-    """Simulate the case's true plant with ``rng`` and run close_the_loop."""
+def _data(case: str, rng: np.random.Generator, n_est: int = N_EST, n_val: int = N_VAL):
+    """Simulate the case's true plant with ``rng``: (y, u, yv, uv, nominal, R)."""
     nom = chain(**NOMINAL[case])
     C = np.asarray(nom.C, dtype=float)
     f, extra = true_dynamics(case)
@@ -125,9 +124,20 @@ def _run(case: str, rng: np.random.Generator, n_est: int = N_EST,
     uv = gb.lowpass_noise(n_val, dt=DT, bandwidth=1.0, amplitude=2.0, rng=rng)
     y = _simulate(f, C, u, noise_q=True, rng=rng)
     yv = _simulate(f, C, uv, noise_q=False, rng=rng)
-    R = R_STD**2 * np.eye(C.shape[0])
+    return y, u, yv, uv, nom, R_STD**2 * np.eye(C.shape[0])
+
+
+def _run(case: str, rng: np.random.Generator, n_est: int = N_EST,
+         n_val: int = N_VAL) -> tuple[LoopReport, object]:
+    """Simulate the case's true plant with ``rng`` and run close_the_loop."""
+    y, u, yv, uv, nom, R = data = _data(case, rng, n_est, n_val)
     rep = close_the_loop(nom, y, u, yv, uv, Q=QD + 1e-12 * np.eye(4), R=R, dt=DT)
-    return rep, (y, u, yv, uv, nom, R)
+    return rep, data
+
+
+def case_data(case: str):
+    """The case's standard draw without running close_the_loop (y, u, yv, uv, nom, R)."""
+    return _data(case, np.random.default_rng(len(case) * 7919))
 
 
 @lru_cache(maxsize=None)
