@@ -30,6 +30,7 @@ from .._validation import (
 )
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
 from ..system import named_ss, split_inputs
+from ._memo import MEMO, array_key
 
 __all__ = [
     "FilterResult",
@@ -508,6 +509,105 @@ def _steady(A, B, C, D, G, Q, R, model, labels, tol, maxiter, P0):
                              innovation_cov=Rt, iterations=it, sys=ss)
 
 
+@dataclass(frozen=True)
+class _GainSchedule:
+    """The data-independent part of :func:`_run`: its gains step by step.
+
+    ``K0`` the gain of step 0 (plain update of the prior); ``K[k-1]`` (n, p), ``M[k-1]``
+    (md, p) and ``d_var[k-1]`` (md,) those of steps k = 1 .. ``kend`` - 1 (the gains as
+    :func:`_measurement_gains` returned them: a copy in another memory layout would change
+    the products' last bits); ``kconv`` the
+    step at which P[k|k-1] converged (the gains then frozen at ``final``: K, M, Pd, Rt, Pf
+    of the converged P[k|k-1] ``Pp``), or None (run to the record's end, ``final`` the last
+    step's); ``Pf_history`` (n, n, kend) where asked.
+    """
+
+    K0: NDArray
+    K: tuple
+    M: tuple
+    d_var: NDArray
+    kend: int
+    kconv: int | None
+    converged: bool
+    settled: int | None
+    Pp: NDArray
+    final: tuple
+    Pf_history: NDArray | None
+
+
+def _gain_schedule(A, C, G, Q, R, P0, N: int, auto: bool, tol: float,
+                   keep_pf: bool) -> _GainSchedule:
+    """The covariance recursion of :func:`_run` (eqs. 7-18 without the data)."""
+    n, p, md = A.shape[0], C.shape[0], G.shape[1]
+    F = C @ G
+    At = A.T
+    tiny = np.finfo(float).tiny
+    K0, _, _, Rt, Pf = _measurement_gains(P0, C, np.zeros((n, 0)), R)
+    Ks, Ms, dv = [], [], np.empty((max(N - 1, 0), md))
+    Phist = np.empty((n, n, N)) if keep_pf else None
+    if Phist is not None:
+        Phist[:, :, 0] = Pf
+    K, M, Pd = K0, np.zeros((md, p)), np.zeros((md, md))
+    Pp, Pp_prev, kconv = P0, None, None
+    # diag P[k|k-1] until the gains are frozen, every stride-th step (for period_settled;
+    # at most ~4096 rows whatever the record's length)
+    pdiag, pk, stride = [], [], max(1, -(-N // 4096))
+    k = 1
+    while k < N:
+        Pp = A @ Pf @ At + Q
+        Pp = 0.5 * (Pp + Pp.T)
+        # (array methods: np.max's wrapper costs more than the reduction, per sample)
+        if auto and Pp_prev is not None and np.abs(Pp - Pp_prev).max() <= \
+                tol * max(np.abs(Pp).max(), tiny):
+            kconv = k
+            break
+        if auto and k % stride == 0:
+            pdiag.append(Pp.diagonal().copy())  # a copy: a view would keep all of Pp
+            pk.append(k)
+        Pp_prev = Pp
+        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
+        Ks.append(K)
+        Ms.append(M)
+        dv[k - 1] = Pd.diagonal()
+        if Phist is not None:
+            Phist[:, :, k] = Pf
+        k += 1
+    converged = kconv is not None
+    if not auto and Pp_prev is not None and N > 2:
+        # report convergence of the recursion even though gains were not frozen
+        Pn = A @ Pf @ A.T + Q
+        converged = bool(np.max(np.abs(Pn - Pp_prev)) <= tol * max(np.max(np.abs(Pn)), 1e-300))
+    settled = None
+    if kconv is not None:
+        settled = _settled_step(pdiag, pk, Pp, kconv, n, tiny)
+        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
+        if Phist is not None:
+            Phist[:, :, kconv:] = Pf[:, :, None]
+    return _GainSchedule(K0=K0, K=tuple(Ks), M=tuple(Ms), d_var=dv[:k - 1], kend=k,
+                         kconv=kconv, converged=converged, settled=settled, Pp=Pp,
+                         final=(K, M, Pd, Rt, Pf), Pf_history=Phist)
+
+
+def _schedule(A, C, G, Q, R, P0, N: int, auto: bool, tol: float,
+              keep_pf: bool) -> _GainSchedule:
+    """:func:`_gain_schedule`, computed once per model, (Q, R, P0) and options in a process
+    (:mod:`greybox.filters._memo`): a converged schedule serves every record longer than
+    its convergence step; one that ran to the record's end serves that length only."""
+    if keep_pf:  # the (n, n, N) history is the record's size: not kept
+        return _gain_schedule(A, C, G, Q, R, P0, N, auto, tol, keep_pf)
+    stride = max(1, -(-N // 4096))
+    key = array_key("gains", A, C, G, Q, R, P0, auto, tol, stride)
+    hit = MEMO.get(key)
+    if hit is not None and hit.kconv is not None and hit.kconv < N:
+        return hit
+    key_n = array_key("gains", A, C, G, Q, R, P0, auto, tol, stride, N)
+    hit = MEMO.get(key_n)
+    if hit is not None:
+        return hit
+    sched = _gain_schedule(A, C, G, Q, R, P0, N, auto, tol, keep_pf)
+    return MEMO.put(key if sched.kconv is not None else key_n, sched)
+
+
 def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
          store_covariances) -> FilterResult:
     n, N = A.shape[0], y.shape[1]
@@ -517,45 +617,20 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
     innov = np.empty((p, N))
     d_est = np.full((md, N), np.nan)
     d_var = np.full((md, N), np.nan)
-    Phist = np.empty((n, n, N)) if store_covariances else None
     has_D = m > 0 and bool(np.any(D))
-    F = C @ G
-    At = A.T
-    tiny = np.finfo(float).tiny
+    sc = _schedule(A, C, G, Q, R, P0, N, gain == "auto", tol, store_covariances)
     # k = 0: plain measurement update of the prior (no d[-1] to estimate)
-    Pp = P0
-    K, _, _, Rt, Pf = _measurement_gains(Pp, C, np.zeros((n, 0)), R)
     x_pred[:, 0] = x0
     e = y[:, 0] - C @ x0
     if has_D:
         e = e - D @ u[:, 0]
     innov[:, 0] = e
-    x_filt[:, 0] = x0 + K @ e
-    if Phist is not None:
-        Phist[:, :, 0] = Pf
-    M = np.zeros((md, p))
-    Pd = np.zeros((md, md))
-    converged, kconv = False, None
-    Pp_prev = None
-    auto = gain == "auto"
+    x_filt[:, 0] = x0 + sc.K0 @ e
     xf = x_filt[:, 0]
-    k = 1
-    # diag P[k|k-1] until the gains are frozen, every stride-th step (for period_settled;
-    # at most ~4096 rows whatever the record's length)
-    pdiag, pk, stride = [], [], max(1, -(-N // 4096))
-    while k < N:
-        Pp = A @ Pf @ At + Q
-        Pp = 0.5 * (Pp + Pp.T)
-        # (array methods: np.max's wrapper costs more than the reduction, per sample)
-        if auto and Pp_prev is not None and np.abs(Pp - Pp_prev).max() <= \
-                tol * max(np.abs(Pp).max(), tiny):
-            converged, kconv = True, k
-            break
-        if auto and k % stride == 0:
-            pdiag.append(Pp.diagonal().copy())  # a copy: a view would keep all of Pp
-            pk.append(k)
-        Pp_prev = Pp
-        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
+    if md and sc.kend > 1:
+        d_var[:, :sc.kend - 1] = sc.d_var.T
+    for k in range(1, sc.kend):
+        K, M = sc.K[k - 1], sc.M[k - 1]
         xp = A @ xf
         if m:
             xp += B @ u[:, k - 1]
@@ -566,35 +641,24 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
         if md:
             dh = M @ e
             d_est[:, k - 1] = dh
-            d_var[:, k - 1] = Pd.diagonal()
             xs = xp + G @ dh
             xf = xs + K @ (yk - C @ xs)
         else:
             xf = xp + K @ e
         x_filt[:, k] = xf
-        if Phist is not None:
-            Phist[:, :, k] = Pf
-        k += 1
-    if gain == "time-varying" and Pp_prev is not None and N > 2:
-        # report convergence of the recursion even though gains were not frozen
-        Pn = A @ Pf @ A.T + Q
-        converged = bool(np.max(np.abs(Pn - Pp_prev)) <= tol * max(np.max(np.abs(Pn)), 1e-300))
-    ksettled = None
-    if kconv is not None:
-        ksettled = _settled_step(pdiag, pk, Pp, kconv, n, tiny)
-        pdiag = pk = None
-        K, M, Pd, Rt, Pf = _measurement_gains(Pp, C, G, R, F)
-        _constant_gain_run(A, B, C, D, G, K, M, F, kconv, y, u, x_filt, x_pred, innov, d_est)
+    K, M, Pd, Rt, Pf = sc.final
+    if sc.kconv is not None:
+        _constant_gain_run(A, B, C, D, G, K, M, C @ G, sc.kconv, y, u, x_filt, x_pred, innov,
+                           d_est)
         if md:
-            d_var[:, kconv - 1:N - 1] = np.diag(Pd)[:, None]
-        if Phist is not None:
-            Phist[:, :, kconv:] = Pf[:, :, None]
+            d_var[:, sc.kconv - 1:N - 1] = np.diag(Pd)[:, None]
     t = np.arange(N) * float(model.dt)
     return FilterResult(
         t=t, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var, d_cov=Pd, level=level,
-        innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=Pp, P_filt_history=Phist,
-        K=K, M=M, converged=converged, period_converged=kconv, sys=model, G=G,
-        unknown_labels=labels, u=u, y=y, period_settled=ksettled,
+        innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=sc.Pp,
+        P_filt_history=sc.Pf_history, K=K, M=M, converged=sc.converged,
+        period_converged=sc.kconv, sys=model, G=G, unknown_labels=labels, u=u, y=y,
+        period_settled=sc.settled,
     )
 
 

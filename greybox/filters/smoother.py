@@ -45,6 +45,7 @@ from .feedthrough import (
     _unknown_feedthrough,
     _use_feedthrough,
 )
+from ._memo import MEMO
 from .kernels import FilterResult, _check_options, _measurement_gains, _prepare, _run
 
 __all__ = ["smooth_uikf"]
@@ -111,7 +112,7 @@ def _smooth(fwd: FilterResult, A, G, Q, R, C, P0, tol, store_covariances):
     md = G.shape[1]
     xf, xp = fwd.x_filt, fwd.x_pred
     kc = fwd.period_converged if fwd.period_converged is not None else N
-    Pf_tv = _filtered_covariances(A, C, G, Q, R, P0, min(kc, N))
+    Pf_tv = MEMO.call(_filtered_covariances, A, C, G, Q, R, P0, min(kc, N))
     xs = np.empty((n, N))
     ds = np.full((md, N), np.nan)
     dv = np.full((md, N), np.nan)
@@ -207,7 +208,7 @@ def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_cova
     md = G.shape[1]
     xf, xp, df = fwd.x_filt, fwd.x_pred, fwd.d_est
     kc = fwd.period_converged if fwd.period_converged is not None else N
-    J_tv = _joint_covariances(A, C, G, H, Q, R, P0, min(kc, N))
+    J_tv = MEMO.call(_joint_covariances, A, C, G, H, Q, R, P0, min(kc, N))
     if kc < N:
         _, _, Pd, _, Pf, Pxd = _feedthrough_gains(fwd.P_pred, C, H, R)
         J_c = np.block([[Pf, Pxd], [Pxd.T, Pd]])
