@@ -97,3 +97,24 @@ class Memo:
 
 
 MEMO = Memo()
+
+
+def schedule(compute: Callable[[], Any], key_items: tuple, N: int) -> Any:
+    """A filter's gain schedule for a record of ``N`` samples, computed once per ``key_items``
+    (the model's matrices, Q, R, P0 and the options) in a process.
+
+    ``compute()`` returns a record with ``kconv``: the step at which the gains converged
+    (then frozen for the rest of any record), or None if it ran to the record's end. A
+    converged schedule serves every record longer than ``kconv`` (the recursion is the
+    same up to there, and frozen after); one that ran to the end serves that length only.
+    """
+    key = array_key(*key_items)
+    hit = MEMO.get(key)
+    if hit is not None and hit.kconv is not None and hit.kconv < N:
+        return hit
+    key_n = array_key(*key_items, N)
+    hit = MEMO.get(key_n)
+    if hit is not None:
+        return hit
+    sched = compute()
+    return MEMO.put(key if sched.kconv is not None else key_n, sched)

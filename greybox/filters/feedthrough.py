@@ -17,15 +17,17 @@ Time alignment: y[k] yields d[k] (no delay), so ``d_est`` has no NaN column.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import control as ct
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .._lti import lti_states
 from .._validation import check_statespace, resolve_channels
 from ..exceptions import DimensionError, RankConditionError
 from ..system import named_ss, split_inputs
+from ._memo import schedule
 from .kernels import FilterResult, _check_options, _prepare
 
 __all__ = ["feedthrough_uikf", "with_sensor_error"]
@@ -238,6 +240,61 @@ def feedthrough_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = Non
                             store_covariances=store_covariances)
 
 
+@dataclass(frozen=True)
+class _FeedthroughSchedule:
+    """The data-independent part of :func:`_run_feedthrough`: per step k < ``kend`` the
+    gains ``K[k]`` (n, p), ``M[k]`` (md, p) and ``d_var[k]`` (md,) as
+    :func:`_feedthrough_gains` returned them; ``kconv`` the step at which P[k|k-1]
+    converged (or None); ``final`` (K, M, Pd, Rt, Pf, Pxd) of the frozen gains (or of the
+    last step); ``P_pred`` the filter's last P[k|k-1]; ``Pf_history`` where asked."""
+
+    K: tuple
+    M: tuple
+    d_var: NDArray
+    kend: int
+    kconv: int | None
+    converged: bool
+    P_pred: NDArray
+    final: tuple
+    Pf_history: NDArray | None
+
+
+def _feedthrough_schedule(A, C, G, H, Q, R, P0, N: int, auto: bool, tol: float,
+                          keep_pf: bool) -> _FeedthroughSchedule:
+    """The covariance recursion of :func:`_run_feedthrough` (no data)."""
+    n, md = A.shape[0], G.shape[1]
+    Phist = np.empty((n, n, N)) if keep_pf else None
+    tiny = np.finfo(float).tiny
+    Ks, Ms, dv = [], [], np.empty((N, md))
+    Pp, Pp_prev, kconv = P0, None, None
+    k = 0
+    while k < N:
+        if auto and Pp_prev is not None and np.max(np.abs(Pp - Pp_prev)) <= \
+                tol * max(np.max(np.abs(Pp)), tiny):
+            kconv = k
+            break
+        K, M, Pd, Rt, Pf, Pxd = _feedthrough_gains(Pp, C, H, R)
+        Ks.append(K)
+        Ms.append(M)
+        dv[k] = Pd.diagonal()
+        if Phist is not None:
+            Phist[:, :, k] = Pf
+        Pp_prev = Pp
+        Pp = _predict_cov(A, G, Pf, Pxd, Pd, Q)
+        k += 1
+    converged = kconv is not None
+    if not auto and Pp_prev is not None:
+        converged = bool(np.max(np.abs(Pp - Pp_prev)) <= tol * max(np.max(np.abs(Pp)), tiny))
+    if kconv is not None:
+        K, M, Pd, Rt, Pf, Pxd = _feedthrough_gains(Pp, C, H, R)
+        if Phist is not None:
+            Phist[:, :, kconv:] = Pf[:, :, None]
+    return _FeedthroughSchedule(
+        K=tuple(Ks), M=tuple(Ms), d_var=dv[:k], kend=k, kconv=kconv, converged=converged,
+        P_pred=Pp_prev if kconv is None else Pp, final=(K, M, Pd, Rt, Pf, Pxd),
+        Pf_history=Phist)
+
+
 def _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0, *, level, gain,
                      tol, store_covariances) -> FilterResult:
     n, N = A.shape[0], y.shape[1]
@@ -247,38 +304,32 @@ def _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0, *, lev
     innov = np.empty((p, N))
     d_est = np.empty((md, N))
     d_var = np.empty((md, N))
-    Phist = np.empty((n, n, N)) if store_covariances else None
     yk_all = y - D @ u if m and np.any(D) else y
-    tiny = np.finfo(float).tiny
-    Pp, xp = P0, x0
-    Pp_prev = None
-    converged, kconv = False, None
-    k = 0
-    while k < N:
-        if gain == "auto" and Pp_prev is not None and np.max(np.abs(Pp - Pp_prev)) <= \
-                tol * max(np.max(np.abs(Pp)), tiny):
-            converged, kconv = True, k
-            break
-        K, M, Pd, Rt, Pf, Pxd = _feedthrough_gains(Pp, C, H, R)
+    auto = gain == "auto"
+
+    def compute():
+        return _feedthrough_schedule(A, C, G, H, Q, R, P0, N, auto, tol, store_covariances)
+
+    # computed once per model, (Q, R, P0) and options in a process (not the history)
+    sc = compute() if store_covariances else \
+        schedule(compute, ("feedthrough gains", A, C, G, H, Q, R, P0, auto, tol), N)
+    xp = x0
+    for k in range(sc.kend):
+        K, M = sc.K[k], sc.M[k]
         e = yk_all[:, k] - C @ xp
         dh = M @ e
         xf = xp + K @ (e - H @ dh)
         x_pred[:, k], innov[:, k], x_filt[:, k] = xp, e, xf
-        d_est[:, k], d_var[:, k] = dh, Pd.diagonal()
-        if Phist is not None:
-            Phist[:, :, k] = Pf
-        Pp_prev = Pp
-        Pp = _predict_cov(A, G, Pf, Pxd, Pd, Q)
+        d_est[:, k] = dh
         xp = A @ xf + G @ dh
         if m:
             xp = xp + B @ u[:, k]
-        k += 1
-    if gain == "time-varying" and Pp_prev is not None:
-        converged = bool(np.max(np.abs(Pp - Pp_prev)) <= tol * max(np.max(np.abs(Pp)), tiny))
+    d_var[:, :sc.kend] = sc.d_var.T
+    K, M, Pd, Rt, Pf, Pxd = sc.final
+    kconv = sc.kconv
     if kconv is not None:
         # constant gains: x^[k+1|k] = (A - L C) x^[k|k-1] + L (y - D u) + B u,
         # L = A K (I - H M) + G M; then e, d^ = M e and x^[k|k] = x^[k|k-1] + K (I - H M) e
-        K, M, Pd, Rt, Pf, Pxd = _feedthrough_gains(Pp, C, H, R)
         KT = K @ (np.eye(p) - H @ M)
         L = A @ KT + G @ M
         drive = L @ yk_all[:, kconv:]
@@ -291,13 +342,11 @@ def _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0, *, lev
         x_filt[:, kconv:] = xs + KT @ e
         d_est[:, kconv:] = M @ e
         d_var[:, kconv:] = Pd.diagonal()[:, None]
-        if Phist is not None:
-            Phist[:, :, kconv:] = Pf[:, :, None]
     t = np.arange(N) * float(model.dt)
     return FilterResult(
         t=t, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var, d_cov=Pd, level=level,
-        innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=Pp_prev if kconv is None
-        else Pp, P_filt_history=Phist, K=K, M=M, converged=converged,
+        innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=sc.P_pred,
+        P_filt_history=sc.Pf_history, K=K, M=M, converged=sc.converged,
         period_converged=kconv, sys=model, G=G, unknown_labels=labels, u=u, y=y,
         relative_degree=0,
     )

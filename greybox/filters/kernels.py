@@ -30,7 +30,7 @@ from .._validation import (
 )
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
 from ..system import named_ss, split_inputs
-from ._memo import MEMO, array_key
+from ._memo import schedule
 
 __all__ = [
     "FilterResult",
@@ -595,17 +595,9 @@ def _schedule(A, C, G, Q, R, P0, N: int, auto: bool, tol: float,
     its convergence step; one that ran to the record's end serves that length only."""
     if keep_pf:  # the (n, n, N) history is the record's size: not kept
         return _gain_schedule(A, C, G, Q, R, P0, N, auto, tol, keep_pf)
-    stride = max(1, -(-N // 4096))
-    key = array_key("gains", A, C, G, Q, R, P0, auto, tol, stride)
-    hit = MEMO.get(key)
-    if hit is not None and hit.kconv is not None and hit.kconv < N:
-        return hit
-    key_n = array_key("gains", A, C, G, Q, R, P0, auto, tol, stride, N)
-    hit = MEMO.get(key_n)
-    if hit is not None:
-        return hit
-    sched = _gain_schedule(A, C, G, Q, R, P0, N, auto, tol, keep_pf)
-    return MEMO.put(key if sched.kconv is not None else key_n, sched)
+    stride = max(1, -(-N // 4096))  # period_settled's sampling of P depends on it
+    return schedule(lambda: _gain_schedule(A, C, G, Q, R, P0, N, auto, tol, keep_pf),
+                    ("gains", A, C, G, Q, R, P0, auto, tol, stride), N)
 
 
 def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
