@@ -46,6 +46,7 @@ from scipy.linalg import expm
 from .._blas import single_thread_blas
 from .._validation import check_covariance, check_positive
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
+from ._memo import MEMO
 from .feedthrough import _unknown_feedthrough
 from .kernels import (
     FilterResult,
@@ -151,7 +152,7 @@ class _Powers:
 def _steady_d_var(A, C, Gr, Q, R, maxiter):
     """``det(Pd)^(1/md)`` of the converged filter for input matrix Gr; inf if not converged."""
     try:
-        Pp, _, ok = _iterate_to_steady_state(A, C, Gr, Q, R, None, 1e-9, maxiter)
+        Pp, _, ok = MEMO.call(_iterate_to_steady_state, A, C, Gr, Q, R, None, 1e-9, maxiter)
     except np.linalg.LinAlgError:
         return np.inf
     if not ok:

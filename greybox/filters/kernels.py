@@ -30,7 +30,7 @@ from .._validation import (
 )
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
 from ..system import named_ss, split_inputs
-from ._memo import schedule
+from ._memo import MEMO, schedule
 
 __all__ = [
     "FilterResult",
@@ -496,7 +496,8 @@ def steady_state_filter(sys: ct.StateSpace, *, Q: ArrayLike, R: ArrayLike,
 
 
 def _steady(A, B, C, D, G, Q, R, model, labels, tol, maxiter, P0):
-    Pp, it, ok = _iterate_to_steady_state(A, C, G, Q, R, P0, tol, maxiter)
+    Pp, it, ok = MEMO.call(_iterate_to_steady_state, A, C, G, Q, R, P0, tol, maxiter)
+    Pp = Pp.copy()  # the user's record: writable (the cache keeps its own, read-only)
     if not ok:
         raise GreyboxError(
             f"the filter's covariance recursion did not converge in {maxiter} iterations; "
