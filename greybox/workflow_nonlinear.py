@@ -167,7 +167,8 @@ _FINE = 10.0 ** np.linspace(-0.25, 0.25, 21)
 lower saturation hinges (the d^ law's are at ``greybox.trace.laws.SAT_QUANTILES``)."""
 _LS_WINDOW = 1000
 """Samples simulated by the output-error selection's line search (a ranking: its cost is
-then bounded; the fits use the whole record)."""
+then bounded; the fits use the whole record). A record with fewer samples after SKIP is
+searched whole (:meth:`_LawOutputError.ls_window`)."""
 _START_WINDOW = 50
 """Samples after SKIP over which the start of a noisy channel's simulations is chosen."""
 _LOW_SNR = 0.1
@@ -543,7 +544,7 @@ def _run_columns(model, X0: NDArray, uu: NDArray, T: int | None = None) -> NDArr
     """
     upd, par = model.updfcn, dict(model.params or {})
     n, K = X0.shape
-    T = uu.shape[1] if T is None else T
+    T = uu.shape[1] if T is None else min(T, uu.shape[1])  # never past the record's end
     xs = np.full((T, n, K), np.nan)
     X = X0
     with np.errstate(all="ignore"):
@@ -703,13 +704,19 @@ class _LawOutputError:
         h[undetermined(jac)] = np.inf  # "not determined", never a half-width of a singular fit
         return h
 
+    @property
+    def ls_window(self) -> int:
+        """Samples the line search simulates: ``_LS_WINDOW``, or the whole record after SKIP
+        when it holds fewer (a window for speed, never past the record's end)."""
+        return min(_LS_WINDOW, self.uu.shape[1])
+
     def line_search(self, sel, theta, cands, steps):
         """Each candidate's best coefficient on a grid, the current law held: (RSS, start).
 
         ``steps`` (ncands, ngrid): the coefficient values tried per candidate,
-        all simulated at once over the first ``_LS_WINDOW`` samples (a global version of the score test: the
-        missing law's simulation is far from linear in a coefficient started
-        at 0, and a delayed d^ can give it the wrong sign).
+        all simulated at once over the first :meth:`ls_window` samples (a global version of
+        the score test: the missing law's simulation is far from linear in a coefficient
+        started at 0, and a delayed d^ can give it the wrong sign).
         """
         theta = np.asarray(theta, dtype=float)
         k, nc, ng = len(sel), len(cands), steps.shape[1]
@@ -717,7 +724,7 @@ class _LawOutputError:
         TH[:k] = theta[:, None]
         for q in range(nc):
             TH[k + q, q * ng:(q + 1) * ng] = steps[q]
-        R = self._resids(self.simulate(list(sel) + list(cands), TH, _LS_WINDOW))
+        R = self._resids(self.simulate(list(sel) + list(cands), TH, self.ls_window))
         rss = np.einsum("kt,kt->k", R, R).reshape(nc, ng)
         best = np.argmin(rss, axis=1)
         return rss[np.arange(nc), best], steps[np.arange(nc), best]
@@ -1946,8 +1953,19 @@ class _NonlinearPass:
         try:
             law_o = _select_law_oe(law, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D,
                                    noise_ch, dh.d_fit, dh.x, dh.u, dh.weights, self.S.bic_factor)
-        except (GreyboxError, np.linalg.LinAlgError, ValueError):
-            law_o = None
+        except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+            # never dropped silently: the stage says it did not run, and why
+            self.note("generate", ch.name, f"the law's terms could not be chosen by output "
+                                           f"error on y ({type(e).__name__}: {e}); the "
+                                           f"channel competes with d^'s law alone")
+            return None
+        nls = P.y.shape[1] - SKIP
+        if nls < _LS_WINDOW:  # a short record: its line search ran on all of it
+            self.note("generate", ch.name,
+                      f"the law's terms searched by output error on y on a short record: the "
+                      f"line search simulated the whole record after the filter's settling "
+                      f"({nls} samples; {_LS_WINDOW} on a longer record): " + (
+                          "no term chosen" if law_o is None else f"{law_o.npar} term(s) chosen"))
         if law_o is None:
             return None
         chosen = _refine_pruned(law_o, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D,

@@ -136,13 +136,42 @@ def test_tanks_without_overflow_are_left_unchanged():
     """The same pipeline on tanks that never overflow: no saturation is invented.
 
     512 samples per record (half the overflow's): the same path as at 1024, innovations
-    not white (Ljung-Box p 2e-8; 1e-17 at 1024), eq(x2) traced and its law refused by the
-    gate, far from passing (BIC gain 26.6 against 10 x 12.4; estimation SE 0.559 ->
-    0.548 %, a 2 % drop where 20 % is asked; at 1024: 16.1 against 10 x 13.8, 0.491 ->
-    0.488 %).
+    not white (Ljung-Box p 1.9e-8; 1.3e-17 at 1024), the terms of eq(x1) and eq(x2)
+    searched by output error (on all 492 samples after SKIP: none chosen, as at 1024),
+    eq(x2)'s d^ law refused by the gate, far from passing (BIC gain 26.6 against
+    10 x 12.4; estimation SE 0.559 -> 0.548 %, a 2 % drop where 20 % is asked; at 1024:
+    16.1 against 10 x 13.8, 0.491 -> 0.488 %).
     """
     rep, _ = run(np.inf, 6, n=512)
     assert not rep.updated, rep.message
+
+
+def test_a_short_record_chooses_the_terms_by_output_error_on_all_of_it():
+    """400 samples (fewer than the line search's window of 1000 after SKIP): the overflow
+    is still found, its hinge chosen by output error on y.
+
+    The output-error term choice's line search simulated ``_LS_WINDOW`` samples whatever
+    the record held: on a record shorter than SKIP + 1000 it raised (an IndexError for a
+    model that takes one state at a time, a ValueError for a batch one, which the stage
+    caught and skipped without a word). Now it searches the whole record after SKIP, and
+    says so. Seed 5: the hinge at 7.991 +- 0.016 (truth 8.0), from the output-error
+    choice (the d^ path alone also ends at the hinge here, so the note is the check that
+    the stage ran and won); ~7 s.
+    """
+    rep, _ = run(XMAX, 5, n=400)
+    assert rep.updated and rep.effect.equations == ("x1",), rep.message
+    law = rep.effect.law
+    on = np.flatnonzero(law.coef[0])
+    assert len(on) == 1, law.formula
+    name, kind, (i, level) = law.spec[on[0]]
+    assert kind == "x_hi" and i == 0 and law.coef[0, on[0]] < 0, law.formula
+    np.testing.assert_allclose(level, XMAX, rtol=0.02)
+    notes = [d.reason for d in rep.decisions if d.subject == "eq(x1)"]
+    # the stage ran on the 380 samples after SKIP, chose one term, and that choice won
+    assert any("line search simulated the whole record" in r and "(380 samples" in r
+               and "1 term(s) chosen" in r for r in notes), notes
+    assert any("the law's terms were chosen by output error on y" in r for r in notes), notes
+    assert not any("could not be chosen by output error" in r for r in notes), notes
 
 
 def test_saturation_hinges_are_offered_at_the_record_quantiles_and_evaluate_alike():
