@@ -21,14 +21,14 @@ from dataclasses import dataclass
 
 import control as ct
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from .._lti import lti_states
 from .._validation import check_statespace, resolve_channels
 from ..exceptions import DimensionError, RankConditionError
 from ..system import named_ss, split_inputs
 from ._memo import schedule
-from .kernels import FilterResult, _check_options, _prepare
+from .kernels import FilterResult, GainSchedule, _check_options, _prepare
 
 __all__ = ["feedthrough_uikf", "with_sensor_error"]
 
@@ -241,22 +241,10 @@ def feedthrough_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = Non
 
 
 @dataclass(frozen=True)
-class _FeedthroughSchedule:
-    """The data-independent part of :func:`_run_feedthrough`: per step k < ``kend`` the
-    gains ``K[k]`` (n, p), ``M[k]`` (md, p) and ``d_var[k]`` (md,) as
-    :func:`_feedthrough_gains` returned them; ``kconv`` the step at which P[k|k-1]
-    converged (or None); ``final`` (K, M, Pd, Rt, Pf, Pxd) of the frozen gains (or of the
-    last step); ``P_pred`` the filter's last P[k|k-1]; ``Pf_history`` where asked."""
-
-    K: tuple
-    M: tuple
-    d_var: NDArray
-    kend: int
-    kconv: int | None
-    converged: bool
-    P_pred: NDArray
-    final: tuple
-    Pf_history: NDArray | None
+class _FeedthroughSchedule(GainSchedule):
+    """:class:`~greybox.filters.kernels.GainSchedule` of :func:`_run_feedthrough`: the
+    gains of steps k < ``kend`` (from :func:`_feedthrough_gains`); ``final`` (K, M, Pd,
+    Rt, Pf, Pxd)."""
 
 
 def _feedthrough_schedule(A, C, G, H, Q, R, P0, N: int, auto: bool, tol: float,

@@ -511,29 +511,37 @@ def _steady(A, B, C, D, G, Q, R, model, labels, tol, maxiter, P0):
 
 
 @dataclass(frozen=True)
-class _GainSchedule:
-    """The data-independent part of :func:`_run`: its gains step by step.
+class GainSchedule:
+    """The data-independent part of a linear filter's recursion: its gains step by step.
 
-    ``K0`` the gain of step 0 (plain update of the prior); ``K[k-1]`` (n, p), ``M[k-1]``
-    (md, p) and ``d_var[k-1]`` (md,) those of steps k = 1 .. ``kend`` - 1 (the gains as
-    :func:`_measurement_gains` returned them: a copy in another memory layout would change
-    the products' last bits); ``kconv`` the
-    step at which P[k|k-1] converged (the gains then frozen at ``final``: K, M, Pd, Rt, Pf
-    of the converged P[k|k-1] ``Pp``), or None (run to the record's end, ``final`` the last
-    step's); ``Pf_history`` (n, n, kend) where asked.
+    ``K[k]`` and ``M[k]`` the gains of the time-varying steps, as the filter's gain
+    function returned them (a copy in another memory layout would change the products'
+    last bits), ``d_var[k]`` (md,) the variances of d^ at those steps, ``kend`` their
+    count plus the filter's first; ``kconv`` the step at which P[k|k-1] converged (the
+    gains then frozen at ``final``), or None (run to the record's end, ``final`` the last
+    step's); ``P_pred`` the filter's last P[k|k-1]; ``Pf_history`` (n, n, N) where asked.
+    Each filter extends it with what its own first step needs.
     """
 
-    K0: NDArray
     K: tuple
     M: tuple
     d_var: NDArray
     kend: int
     kconv: int | None
     converged: bool
-    settled: int | None
-    Pp: NDArray
+    P_pred: NDArray
     final: tuple
     Pf_history: NDArray | None
+
+
+@dataclass(frozen=True)
+class _GainSchedule(GainSchedule):
+    """:class:`GainSchedule` of :func:`_run`: ``K0`` the gain of step 0 (a plain update of
+    the prior), ``K[k-1]``, ``M[k-1]``, ``d_var[k-1]`` those of steps k = 1 .. ``kend`` - 1;
+    ``final`` (K, M, Pd, Rt, Pf); ``settled`` the filter's ``period_settled``."""
+
+    K0: NDArray | None = None
+    settled: int | None = None
 
 
 def _gain_schedule(A, C, G, Q, R, P0, N: int, auto: bool, tol: float,
@@ -585,7 +593,7 @@ def _gain_schedule(A, C, G, Q, R, P0, N: int, auto: bool, tol: float,
         if Phist is not None:
             Phist[:, :, kconv:] = Pf[:, :, None]
     return _GainSchedule(K0=K0, K=tuple(Ks), M=tuple(Ms), d_var=dv[:k - 1], kend=k,
-                         kconv=kconv, converged=converged, settled=settled, Pp=Pp,
+                         kconv=kconv, converged=converged, settled=settled, P_pred=Pp,
                          final=(K, M, Pd, Rt, Pf), Pf_history=Phist)
 
 
@@ -648,7 +656,7 @@ def _run(model, A, B, C, D, G, labels, y, u, Q, R, x0, P0, *, level, gain, tol,
     t = np.arange(N) * float(model.dt)
     return FilterResult(
         t=t, x_filt=x_filt, x_pred=x_pred, d_est=d_est, d_var=d_var, d_cov=Pd, level=level,
-        innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=sc.Pp,
+        innovations=innov, innovation_cov=Rt, P_filt=Pf, P_pred=sc.P_pred,
         P_filt_history=sc.Pf_history, K=K, M=M, converged=sc.converged,
         period_converged=sc.kconv, sys=model, G=G, unknown_labels=labels, u=u, y=y,
         period_settled=sc.settled,
