@@ -60,8 +60,15 @@ MARGINAL_TOL = 1e-9
 
 def has_marginal_pole(sys: ct.StateSpace) -> bool:
     """True when a discrete model has a pole on or outside the unit circle (an integrator:
-    a position driven by a velocity); its simulation error drifts with the initial state
-    and the noise, so it neither judges nor chooses between models (PE does).
+    a position driven by a velocity) among the states the inputs reach; its simulation
+    error drifts with the initial state and the noise, so it neither judges nor chooses
+    between models (PE does).
+
+    States no input reaches (through B, or through A from a reached state) run from their
+    initial state alone, so a simulation of them has no input error to accumulate: a
+    sensor's constant offset or drift (poles at 1) is estimated with the initial state
+    and does not make the model marginal. Reach is read from the sparsity of A and B;
+    the poles are those of A on the reached states (A is block triangular there).
 
     Parameters
     ----------
@@ -73,7 +80,16 @@ def has_marginal_pole(sys: ct.StateSpace) -> bool:
     bool
     """
     A = np.asarray(sys.A, dtype=float)
-    return bool(A.size) and bool(np.max(np.abs(np.linalg.eigvals(A))) > 1.0 - MARGINAL_TOL)
+    if not A.size:
+        return False
+    reached = np.any(np.asarray(sys.B, dtype=float) != 0, axis=1)
+    while True:
+        more = reached | np.any(A[:, reached] != 0, axis=1)
+        if np.array_equal(more, reached):
+            break
+        reached = more
+    Ar = A[np.ix_(reached, reached)]
+    return bool(Ar.size) and bool(np.max(np.abs(np.linalg.eigvals(Ar))) > 1.0 - MARGINAL_TOL)
 
 
 def unstable_reason(sys: ct.StateSpace, nsteps: int | None = None) -> str:

@@ -90,10 +90,23 @@ def test_gain_and_offset_of_a_sensor_with_intervals():
     # the 95 % intervals of the GLS fit cover the truth; 3x their width bounds the bias
     assert abs(g - 0.2) <= 3 * hg and hg < 0.01, (g, hg)
     assert abs(off - 0.05) <= 3 * ho and ho < 0.005, (off, ho)
-    # the updated model folds the law's linear part into C (exact arithmetic)
-    C = np.asarray(tr.static_model.sys.C)
-    np.testing.assert_allclose(C[0], [1.0, 0.0] + law.Ddx[0], rtol=1e-12)
+    # the updated model folds the law's linear part into C (exact arithmetic) and holds the
+    # offset as one more state, constant, read by pos alone: a linear model of the whole
+    # law (not a surrogate), so a later pass of the loop can start from it
+    upd = tr.static_model.sys
+    C, A = np.asarray(upd.C), np.asarray(upd.A)
+    assert not law.nonlinear and list(upd.state_labels)[-1] == "pos_offset", upd.state_labels
+    np.testing.assert_allclose(C[0, :2], [1.0, 0.0] + law.Ddx[0], rtol=1e-12)
+    np.testing.assert_array_equal(C[:, 2], [1.0, 0.0])
+    np.testing.assert_array_equal(A[2], [0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(np.asarray(upd.B)[2], 0.0)
     assert abs(law.Ddx[0, 0] - 0.2) < 0.01, law.formula
+    # its simulation from the offset state at the law's offset is the law's prediction
+    x0 = np.array([0.1, -0.2, off])
+    ys = simulate_output(upd, u[:, :200], x0)
+    yn = simulate_output(gb.discretize(nom, dt), u[:, :200], x0[:2])
+    np.testing.assert_allclose(ys[0], (1 + g) * yn[0] + off, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ys[1], yn[1], rtol=1e-12, atol=1e-15)
 
 
 def test_a_state_equation_error_is_not_blamed_on_a_sensor():

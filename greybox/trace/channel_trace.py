@@ -250,9 +250,49 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
                          f"the estimation data: BIC {b:.6g} vs {best:.6g}")
         if alts and min(a[0] for a in alts) < best:
             _, _, _, law, static_model = min(alts, key=lambda a: a[0])
+    law, static_model = _affine_sensor(law, static_model, model, i, Q, R, channel.output,
+                                       f"{sys.name or 'model'}_updated")
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
                         law_estimate=est, relative_degree=0, static=law,
                         static_model=static_model, notes=tuple(notes))
+
+
+def _affine_sensor(law, static_model, model, i, Q, R, out, name):
+    """A static sensor law that is affine (a gain and an offset, or an offset alone) as a
+    linear model: ``(law, updated model)``; both unchanged for any other law.
+
+    The offset is one more state, ``<out>_offset`` (constant: ``b[k+1] = b[k]``, process
+    noise 1e-12 of the largest of Q, as a drift's), read by output ``i`` beside the
+    model's own output times ``1 + gain``: the updated model is a linear StateSpace that
+    holds the whole law (not a surrogate), so a later pass of the loop can start from it,
+    and a record's offset is estimated with its initial state (a sensor keeps its offset
+    between records; the law's coefficient is the estimation record's).
+    """
+    sel = np.flatnonzero(law.coef[0]) if law.output is not None else np.zeros(0, int)
+    kinds = [term_kind(law.spec[j][1]) for j in sel]
+    if not any(k.constant for k in kinds) or not all(k.affine for k in kinds) or \
+            any(k.sensor_states for k in kinds):
+        return law, static_model
+    m = model.ninputs - 1
+    A, B = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)[:, :m]
+    C, D = np.asarray(model.C, dtype=float), np.asarray(model.D, dtype=float)[:, :m]
+    n = A.shape[0]
+    Ddx, Ddu = linear_part(law.spec, law.coef, n, m)
+    Aa = np.eye(n + 1)
+    Aa[:n, :n] = A
+    Ca = np.hstack([C, np.zeros((C.shape[0], 1))])
+    Ca[i, :n] += Ddx[0]
+    Ca[i, n] = 1.0
+    Da = D.copy()
+    Da[i] += Ddu[0]
+    upd = named_ss(Aa, np.vstack([B, np.zeros((1, m))]), Ca, Da, model.dt,
+                   states=list(model.state_labels) + [f"{out}_offset"],
+                   inputs=list(model.input_labels)[:m], outputs=model.output_labels, name=name)
+    Qa = np.zeros((n + 1, n + 1))
+    Qa[:n, :n] = Q
+    Qa[n, n] = 1e-12 * max(float(np.max(np.diag(Q))), 1e-300)
+    return (replace(law, nonlinear=False, Ddx=Ddx, Ddu=Ddu),
+            UpdatedModel(sys=upd, Q=Qa, R=R, order=n + 1, kind="static"))
 
 
 def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
@@ -266,38 +306,62 @@ def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
     rectifier's |.| came out at half its size on real data). Kept only when the
     estimation error drops; intervals from the HAC covariance of the residual.
     """
-    sel = np.flatnonzero(law.coef[0])
-    if not sel.size:
+    if not np.flatnonzero(law.coef[0]).size:
         return law
-    x = _nominal_states(A, B, x0, u)
-    if not np.all(np.isfinite(x)):
+    return refit_sensor_on_states(law, _nominal_states(A, B, x0, u), c, dd, y, u, label, unit,
+                                  notes)
+
+
+def refit_sensor_on_states(law, x, c, dd, y, u, label, unit, notes,
+                           simulation: str = "the nominal simulation", prune: bool = False):
+    """A sensor law's selected coefficients by least squares of ``y - c x - dd u`` on its
+    terms along the states ``x`` (n, N) of a simulation (the law does not feed back into
+    them); intervals from the HAC covariance of the residual. The law unchanged when the
+    error does not drop or the simulation is not finite (see :func:`_refit_sensor_law`).
+    ``c`` (n,), ``dd`` (m,): the output's row of the model the law reads; ``y`` (N,) the
+    measured output, ``u`` (m, N) the inputs; ``notes`` receives one line naming
+    ``simulation``. With ``prune``, a term whose 95 % interval holds 0 is dropped (the
+    weakest first) while more than one is left: a gain selected beside an offset while
+    a state equation's error was still in the residual."""
+    sel = np.flatnonzero(law.coef[0])
+    if not sel.size or not np.all(np.isfinite(x)):
         return law
     r = y - c @ x - dd @ u
     terms = _eval_terms(law.spec, law.eps, x, u)
-    X = terms[sel]
-    th = np.linalg.lstsq(X.T, r, rcond=None)[0]
-    e_new, e_old = r - th @ X, r - law.coef[0, sel] @ X
+    e_old = r - law.coef[0, sel] @ terms[sel]
+    while True:
+        X = terms[sel]
+        th = np.linalg.lstsq(X.T, r, rcond=None)[0]
+        e_new = r - th @ X
+        sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300
+        cov = hac_covariance((X / sx[:, None]).T, e_new, 1) / np.outer(sx, sx)
+        hw = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+        weak = np.abs(th) / np.maximum(hw, 1e-300)
+        if not prune or sel.size < 2 or weak.min() >= 1.0:
+            break
+        sel = np.delete(sel, int(np.argmin(weak)))  # its interval holds 0: not supported
     yk = y
-    if not e_new @ e_new < e_old @ e_old:
+    if not e_new @ e_new < e_old @ e_old and sel.size == np.count_nonzero(law.coef[0]):
         return law
-    sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300
-    cov = hac_covariance((X / sx[:, None]).T, e_new, 1) / np.outer(sx, sx)
     coef = np.zeros_like(law.coef)
     ci = np.full_like(law.ci, np.nan)
     coef[0, sel] = th
-    ci[0, sel] = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+    ci[0, sel] = hw
     lin = [j for j, sp in enumerate(law.spec) if sp[1] in LINEAR_KINDS]
     lc = np.zeros((1, len(law.spec)))
     if law.nonlinear and lin:  # best linear surrogate, on the same simulation
         lc[0, lin] = np.linalg.lstsq(terms[lin].T, r, rcond=None)[0]
     else:
         lc = coef
-    Ddx, Ddu = linear_part(law.spec, lc, A.shape[0], B.shape[1])
+    Ddx, Ddu = linear_part(law.spec, lc, x.shape[0], u.shape[0])
     names = [law.spec[j][0] for j in sel]
     se = [100 * np.sqrt((e @ e) / max(yk @ yk, 1e-300)) for e in (e_old, e_new)]
-    notes.append(f"sensor law refit by output error (least squares on the nominal "
-                 f"simulation): estimation SE {se[0]:.3g}% -> {se[1]:.3g}%")
-    return replace(law, coef=coef, ci=ci, Ddx=Ddx, Ddu=Ddu,
+    notes.append(f"sensor law refit by output error (least squares on {simulation}): "
+                 f"estimation SE {se[0]:.3g}% -> {se[1]:.3g}%")
+    dropped = np.count_nonzero(law.coef[0]) - sel.size
+    if dropped:
+        notes.append(f"{dropped} term(s) whose interval holds 0 dropped")
+    return replace(law, coef=coef, ci=ci, Ddx=Ddx, Ddu=Ddu, npar=law.npar - dropped,
                    residual_var=np.array([float(np.mean(e_new**2))]),
                    formula=law_line(label, th, names, unit, ci[0, sel]))
 

@@ -120,6 +120,12 @@ def _is_lag(law) -> bool:
         and law.spec[0][1] == "yhat_lag"
 
 
+def _is_held(law) -> bool:
+    """A static sensor law (a gain, an offset): it acts on C and D, not on A and B, so the
+    joint refit holds it at its value (the loop refits it on the refitted model after)."""
+    return isinstance(law, StaticLaw) and law.output is not None and not _is_lag(law)
+
+
 def _lag_param(i: int, ef: JointEffect, nf: int) -> _Param:
     """A sensor lag's one coefficient, 1/tau: ``dz/dt = (C_i x + D_i u - z) / tau`` moves
     the sensor state's row of A and B by (C_i, -1) and D_i per unit of 1/tau."""
@@ -140,6 +146,8 @@ def _params(effects, nf: int, m: int) -> list[_Param]:
         law = ef.law
         if _is_lag(law):
             out.append(_lag_param(i, ef, nf))
+        elif _is_held(law):
+            continue
         elif isinstance(law, StaticLaw):
             for c in range(law.coef.shape[0]):
                 for j in np.flatnonzero(law.coef[c]):
@@ -428,6 +436,8 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged=()):
     :func:`_independent` folded into an earlier effect's same term)."""
     law, ch, base = ef.law, ef.channel, ef.base
     mine = [(q, p) for q, p in enumerate(ps) if p.eff == i]
+    if _is_held(law):
+        return law
     if _is_lag(law):  # tau = 1 / a; its half-width by the delta method, h_a / a^2
         a, ha = values[mine[0][0]], halves[mine[0][0]]
         tau, htau = 1.0 / a, ha / a ** 2
@@ -565,10 +575,13 @@ def joint_effect(base: ct.StateSpace, channel: Channel, law) -> JointEffect | No
     """The effect as the joint refinement takes it, or None if it cannot be refitted.
 
     Continuous-time linear static laws, sparse first-order laws and shared-state
-    laws of order 1 and 2 qualify.
+    laws of order 1 and 2 qualify; a sensor lag (its time constant refitted), and a
+    linear static sensor law (a gain and an offset state: held at its value).
     """
     if channel.kind == "output":  # a sensor law acts on C and D: only a lag has a state
-        return JointEffect(base=base, channel=channel, law=law) if _is_lag(law) and \
+        # (a static sensor law that is linear, a gain and an offset state, is held)
+        ok = _is_lag(law) or (_is_held(law) and not law.nonlinear)
+        return JointEffect(base=base, channel=channel, law=law) if ok and \
             not ct.isdtime(base, strict=True) else None
     if isinstance(law, DynamicLaw) and channel.md == 1:
         return JointEffect(base=base, channel=channel, law=law)
