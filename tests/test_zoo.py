@@ -704,11 +704,11 @@ def test_a_sensor_offset_beside_a_state_error_is_traced_with_the_sensor_first():
     """Two effects of different kinds (issue 27 item 5): a sensor's offset and a state
     equation's error. Zoo state_sensor, seed 2112803, draw 0 (the first draw of that class
     on a seed drawn for this session): a row of 3 bodies, all measured, T3's loss 1.49x too
-    large in the model and an offset of 0.105 on T2. Before, the first pass named T3's
-    error a first-order filter of T3 (the offset's colour in d^ taken for dynamics) and the
-    offset second. Now the offset sensor, whose law alone passes the gate, is traced
-    first: its law is an offset state of a linear model, the loop goes on from it, and the
-    one criterion prefers the sensor and a static law of eq(T3) (two parameters)."""
+    large in the model and an offset of 0.105 on T2. Before, T3's error was named a
+    first-order filter of T3 and the offset second, as a nonlinear law (the loop could not
+    try it the other way round). Now the offset is a state of a linear model: the effects
+    are tried with the sensor first (its law refitted after the state law, its gain
+    dropped), and the one criterion prefers the offset and a static law of eq(T3)."""
     d, rep, s = _run_draw("state_sensor", 2112803, 0, max_order=2, n_est=4000)
     assert rep.updated, rep.message
     assert s.right_channel and s.right_kind and s.right_order, (s.why, s.found)
