@@ -719,3 +719,17 @@ def test_a_sensor_offset_beside_a_state_error_is_traced_with_the_sensor_first():
     assert "T2_offset" in rep.model.sys.state_labels
     sensor = next(st.effect for st in rep.steps if st.channel == "output(T2)")
     assert not sensor.nonlinear
+
+
+def test_an_actuator_lag_seen_on_two_outputs_is_not_taken_for_two_sensor_lags():
+    """A first-order actuator lag on a chain of 3 with 2 outputs (zoo actuator_lag1, seed
+    2112802, draw 1): identical lags on both outputs are the same input-output map with
+    fewer parameters counted, and a version of the sensor-first alternative that also
+    tried a sensor's lag first named it so (two sensor lags). Only a sensor's offset is
+    tried first: the input's lag stays the explanation, and the decision trail says why
+    the sensor was not tried first."""
+    d, rep, s = _run_draw("actuator_lag1", 2112802, 1, max_order=2, n_est=4000)
+    assert rep.updated, rep.message
+    assert s.right, (s.why, s.found)
+    assert not any(st.channel.startswith("output(") for st in rep.steps), s.found
+    assert any("is not an offset" in x.reason for x in rep.decisions)
