@@ -522,15 +522,7 @@ def _sensor_first(P: Problem, rep: LoopReport) -> LoopReport:
     if not ok:
         return rep
     sensor = output_channel(P.sys, sensors[min(ok, key=lambda c: c.se_estimation).channel])
-    settings = [replace(S, channels=[sensor]), S]
-    calls: list[int] = []
-
-    def once(sys_, nominal_, Q_, chans_, delta_) -> LoopReport:
-        k = min(len(calls), 1)
-        calls.append(k)
-        return _Pass(replace(P, settings=settings[k]), sys_, nominal_, Q_, chans_,
-                     delta_).run()
-
+    once = _first_then(P, replace(S, channels=[sensor]), S)
     tried = f"{sensor.name} first, then every channel"
     try:
         first = [once(P.sys, P.nominal, P.Q, (sensor,), False)]
@@ -608,22 +600,28 @@ def _split_sensor(P: Problem, ch: Channel) -> Channel | None:
     return output_channel(P.sys, scr.outputs[0])
 
 
+def _first_then(P: Problem, first: Settings, rest: Settings):
+    """The ``once`` of a loop whose first pass runs with the settings ``first`` and every
+    later pass with ``rest`` (a pass of one sensor, then the equations or every channel)."""
+    calls: list[int] = []
+
+    def once(sys_, nominal_, Q_, chans_, delta_) -> LoopReport:
+        settings = rest if calls else first
+        calls.append(1)
+        return _Pass(replace(P, settings=settings), sys_, nominal_, Q_, chans_,
+                     delta_).run()
+
+    return once
+
+
 def _two_passes(P: Problem, sensor: Channel, eqs: list) -> LoopReport | str:
     """The loop run as two passes: the sensor channel alone, then a linear static law of
     each of the equations ``eqs`` alone on the updated model (the one linear law they
     would replace is the alternative), both refitted jointly (a sensor lag's time constant is
     biased by the equation's error until then); why not, as a string, when it finds
     fewer than two effects."""
-    settings = [replace(P.settings, channels=[sensor]),
-                replace(P.settings, channels=eqs, max_order=0, nonlinear=False)]
-    calls: list[int] = []
-
-    def once(sys_, nominal_, Q_, chans_, delta_) -> LoopReport:
-        k = min(len(calls), 1)
-        calls.append(k)
-        return _Pass(replace(P, settings=settings[k]), sys_, nominal_, Q_, chans_,
-                     delta_).run()
-
+    once = _first_then(P, replace(P.settings, channels=[sensor]),
+                       replace(P.settings, channels=eqs, max_order=0, nonlinear=False))
     try:
         alt = _loop(once, P.sys, P.nominal, P.Q, eqs, (sensor,),
                     False, 2, P.dt, functools.partial(_joint, P),
