@@ -27,7 +27,8 @@ def test_cubic_drag_intervals_are_calibrated_over_seeds():
     """Sum over seeds of ((estimate - truth) / standard error)^2 ~ chi-square(seeds).
 
     Seeds 0-7 (fixed): HAC alone gave 19.5 > 15.5 (the 95 % quantile), so this failed
-    before; with the noise model's sandwich 8.3. The truth -0.5 is the plant's own drag
+    before; with the noise model's sandwich 8.3 (measured again 2026-11-28 on the code of
+    then: 9.86, HAC alone 20.56). The truth -0.5 is the plant's own drag
     (no tolerance to choose: the interval is what is tested).
     """
     z = []
