@@ -215,6 +215,15 @@ class Subsystem:
         """True for an order-0 law."""
         return self.order == 0
 
+    @property
+    def npar(self) -> int:
+        """Parameters the one criterion counts: ``Ad``, ``B`` and ``C`` of the hidden part and
+        the feedthrough ``D`` from every state and input, ``q^2 + q nw + md q + md nw``
+        (``nw`` = states + inputs), as the candidate was scored."""
+        q, md = self.order, self.Cd.shape[0]
+        nw = self.Bdu.shape[1] + self.Bdx.shape[1]
+        return q * q + q * nw + md * q + md * nw
+
 
 def _sim_subsystem(Ad, Bw, Cd, Dw, w, z0=None):
     nd = Ad.shape[0]

@@ -408,9 +408,10 @@ def _fused(P: Problem, rep: LoopReport) -> LoopReport:
 
 def _effects_npar(rep: LoopReport) -> int:
     """The parameters of every effect of an updated report (its laws' coefficients, poles,
-    levels): the loop gives every such report its steps, one per effect."""
-    laws = [st.effect.dynamic_law if st.effect.dynamic_law is not None else st.effect.law
-            for st in rep.steps]
+    levels; a hidden part identified by subspace methods: its matrices, as its candidate
+    was scored): the loop gives every such report its steps, one per effect."""
+    laws = [next((x for x in (st.effect.dynamic_law, st.effect.law, st.effect.subsystem)
+                  if x is not None), None) for st in rep.steps]
     return sum(int(law.npar) for law in laws if law is not None)
 
 
@@ -993,10 +994,9 @@ class _Pass:
         if tr.dynamic_model is not None:
             dm, sub = tr.dynamic_model, tr.dynamic
             fit = self.fit_error(dm.sys, dm.Q, dm.R)
-            nw, md = self.nominal.nstates + self.nominal.ninputs, ch.md
-            npar = sub.order ** 2 + sub.order * nw + md * sub.order + md * nw
-            self.cands.append(CandidateScore(ch.name, "dynamic", sub.order, fit.se, npar, "ok"))
-            self.scored.append(Candidate(fit.se, npar, tr, "dynamic", fit=fit))
+            self.cands.append(CandidateScore(ch.name, "dynamic", sub.order, fit.se, sub.npar,
+                                             "ok"))
+            self.scored.append(Candidate(fit.se, sub.npar, tr, "dynamic", fit=fit))
 
     def trace_channels(self, r: Residual) -> None:
         """2. Trace every candidate channel: static laws and order-1 dynamics."""

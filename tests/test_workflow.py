@@ -181,6 +181,33 @@ def test_finds_channel_kind_and_reduces_se(case, equations, kind):
         np.testing.assert_allclose(dl.tau, 1.0, rtol=0.02)
 
 
+def test_the_criterion_charges_a_hidden_part_what_its_candidate_was_scored_with():
+    """What the one criterion charges an explanation (``workflow._effects_npar``) is what
+    each effect's candidate was scored with. A hidden part identified by subspace methods
+    (``effect.subsystem``, no law object) was charged nothing: an alternative explanation
+    with a second-order part of 24 parameters beside a sensor's gain and offset was
+    scored as 2 parameters and replaced a 4-parameter static law (zoo state_sensor, seed
+    2112805 draw 0). Here the lag case's unstructured second-order candidate of eq(v1)
+    (4 states, 1 input, one component of d: 2^2 + 2*5 + 1*2 + 1*5 = 21 parameters)."""
+    from types import SimpleNamespace
+
+    from greybox.update import Subsystem
+    from greybox.workflow import _effects_npar
+    rep, _ = run_case("lag")
+    scored = {(c.channel, c.kind, c.order): c.npar for c in rep.candidates}
+    z = np.zeros
+    sub = Subsystem(order=2, Ad=z((2, 2)), Bdu=z((2, 1)), Bdx=z((2, 4)), Cd=z((1, 2)),
+                    Ddu=z((1, 1)), Ddx=z((1, 4)), K=z((2, 1)), innovation_cov=z((1, 1)),
+                    noise_cov=z((1, 1)), criterion={}, method="n4sid", feedthrough=True,
+                    d_sim=z((1, 0)))
+    assert sub.npar == scored[("eq(v1)", "dynamic", 2)] == 21
+    step = SimpleNamespace(effect=SimpleNamespace(dynamic_law=None, law=None, subsystem=sub))
+    assert _effects_npar(SimpleNamespace(steps=[step, step])) == 42
+    # and the law objects as before: the chosen sparse law's own count
+    assert _effects_npar(rep) == rep.effect.dynamic_law.npar == \
+        scored[("eq(v1)", "dynamic (sparse)", 1)]
+
+
 def test_correct_model_is_left_unchanged():
     rep, _ = run_case("right")
     assert not rep.model_error_detected
