@@ -1875,7 +1875,11 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
 
     The equations the screen kept (the single-equation channels of ``chans``),
     when 2 to SCREEN_TOP of them, as one channel (a hidden body touching those
-    bodies; its trace from ``scored``, or traced by ``trace``); then the pair
+    bodies; its trace from ``scored``, or traced by ``trace``); where there is no
+    screen (fewer outputs than equations: every equation was traced alone), the two
+    equations whose single static laws have the lowest estimation error instead (zoo
+    thermal_mass, a hidden mass between two bodies the model does not link, 10 of 11
+    temperatures measured); then the pair
     of equations whose static law has the lowest estimation error, if it is
     not that group. A pair with a force channel is left to the force (one
     element between two bodies; a shared state there reads as one direction,
@@ -1891,6 +1895,18 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
 
     top = [c.equations[0] for c in chans if c.md == 1 and c.kind == "equation" and c.equations]
     group = set(top) if 2 <= len(top) <= SCREEN_TOP else None
+    if group is None:
+        # no screen (fewer outputs than equations: every equation traced alone): the two
+        # equations whose single static laws fit best (a hidden body between two bodies
+        # the model does not link, only some temperatures measured)
+        best = []
+        for t in sorted((t for t in scored if static(t) and t.trace.channel.md == 1),
+                        key=lambda t: t.se):
+            if t.trace.channel.equations[0] not in best:
+                best.append(t.trace.channel.equations[0])
+        if len(best) >= 2:
+            group = set(best[:2])
+            top = [s for s in sys.state_labels if s in group]
     if group is not None and not forced(group):
         tr = next((t.trace for t in scored if static(t) and
                    set(t.trace.channel.equations) == group and t.trace.channel.md == len(group)),
