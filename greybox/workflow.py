@@ -1899,11 +1899,9 @@ def _shared_groups(sys: ct.StateSpace, chans, scored, trace):
         # no screen (fewer outputs than equations: every equation traced alone): the two
         # equations whose single static laws fit best (a hidden body between two bodies
         # the model does not link, only some temperatures measured)
-        best = []
-        for t in sorted((t for t in scored if static(t) and t.trace.channel.md == 1),
-                        key=lambda t: t.se):
-            if t.trace.channel.equations[0] not in best:
-                best.append(t.trace.channel.equations[0])
+        best = list(dict.fromkeys(  # each equation once, at its best single law's rank
+            t.trace.channel.equations[0] for t in sorted(scored, key=lambda t: t.se)
+            if static(t) and t.trace.channel.md == 1))
         if len(best) >= 2:
             group = set(best[:2])
             top = [s for s in sys.state_labels if s in group]
