@@ -72,7 +72,7 @@ from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dyn
                              fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
     fit_shared_order2
-from .trace.joint import joint_effect, refine_jointly
+from .trace.joint import has_joint_parameters, joint_effect, refine_jointly
 from .trace.channels import (force_channel, input_channel, linked_forces, output_channel,
                              relative_coordinates)
 from .trace.laws import StaticLaw, direction, sensor_states
@@ -737,12 +737,15 @@ def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
 
 
 def _joint(P: Problem, passes, final, Qf):
-    """Refit all effects at once (greybox.trace.joint); None if some cannot be.
+    """Refit all effects at once (greybox.trace.joint); None if some cannot be, or if no
+    effect has a coefficient in A or B (sensors' gains and offsets: each refitted on its
+    own by :func:`_refit_sensors`).
 
     ``passes``: (base model, channel, effect) per effect; ``Qf`` the final Q.
     """
     effs = [joint_effect(base, ch, eff.dynamic_law or eff.law) for base, ch, eff in passes]
-    if any(e is None for e in effs) or ct.isdtime(final, strict=True):
+    if any(e is None for e in effs) or ct.isdtime(final, strict=True) or \
+            not has_joint_parameters(effs):
         return None
     x0 = estimate_initial_state(discretize(final, P.dt), P.y, P.u)
     jr = refine_jointly(effs, final, P.y, P.u, Q=Qf, R=P.R, dt=P.dt, x0=x0, k0=20)

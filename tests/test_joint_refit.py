@@ -10,6 +10,7 @@ from greybox.trace.channels import resolve_channel_spec
 from greybox.trace.joint import JointEffect, refine_jointly
 from greybox.trace.laws import fit_static
 from greybox.validate import simulate_output
+from plantlib import draw, linear_f, msd
 
 
 def _pair_plant():
@@ -47,3 +48,33 @@ def test_a_two_equation_law_along_one_direction_is_refitted_and_keeps_its_direct
     # (to the optimizer's tolerance, far inside the printed intervals)
     np.testing.assert_allclose(new.coef[:, j], law.coef[:, j], rtol=1e-6)
     assert np.all(np.abs(new.coef[:, j] - np.array([-0.4, -0.2])) <= 1e-3)
+
+
+def test_two_sensor_gains_are_named_without_a_joint_refit_that_has_nothing_to_refit():
+    """Both sensors of a mass-spring-damper read with a gain error (pos 0.8x, vel 1.15x).
+    The loop names both sensors' gains; a sensor's gain acts on C and D, which the joint
+    refit holds (each sensor law is refitted on its own on the loop's model), so with two
+    such effects there is nothing to refit jointly. Until 2026-11-28 the refit ran with
+    no parameter and the report's trail read "joint refinement failed: cannot reshape
+    array of size 0 into shape (0,newaxis)"."""
+    nom = msd()
+    d = draw(nom, linear_f(nom), n_true=2, dt=0.02, rng=np.random.default_rng(0), n_est=4000,
+             n_val=2000, q_std=np.array([0.0, 1e-3]), r_std=1e-3)
+    g = np.array([[0.8], [1.15]])
+    rep = gb.close_the_loop(nom, d.y * g, d.u, d.y_val * g, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    assert rep.updated and [st.channel for st in rep.steps] == ["output(pos)", "output(vel)"]
+    for st, truth in zip(rep.steps, (-0.2, 0.15)):
+        law = st.effect.law
+        names = [law.spec[j][0] for j in np.flatnonzero(law.coef[0])]
+        assert len(names) == 1 and names[0].endswith("_model"), law.formula  # the gain alone
+        # within 2 % of the truth: the half-widths are 0.4-1 % (over seeds 0-11, 21 of 24
+        # intervals cover the truth; this seed's pos gain is 2.6 half-widths off, a known
+        # limit of the sensor law's interval under coloured simulation error)
+        np.testing.assert_allclose(law.coef[0, np.flatnonzero(law.coef[0])[0]], truth,
+                                   rtol=0.02)
+    assert not any("failed" in x.reason for x in rep.decisions), \
+        [x.reason for x in rep.decisions if "failed" in x.reason]
+    # the table's updated row is near the noise floor (measurement noise 1e-3 on signals of
+    # ~0.3: SE ~0.2 %); the nominal one is the gains' 19 %
+    assert rep.table["updated"].se.value < 0.05 * rep.table["nominal"].se.value

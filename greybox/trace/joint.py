@@ -41,7 +41,7 @@ from .shared_order2 import SharedLaw2
 from .shared_order2 import _law_from as _shared2_law_from
 from .shared_order2 import _Problem as _Shared2Problem
 
-__all__ = ["JointEffect", "JointRefinement", "refine_jointly"]
+__all__ = ["JointEffect", "JointRefinement", "has_joint_parameters", "refine_jointly"]
 
 
 @dataclass(frozen=True)
@@ -124,6 +124,15 @@ def _is_held(law) -> bool:
     """A static sensor law (a gain, an offset): it acts on C and D, not on A and B, so the
     joint refit holds it at its value (the loop refits it on the refitted model after)."""
     return isinstance(law, StaticLaw) and law.output is not None and not _is_lag(law)
+
+
+def has_joint_parameters(effects) -> bool:
+    """Whether any of ``effects`` (JointEffect) has a coefficient the joint refit moves.
+
+    A static sensor law (a gain, an offset) acts on C and D and is held at its value; when
+    every effect is one (two sensors' gains), there is nothing to refit jointly (each
+    sensor's law is refitted on its own on the loop's model)."""
+    return any(not _is_held(ef.law) for ef in effects)
 
 
 def _lag_param(i: int, ef: JointEffect, nf: int) -> _Param:
