@@ -765,7 +765,7 @@ def _held_sensors_refitted(P: Problem, jr, passes):
     and D with them (:func:`_sensor_refit`)."""
     laws = list(jr.laws)
     for k, (base, ch, _) in enumerate(passes):
-        new = _sensor_refit(P, ch, laws[k], base, jr.model.sys, [], "the joint refit")
+        new = _sensor_refit(P, ch, laws[k], base, jr.model, [], "the joint refit")
         if new is laws[k]:
             continue
         laws[k] = new
@@ -2252,7 +2252,7 @@ def _refit_sensors(P: Problem, reps, bases, steps, nxt, rep, notes):
     """
     for k, r in enumerate(reps):
         law, lines = r.effect.law, []
-        new = _sensor_refit(P, r.channel, law, bases[k], rep.model.sys, lines,
+        new = _sensor_refit(P, r.channel, law, bases[k], rep.model, lines,
                             f"the model of pass {len(reps) + 1}")
         if new is law:
             continue
@@ -2270,22 +2270,25 @@ def _refit_sensors(P: Problem, reps, bases, steps, nxt, rep, notes):
     return nxt, rep
 
 
-def _sensor_refit(P: Problem, ch, law, base: ct.StateSpace, model: ct.StateSpace,
-                  lines: list, simulation: str):
+def _sensor_refit(P: Problem, ch, law, base: ct.StateSpace, updated, lines: list,
+                  simulation: str):
     """A static sensor law of the channel ``ch`` (a gain, an offset; found on the model
-    ``base``) refitted on the simulation of the discrete ``model`` over the search window
-    (:func:`greybox.trace.channel_trace.refit_sensor_on_states`); ``law`` itself for any
-    other effect or when the error does not drop. ``lines`` receives the refit's note."""
+    ``base``) refitted on the simulation of the discrete model of ``updated``
+    (UpdatedModel: its Q colours the simulation's error, for the intervals) over the
+    search window (:func:`greybox.trace.channel_trace.refit_sensor_on_states`); ``law``
+    itself for any other effect or when the error does not drop. ``lines`` receives the
+    refit's note."""
     if ch is None or ch.kind != "output" or law is None or not isinstance(law, StaticLaw) or \
             law.nonlinear or sensor_states(law) or law.output is None:
         return law
+    model = updated.sys
     i, nb = law.output, base.nstates
     Ad, Bd = np.asarray(model.A, dtype=float), np.asarray(model.B, dtype=float)
     x = lti_states(Ad, Bd @ P.us, estimate_initial_state(model, P.ys, P.us))
     cb, db = np.asarray(base.C, dtype=float)[i], np.asarray(base.D, dtype=float)[i]
     return refit_sensor_on_states(law, x[:nb], cb, db, P.ys[i], P.us, ch.labels[0],
                                   ch.units[0] if ch.units else "", lines, simulation,
-                                  prune=True)
+                                  prune=True, noise=(Ad, updated.Q, P.R[i, i]))
 
 
 def _with_sensor_row(sys: ct.StateSpace, law, base: ct.StateSpace):

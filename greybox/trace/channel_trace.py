@@ -206,7 +206,8 @@ def _trace_output(sys, channel, model, y, u, Q, R, nonlinear, skip, smooth) -> C
     if not unstable_reason(model, N):
         ks = min(k0, 20)  # the simulation starts from the filter's state there
         law = _refit_sensor_law(law, A, B, C[i], D[i], y[i, ks:], u[:, ks:], res.x_filt[:, ks],
-                                labels[0], channel.units[0] if channel.units else "", notes)
+                                labels[0], channel.units[0] if channel.units else "", notes,
+                                noise=(Q, np.asarray(R, dtype=float)[i, i]))
     Cn, Dn = C.copy(), D.copy()
     Cn[i] += law.Ddx[0]
     Dn[i] += law.Ddu[0]
@@ -295,7 +296,7 @@ def _affine_sensor(law, static_model, model, i, Q, R, out, name):
             UpdatedModel(sys=upd, Q=Qa, R=R, order=n + 1, kind="static"))
 
 
-def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
+def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes, noise=None):
     """The sensor law's coefficients by output error: least squares on the nominal simulation.
 
     A sensor-error law does not feed back into the states, so the output-error
@@ -304,19 +305,27 @@ def _refit_sensor_law(law, A, B, c, dd, y, u, x0, label, unit, notes):
     start where x0 is the filter's state). The d^ fit
     sees the filter's x^, which the measurements pull toward the data (a
     rectifier's |.| came out at half its size on real data). Kept only when the
-    estimation error drops; intervals from the HAC covariance of the residual.
+    estimation error drops; intervals as :func:`refit_sensor_on_states` (``noise = (Q,
+    r)``: the model's process-noise covariance and the output's measurement-noise variance).
     """
     if not np.flatnonzero(law.coef[0]).size:
         return law
     return refit_sensor_on_states(law, _nominal_states(A, B, x0, u), c, dd, y, u, label, unit,
-                                  notes)
+                                  notes, noise=None if noise is None else (A, *noise))
 
 
 def refit_sensor_on_states(law, x, c, dd, y, u, label, unit, notes,
-                           simulation: str = "the nominal simulation", prune: bool = False):
+                           simulation: str = "the nominal simulation", prune: bool = False,
+                           noise=None):
     """A sensor law's selected coefficients by least squares of ``y - c x - dd u`` on its
     terms along the states ``x`` (n, N) of a simulation (the law does not feed back into
-    them); intervals from the HAC covariance of the residual. The law unchanged when the
+    them); intervals from the HAC covariance of the residual, or with ``noise = (A, Q, r)``
+    (the discrete state matrix of the simulated model, its process-noise covariance, the
+    output's measurement-noise variance; A and Q may hold more states than x, the first
+    ones x's) the larger, per coefficient, of it and the sandwich under that noise model
+    (process noise makes the simulation's error a coloured, slowly wandering signal that
+    the residual's own autocorrelation understates; as :func:`_sandwich_halfwidths`).
+    The law unchanged when the
     error does not drop or the simulation is not finite (see :func:`_refit_sensor_law`).
     ``c`` (n,), ``dd`` (m,): the output's row of the model the law reads; ``y`` (N,) the
     measured output, ``u`` (m, N) the inputs; ``notes`` receives one line naming
@@ -333,9 +342,7 @@ def refit_sensor_on_states(law, x, c, dd, y, u, label, unit, notes,
         X = terms[sel]
         th = np.linalg.lstsq(X.T, r, rcond=None)[0]
         e_new = r - th @ X
-        sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300
-        cov = hac_covariance((X / sx[:, None]).T, e_new, 1) / np.outer(sx, sx)
-        hw = 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+        hw = _sensor_halfwidths(X, e_new, c, noise)
         weak = np.abs(th) / np.maximum(hw, 1e-300)
         if not prune or sel.size < 2 or weak.min() >= 1.0:
             break
@@ -364,6 +371,21 @@ def refit_sensor_on_states(law, x, c, dd, y, u, label, unit, notes,
     return replace(law, coef=coef, ci=ci, Ddx=Ddx, Ddu=Ddu, npar=law.npar - dropped,
                    residual_var=np.array([float(np.mean(e_new**2))]),
                    formula=law_line(label, th, names, unit, ci[0, sel]))
+
+
+def _sensor_halfwidths(X, e, c, noise):
+    """95 % half-widths of a sensor law's least squares on a simulation (see
+    :func:`refit_sensor_on_states`): HAC, or with ``noise = (A, Q, r)`` the larger of it
+    and the noise model's sandwich (:func:`_sandwich_halfwidths`)."""
+    if noise is None:
+        sx = np.sqrt(np.mean(X**2, axis=1)) + 1e-300
+        cov = hac_covariance((X / sx[:, None]).T, e, 1) / np.outer(sx, sx)
+        return 1.96 * np.sqrt(np.clip(np.diag(cov), 0, None))
+    A, Q, r = noise
+    A = np.asarray(A, dtype=float)
+    cf = np.zeros(A.shape[0])
+    cf[:c.size] = c
+    return _sandwich_halfwidths(X, e, A, cf, (Q, np.atleast_2d(r)), 0)
 
 
 def _nominal_states(A, B, x0, u):
