@@ -2221,10 +2221,17 @@ def _with_sensors_refitted(sensors, reps, bases, steps, nxt, rep, notes, again):
     read through the refitted sensor (``again(base) -> LoopReport``: the pass's law was
     fitted beside the sensor's bias, and what it left shows up as a spurious later effect)
     and the sensor refitted once more on it. The first refit is kept where the pass run
-    again updates nothing."""
+    again updates nothing, and the pass is not run again where every refitted coefficient
+    moved less than its 95 % half-width (:func:`_within_interval`: the pass was fitted
+    beside a sensor law the data cannot tell from the refitted one)."""
+    before = [r.effect.law for r in reps]
     nxt2, rep2 = sensors(reps, bases, steps, nxt, rep, notes)
     if rep2 is rep:
         return nxt, rep
+    if all(_within_interval(b, r.effect.law) for b, r in zip(before, reps)):
+        notes.append(Decision("refit", "", "the pass not run again: every refitted sensor "
+                                           "coefficient moved less than its 95 % half-width"))
+        return nxt2, rep2
     try:
         rep3 = again(nxt2)
     except (GreyboxError, np.linalg.LinAlgError) as e:
@@ -2236,6 +2243,22 @@ def _with_sensors_refitted(sensors, reps, bases, steps, nxt, rep, notes, again):
     if not rep3.updated:
         return nxt2, rep2
     return sensors(reps, bases, steps, nxt2, rep3, notes)
+
+
+def _within_interval(old, new) -> bool:
+    """Whether every coefficient of the refitted law ``new`` is within its 95 % half-width of
+    the earlier law ``old`` (same terms selected): the data cannot tell the two apart, so
+    a pass fitted beside ``old`` need not run again beside ``new``. True when unchanged."""
+    if new is old:
+        return True
+    if not isinstance(old, StaticLaw) or not isinstance(new, StaticLaw) or \
+            old.coef.shape != new.coef.shape or \
+            not np.array_equal(old.coef != 0, new.coef != 0) or new.ci is None:
+        return False
+    sel = new.coef != 0
+    half = np.asarray(new.ci, dtype=float)[sel]
+    return bool(np.all(np.isfinite(half)) and
+                np.all(np.abs(new.coef[sel] - old.coef[sel]) < half))
 
 
 def _refit_sensors(P: Problem, reps, bases, steps, nxt, rep, notes):
