@@ -2387,8 +2387,15 @@ def _retrace_last(once, joint, jr, passes, Q, steps, chans, dt, notes):
     what was left and may have picked the wrong drivers. Once the joint
     refit has dropped the borrowed terms, the last effect is traced again on
     that model and the whole set refitted; the better set by estimation
-    output error is kept. Returns ``(jr, row, steps)`` or None.
+    output error is kept. Returns ``(jr, row, steps)`` or None. Not traced again where
+    the joint refit moved no coefficient by its 95 % half-width and dropped no term
+    (``jr.moved`` False): the last pass then saw what it would see now.
     """
+    if not jr.moved:
+        notes.append(Decision("refit", "", "re-trace of the last effect skipped: the joint "
+                                           "refit moved no coefficient by its 95 % "
+                                           "half-width and dropped none"))
+        return None
     base = jr.partials[-1]
     try:
         rep = once(base, discretize(base, dt), Q, chans, False)

@@ -50,6 +50,40 @@ def test_a_two_equation_law_along_one_direction_is_refitted_and_keeps_its_direct
     assert np.all(np.abs(new.coef[:, j] - np.array([-0.4, -0.2])) <= 1e-3)
 
 
+def test_the_joint_refit_says_whether_it_moved_the_effects():
+    """``JointRefinement.moved``: a coefficient moved by its 95 % half-width or more (or a
+    term dropped). A law found 30 % off its model's truth (noisy output) is moved; the
+    refit's own result refitted again is not (it moves by the optimizer's tolerance, far
+    inside the intervals). The loop skips the re-trace of the last effect when the joint
+    refit did not move anything (the last pass saw what it would see again)."""
+    rng = np.random.default_rng(1)
+    A, B, kw = _pair_plant()
+    sys = named_ss(A, B, np.eye(2), np.zeros((2, 1)), 0, **kw)
+    dt, N = 0.01, 3000
+    u = rng.standard_normal((1, N))
+    x = gb.simulate(discretize(sys, dt), u, R=np.eye(2) * 1e-8, rng=1).y
+    ch = resolve_channel_spec(sys, [("x1",)])[0]
+    G = np.asarray(ch.G, dtype=float)
+    truth = fit_static(-0.4 * x[:1] + 1e-4 * rng.standard_normal((1, N)), x, u, sys, False,
+                       list(ch.labels), ch.units)
+    y_true = simulate_output(discretize(named_ss(A + G @ truth.Ddx, B + G @ truth.Ddu,
+                                                 np.eye(2), np.zeros((2, 1)), 0, **kw), dt),
+                             u, np.zeros(2))
+    y = y_true + 1e-3 * rng.standard_normal(y_true.shape)
+    off = fit_static(-0.52 * x[:1] + 1e-4 * rng.standard_normal((1, N)), x, u, sys, False,
+                     list(ch.labels), ch.units)
+    names = [s_[0] for s_ in off.spec]
+    final = named_ss(A + G @ off.Ddx, B + G @ off.Ddu, np.eye(2), np.zeros((2, 1)), 0, **kw)
+    noise = dict(Q=np.eye(2) * 1e-8, R=np.eye(2) * 1e-6, dt=dt, x0=np.zeros(2), k0=0)
+    jr = refine_jointly([JointEffect(base=sys, channel=ch, law=off)], final, y, u, **noise)
+    j = np.flatnonzero(jr.laws[0].coef[0])
+    assert jr.moved, (names, jr.laws[0].formula)
+    np.testing.assert_allclose(jr.laws[0].coef[0, j], -0.4, rtol=0.01)  # back at the truth
+    again = refine_jointly([JointEffect(base=sys, channel=ch, law=jr.laws[0])], jr.continuous,
+                           y, u, **noise)
+    assert not again.moved, (jr.laws[0].formula, again.laws[0].formula)
+
+
 def test_two_sensor_gains_are_named_without_a_joint_refit_that_has_nothing_to_refit():
     """Both sensors of a mass-spring-damper read with a gain error (pos 0.8x, vel 1.15x).
     The loop names both sensors' gains; a sensor's gain acts on C and D, which the joint

@@ -87,6 +87,10 @@ class JointRefinement:
     partials : tuple of control.StateSpace
         ``partials[k - 1]``: the continuous model with only the first k effects,
         at their refitted values (k = 1 .. len(laws) - 1).
+    moved : bool
+        Whether the refit changed the effects beyond their noise: a term dropped or
+        merged, or a coefficient moved by its 95 % half-width or more (or its interval
+        undetermined). False: the data cannot tell the refitted effects from the found ones.
     """
 
     laws: tuple
@@ -98,6 +102,7 @@ class JointRefinement:
     npar_after: int
     dropped: tuple[str, ...] = ()
     partials: tuple = field(default=(), repr=False)
+    moved: bool = True
 
 
 class _Param:
@@ -330,6 +335,7 @@ def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: 
     C, D = np.asarray(final.C, dtype=float), np.asarray(final.D, dtype=float)
     prob = _Joint(A0, B0, C, D, ps, dt, y, u, np.asarray(x0, dtype=float), k0)
     active, theta, merged = _independent(ps, theta)
+    start = dict(zip(active, theta))
     with single_thread_blas():
         se0 = prob.se(theta, active)
         sol = prob.fit(theta, active)
@@ -339,6 +345,8 @@ def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: 
         se1 = prob.se(sol.x, active)
     values = dict(zip(active, sol.x))
     halves = dict(zip(active, hw))
+    moved = bool(dropped) or not all(np.isfinite(halves[a]) and
+                                     abs(values[a] - start[a]) < halves[a] for a in active)
     laws = tuple(_rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged)
                  for i, ef in enumerate(effects))
     Ac, Bc = prob.cont(sol.x, active)
@@ -362,7 +370,7 @@ def refine_jointly(effects, final: ct.StateSpace, y: NDArray, u: NDArray, *, Q: 
                            model=UpdatedModel(sys=disc, Q=Q, R=R, order=nf, kind="joint"),
                            se_before=se0, se_after=se1, npar_before=len(ps),
                            npar_after=len(active), dropped=tuple(dropped),
-                           partials=tuple(partials))
+                           partials=tuple(partials), moved=moved)
 
 
 def _independent(ps, theta):
