@@ -20,24 +20,36 @@ def _pair_plant():
     return A, B, kw
 
 
+def _pair_record(seed: int, dt: float = 0.01, N: int = 3000):
+    """The pair plant's continuous model, a white input (1, N) and its nearly noise-free
+    states (2, N) sampled at dt; the generator, to draw more from."""
+    rng = np.random.default_rng(seed)
+    A, B, kw = _pair_plant()
+    sys = named_ss(A, B, np.eye(2), np.zeros((2, 1)), 0, **kw)
+    u = rng.standard_normal((1, N))
+    x = gb.simulate(discretize(sys, dt), u, R=np.eye(2) * 1e-8, rng=1).y
+    return sys, u, x, rng
+
+
+def _with_law(G, law):
+    """The continuous pair model with ``law`` folded into A and B along G."""
+    A, B, kw = _pair_plant()
+    return named_ss(A + G @ law.Ddx, B + G @ law.Ddu, np.eye(2), np.zeros((2, 1)), 0, **kw)
+
+
 def test_a_two_equation_law_along_one_direction_is_refitted_and_keeps_its_direction():
     """A law of two equations acting along one direction (a force: d = g f, g = [1, 0.5],
     f = -0.4 x1) is refitted jointly; its formula keeps the direction line. (The line's
     term scale simulates the base model: it raised a TypeError until 2026-11-27.) The
     data are the law's own model, so the refit must return the coefficients unchanged
     within their intervals."""
-    rng = np.random.default_rng(0)
-    A, B, kw = _pair_plant()
-    sys = named_ss(A, B, np.eye(2), np.zeros((2, 1)), 0, **kw)
-    dt, N = 0.01, 3000
-    u = rng.standard_normal((1, N))
-    x = gb.simulate(discretize(sys, dt), u, R=np.eye(2) * 1e-8, rng=1).y
-    d = np.vstack([-0.4 * x[0], -0.2 * x[0]]) + 1e-4 * rng.standard_normal((2, N))
+    sys, u, x, rng = _pair_record(0)
+    dt = 0.01
+    d = np.vstack([-0.4 * x[0], -0.2 * x[0]]) + 1e-4 * rng.standard_normal((2, x.shape[1]))
     ch = resolve_channel_spec(sys, [("x1", "x2")])[0]
     law = fit_static(d, x, u, sys, False, list(ch.labels), ch.units)
     assert "one direction" in law.formula, law.formula
-    G = np.asarray(ch.G, dtype=float)
-    final = named_ss(A + G @ law.Ddx, B + G @ law.Ddu, np.eye(2), np.zeros((2, 1)), 0, **kw)
+    final = _with_law(np.asarray(ch.G, dtype=float), law)
     y = simulate_output(discretize(final, dt), u, np.zeros(2))
     jr = refine_jointly([JointEffect(base=sys, channel=ch, law=law)], final, y, u,
                         Q=np.eye(2) * 1e-8, R=np.eye(2) * 1e-8, dt=dt, x0=np.zeros(2), k0=0)
@@ -56,24 +68,18 @@ def test_the_joint_refit_says_whether_it_moved_the_effects():
     refit's own result refitted again is not (it moves by the optimizer's tolerance, far
     inside the intervals). The loop skips the re-trace of the last effect when the joint
     refit did not move anything (the last pass saw what it would see again)."""
-    rng = np.random.default_rng(1)
-    A, B, kw = _pair_plant()
-    sys = named_ss(A, B, np.eye(2), np.zeros((2, 1)), 0, **kw)
-    dt, N = 0.01, 3000
-    u = rng.standard_normal((1, N))
-    x = gb.simulate(discretize(sys, dt), u, R=np.eye(2) * 1e-8, rng=1).y
+    sys, u, x, rng = _pair_record(1)
+    dt, N = 0.01, x.shape[1]
     ch = resolve_channel_spec(sys, [("x1",)])[0]
     G = np.asarray(ch.G, dtype=float)
     truth = fit_static(-0.4 * x[:1] + 1e-4 * rng.standard_normal((1, N)), x, u, sys, False,
                        list(ch.labels), ch.units)
-    y_true = simulate_output(discretize(named_ss(A + G @ truth.Ddx, B + G @ truth.Ddu,
-                                                 np.eye(2), np.zeros((2, 1)), 0, **kw), dt),
-                             u, np.zeros(2))
+    y_true = simulate_output(discretize(_with_law(G, truth), dt), u, np.zeros(2))
     y = y_true + 1e-3 * rng.standard_normal(y_true.shape)
     off = fit_static(-0.52 * x[:1] + 1e-4 * rng.standard_normal((1, N)), x, u, sys, False,
                      list(ch.labels), ch.units)
     names = [s_[0] for s_ in off.spec]
-    final = named_ss(A + G @ off.Ddx, B + G @ off.Ddu, np.eye(2), np.zeros((2, 1)), 0, **kw)
+    final = _with_law(G, off)
     noise = dict(Q=np.eye(2) * 1e-8, R=np.eye(2) * 1e-6, dt=dt, x0=np.zeros(2), k0=0)
     jr = refine_jointly([JointEffect(base=sys, channel=ch, law=off)], final, y, u, **noise)
     j = np.flatnonzero(jr.laws[0].coef[0])

@@ -325,8 +325,8 @@ def refit_sensor_on_states(law, x, c, dd, y, u, label, unit, notes,
     ones x's) the larger, per coefficient, of it and the sandwich under that noise model
     (process noise makes the simulation's error a coloured, slowly wandering signal that
     the residual's own autocorrelation understates; as :func:`_sandwich_halfwidths`).
-    The law unchanged when the
-    error does not drop or the simulation is not finite (see :func:`_refit_sensor_law`).
+    The law unchanged when the error does not drop or the simulation is not finite (see
+    :func:`_refit_sensor_law`).
     ``c`` (n,), ``dd`` (m,): the output's row of the model the law reads; ``y`` (N,) the
     measured output, ``u`` (m, N) the inputs; ``notes`` receives one line naming
     ``simulation``. With ``prune``, a term whose 95 % interval holds 0 is dropped (the
