@@ -27,7 +27,7 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-__all__ = ["lti_states", "lti_output", "LTIRecursion", "single_thread_blas"]
+__all__ = ["lti_states", "lti_output", "LTIRecursion", "single_thread_blas", "spectral_radius"]
 
 from ._blas import single_thread_blas  # noqa: E402  (re-exported for the filters)
 
@@ -209,6 +209,18 @@ class LTIRecursion:
             if c > 1:
                 z[i, 1:] = lfilter([1.0], [1.0, -lam], drive, zi=[lam * z0[i]])[0]
         out[:] = (Z @ z).real
+
+
+def spectral_radius(A: NDArray) -> float:
+    """``max |eig(A)|`` of a square matrix (0 for an empty one; inf where the
+    eigenvalues cannot be computed)."""
+    A = np.asarray(A, dtype=float)
+    if not A.size:
+        return 0.0
+    try:
+        return float(np.max(np.abs(np.linalg.eigvals(A))))
+    except np.linalg.LinAlgError:
+        return np.inf
 
 
 def lti_states(Phi: NDArray, v: NDArray, x0: NDArray) -> NDArray[np.float64]:

@@ -116,7 +116,7 @@ from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 from scipy.signal import lfilter
 
-from ._lti import lti_states
+from ._lti import lti_states, spectral_radius
 from ._validation import (
     check_covariance,
     check_discrete,
@@ -777,10 +777,6 @@ _TAIL_TRIES = 5
 _TAIL_SLACK = 0.01
 
 
-def _spectral_radius(A: NDArray) -> float:
-    return float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
-
-
 def delta_update(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, *, Q: ArrayLike,
                  R: ArrayLike, order: int | None = None, max_order: int | None = None,
                  horizon: int | None = None, x0: ArrayLike | None = None,
@@ -1199,7 +1195,7 @@ def _n4sid_starts(name: str, data, u, orders, dt: float, horizons, cut, crit: di
             fABC = None if s_ is None else tuple(np.asarray(v, dtype=float)
                                                  for v in (s_.A, s_.B, s_.C))
             if (fABC is None or not all(np.all(np.isfinite(v)) for v in fABC)
-                    or _spectral_radius(fABC[0]) >= 1.0):
+                    or spectral_radius(fABC[0]) >= 1.0):
                 crit[key] = float("nan")
                 continue
             starts[key] = fABC
@@ -1223,7 +1219,7 @@ def _refine_poles(ranked, origin: dict, u, rsl: slice, refine_iter: int, score, 
         except IdentificationError:
             crit[(key[0] + "+oe", k)] = float("nan")
             continue
-        if _spectral_radius(ref.A) > 1.0 - 1e-6:
+        if spectral_radius(ref.A) > 1.0 - 1e-6:
             # driven to the parametrization's bound: not a real pole (with process
             # noise in the data a simulation-error fit follows its random walk)
             crit[(key[0] + "+oe", k)] = float("nan")
@@ -1317,7 +1313,7 @@ class _Whitener:
         (at most ``N // 20``; 0 for the static whitening ``S^-1/2``)."""
         if self.Abar is None:
             return 0
-        rho = _spectral_radius(self.Abar)
+        rho = spectral_radius(self.Abar)
         k = 1 if rho <= 0.0 else int(np.ceil(np.log(decay) / np.log(rho)))
         return int(min(max(k, 1), max(N // 20, 1)))
 

@@ -11,13 +11,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._blas import single_thread_blas
-from .._lti import lti_output, lti_states
+from .._lti import lti_output, lti_states, spectral_radius
 from ..filters.kernels import predicted_covariance
 from ..metrics import effective_samples, oe_criterion
 from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
 from .laws import (BREAK_KINDS, LINEAR_KINDS, StaticLaw, law_line, _one_direction,
-                   linear_part, siblings)
+                   linear_part, siblings, step_matrix)
 
 # Output-error refinements of static laws run on at most this many samples
 # (their cost is then independent of the record length).
@@ -510,7 +510,12 @@ class _OutputErrorNonlinearLaw:
         m = model.ninputs - md
         Bf = np.asarray(model.B, dtype=float)
         self.A, self.G = np.asarray(model.A, dtype=float), Bf[:, m:]
-        self.A_lin = self.A + self.G @ law.Ddx  # the law's linear stand-in, for the noise model
+        # the noise model: the law's linear stand-in; where that is unstable (a stiffening
+        # law whose fitted directions are not quite action and reaction is circulatory: a
+        # lightly damped mode can grow) the process noise would grow over the window, and
+        # the model without the law stands in
+        A_lin = step_matrix(self.A, self.G, law)
+        self.A_lin = A_lin if spectral_radius(A_lin) < 1.0 else self.A
         self.C = np.asarray(model.C, dtype=float)
         D = np.asarray(model.D, dtype=float)[:, :m]
         self.Bu, self.Du = Bf[:, :m] @ self.u, D @ self.u
