@@ -1026,7 +1026,8 @@ class _Pass:
         if defs:
             self.note("screen", "", "kinematic identities, definitions rather than candidate "
                                     "channels: " + ", ".join(f"eq({d})" for d in defs))
-        self.screen_forces = [c for c in self.chans if c.kind == "force"] if self.big else []
+        self.screen_forces = [c for c in self.chans if c.kind == "force"] if self.big else \
+            self._linked_forces()
         for kc, ch in enumerate(self.chans):
             P.tick("trace candidate channels", kc, len(self.chans))
             if ch in self.screen_forces:
@@ -1091,6 +1092,20 @@ class _Pass:
                 break
             pick = better[0]
         return pick
+
+    def _linked_forces(self) -> list[Channel]:
+        """A small model's forces between the bodies it links, along the link's direction,
+        for the pairs of equations it traces (first pass, default channels): traced in 2a
+        where the pair's law gives no force of its own, as the screen's forces are for a
+        larger model. A pair's law in the two bodies' own states cannot hold a nonlinear
+        force of their relative coordinate (a cubic spring: linear terms in p1 and p2)."""
+        if self.S.channels is not None or self.sys is not self.P.sys:
+            return []
+        pairs = {frozenset(c.equations) for c in self.chans if c.kind == "equation" and
+                 c.md == 2}
+        eqs = sorted({e for p in pairs for e in p})
+        return [f for f in linked_forces(self.sys, eqs) if frozenset(f.equations) in pairs
+                and not _kinematic_in(self.sys, f) and not _along_an_input(self.sys, f)]
 
     def forces(self) -> None:
         """2a. One force inside a pair of equations: md = 1 along the law's direction, with
