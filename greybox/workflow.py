@@ -698,8 +698,7 @@ def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
         # for a spurious effect to pass the gate (a joint-refit chain took a third effect
         # that raised its validation error)
         eqs = [c.equations[0] for c in chans if c.kind == "equation" and c.md == 1]
-        forces = [f for f in linked_forces(sys, eqs) if not _kinematic_in(sys, f) and
-                  not _along_an_input(sys, f)] if sys is P.sys else []
+        forces = _traceable_linked_forces(sys, eqs) if sys is P.sys else []
         notes.append(Decision("screen", "", f"equation screen unavailable ({scr.reason}): "
                               "every single equation is traced (cost grows with n)" +
                               (f", and one force between each of the {len(forces)} pairs of "
@@ -1104,8 +1103,8 @@ class _Pass:
         pairs = {frozenset(c.equations) for c in self.chans if c.kind == "equation" and
                  c.md == 2}
         eqs = sorted({e for p in pairs for e in p})
-        return [f for f in linked_forces(self.sys, eqs) if frozenset(f.equations) in pairs
-                and not _kinematic_in(self.sys, f) and not _along_an_input(self.sys, f)]
+        return [f for f in _traceable_linked_forces(self.sys, eqs)
+                if frozenset(f.equations) in pairs]
 
     def forces(self) -> None:
         """2a. One force inside a pair of equations: md = 1 along the law's direction, with
@@ -1985,6 +1984,14 @@ def _sensor_law_candidates(nominal: ct.StateSpace, ys: np.ndarray, us: np.ndarra
                               f"output({o}) {e / max(scr.total, 1e-300):.0%}"
                               for o, e in zip(top, scr.explained))))
     return tuple(top)
+
+
+def _traceable_linked_forces(sys: ct.StateSpace, equations) -> list[Channel]:
+    """The forces between the bodies the model links among ``equations``
+    (:func:`greybox.trace.channels.linked_forces`), less those acting on a kinematic
+    identity or along an input's B column (the input's own channel says the same)."""
+    return [f for f in linked_forces(sys, equations) if not _kinematic_in(sys, f) and
+            not _along_an_input(sys, f)]
 
 
 def _kinematic_in(sys: ct.StateSpace, ch: Channel) -> bool:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from functools import cached_property
 
 from scipy.linalg import expm
 
@@ -510,12 +511,6 @@ class _OutputErrorNonlinearLaw:
         m = model.ninputs - md
         Bf = np.asarray(model.B, dtype=float)
         self.A, self.G = np.asarray(model.A, dtype=float), Bf[:, m:]
-        # the noise model: the law's linear stand-in; where that is unstable (a stiffening
-        # law whose fitted directions are not quite action and reaction is circulatory: a
-        # lightly damped mode can grow) the process noise would grow over the window, and
-        # the model without the law stands in
-        A_lin = step_matrix(self.A, self.G, law)
-        self.A_lin = A_lin if spectral_radius(A_lin) < 1.0 else self.A
         self.C = np.asarray(model.C, dtype=float)
         D = np.asarray(model.D, dtype=float)[:, :m]
         self.Bu, self.Du = Bf[:, :m] @ self.u, D @ self.u
@@ -527,6 +522,16 @@ class _OutputErrorNonlinearLaw:
         self.mask = np.zeros((md, len(self.sel)))  # which component each term feeds
         for q, (c, _) in enumerate(self.sel):
             self.mask[c, q] = 1.0
+
+    @cached_property
+    def A_lin(self) -> NDArray[np.float64]:
+        """The noise model's state matrix: the law's linear stand-in; where that is unstable
+        (a stiffening law whose fitted directions are not quite action and reaction is
+        circulatory: a lightly damped mode can grow) the process noise would grow over the
+        window, and the model without the law stands in. Built on first use (only a noise
+        model reads it; a matrix logarithm for a law with a hold)."""
+        A_lin = step_matrix(self.A, self.G, self.law)
+        return A_lin if spectral_radius(A_lin) < 1.0 else self.A
 
     def _law(self, X, uk, TH):
         return self.mask @ (TH * self._terms(X, uk))
