@@ -922,6 +922,22 @@ def _dynamic_fit(res, min_order: int, max_order: int, k0: int) -> Subsystem:
     return dyn
 
 
+def _pruned(law, model, channel: Channel, y, u, x0, k0, cont, noise, prune: float,
+            oe_ok: bool, at, notes):
+    """The law's terms kept only where the one criterion supports them
+    (:func:`greybox.trace.oe.prune_by_criterion`; by output error, so not for a model with
+    an integrator, whose simulation drifts: EMPS lost its ``|v|`` term so); the law as it
+    is without ``prune`` or with one term. Appends the decisions to ``notes``."""
+    if not (prune and oe_ok and law.npar > 1 and not has_marginal_pole(model)):
+        return law
+    law, more = prune_by_criterion(law, model, channel.md, y, u, x0, k0, list(channel.labels),
+                                   channel.units, law.term_scale(*at),
+                                   cont if law.time_base == "continuous" else None, noise,
+                                   factor=float(prune))
+    notes += more
+    return law
+
+
 def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whitened: bool,
                  averaged: bool, excess: float, oe_ok: bool, fit_data, at, notes,
                  prune: float = 0.0):
@@ -938,9 +954,11 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
     # noise: only an empty law sends it to output error; its raw variance is mostly
     # high-frequency noise that says nothing about the law, and Q may be overstated)
     low_snr = law.npar == 0 if whitened else excess < _LOW_SNR
+    linear_by_oe = False  # chosen by output error among linear terms only: forms unweighed
     if low_snr and not averaged and oe_ok:
         law = _select_static_oe(law, model, channel.md, y, u, x0, k0, labels,
                                 channel.units, cont=cont, noise=noise)
+        linear_by_oe = True
         notes.append("no term explains the delayed d^: static law chosen by output error on y"
                      if whitened else f"d^ is mostly estimation noise (variance only "
                      f"{100 * excess:.2g}% above Pd): static law chosen by output error on y")
@@ -955,6 +973,7 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
         law = _select_static_oe(law, model, channel.md, y, u, x0, k0, labels,
                                 channel.units, cont=cont, noise=noise,
                                 only=_most_correlated_terms(law, d, xw, uw, align))
+        linear_by_oe = True
         notes.append(f"{'a force whose ' if channel.relative else ''}d^ law is not sparse "
                      f"({law0_npar} terms): static law chosen by output error on y among "
                      f"the terms d^ correlates with most")
@@ -981,17 +1000,19 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
                          f"{se_d:.3g}% -> {se_y:.3g}%")
     # the one criterion: terms only where the data support them (by output error: not for a
     # model with an integrator, whose simulation drifts; EMPS lost its |v| term so)
-    if prune and oe_ok and law.npar > 1 and not has_marginal_pole(model):
-        law, more = prune_by_criterion(law, model, channel.md, y, u, x0, k0,
-                                       labels, channel.units, law.term_scale(x, uu),
-                                       cont if law.time_base == "continuous" else None, noise,
-                                       factor=float(prune))
-        notes += more
-    # a delayed d^ cannot tell a variable's forms apart (v or sign(v)): output error does
-    if whitened and law.npar and oe_ok and not has_marginal_pole(model):
+    law = _pruned(law, model, channel, y, u, x0, k0, cont, noise, prune, oe_ok, at, notes)
+    # a delayed d^ cannot tell a variable's forms apart (v or sign(v)): output error does;
+    # the same for the relative coordinates of a force chosen among the linear terms by
+    # output error (a cubic spring between two bodies measured in part)
+    weigh = whitened or (linear_by_oe and channel.relative)
+    if weigh and law.npar and oe_ok and not has_marginal_pole(model):
         law, more = exchange_siblings(law, model, channel.md, y, u, x0, k0, labels,
-                                      channel.units, law.term_scale(x, uu), noise)
+                                      channel.units, law.term_scale(x, uu), noise,
+                                      family=None if whitened else "relative")
         notes += more
+        if more:  # a form that explains the law alone leaves the others' support to weigh
+            law = _pruned(law, model, channel, y, u, x0, k0, cont, noise, prune, oe_ok, at,
+                          notes)
     # an output-error fit's intervals, checked against the law's own simulation
     if law is not law_d and law.nonlinear and oe_ok:
         law, more = checked_intervals(law, model, channel.md, y, u, x0, k0, labels,

@@ -1220,7 +1220,7 @@ def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray
 
 def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
                       x0: NDArray, k0: int, labels, units, tscale: NDArray,
-                      noise=None) -> tuple[StaticLaw, list[str]]:
+                      noise=None, family: str | None = None) -> tuple[StaticLaw, list[str]]:
     """Each term of a static law swapped for the form of its variable the output error prefers.
 
     A law chosen on a delayed d^ (an equation measured only through others)
@@ -1231,25 +1231,29 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     place on the output error of y, every law simulated with the same
     integrator (:class:`_OutputErrorNonlinearLaw`):
 
-    1. Screen (a few batched simulations): each sibling in its term's place at a few
-       guessed coefficients, the best refined (:func:`_sibling_screen`); the
-       ``_SIBLING_FITS`` best that simulate better than the law go on.
+    1. Screen (a few batched simulations): each sibling in its term's place, and where its
+       component of d has several terms as that component's whole law, at a few guessed
+       coefficients, the
+       best refined (:func:`_sibling_screen`); the ``_SIBLING_FITS`` best that simulate
+       better than the law go on.
     2. Where a sibling already simulates better than the law, the law with the swap (from
        the screen's size) and the law as it is are refitted by output error and the swap
        is taken if it
        lowers the output-error criterion (:func:`greybox.metrics.oe_criterion`
-       on the effective samples of the current law's residual) and keeps the
-       coefficient's sign (a damping stays a damping, only its shape may
-       change: on the Silverbox a -v^3 damping would become a +sign(v)
-       anti-friction); a swap keeps the parameter count, so the criterion
-       compares the fits alone.
+       on the effective samples of the current law's residual, each law's parameters
+       counted) and keeps the coefficient's sign (a damping stays a damping, only its
+       shape may change: on the Silverbox a -v^3 damping would become a +sign(v)
+       anti-friction).
 
     ``tscale``: each term's RMS on the aligned data (:meth:`StaticLaw.term_scale`),
     which sizes the screen's steps and the swapped term's starting coefficient.
-    Returns ``(law, notes)``: the law unchanged and no note when no swap wins.
+    ``family``: only the terms of this :attr:`~greybox.terms.TermKind.family` weighed
+    (None: every term). Returns ``(law, notes)``: the law unchanged and no note when no
+    swap wins.
     """
     sel, theta0 = _selected(law)
-    sibs = [(q, j2) for q, (_, j) in enumerate(sel) for j2 in siblings(law.spec, j)]
+    sibs = [(q, j2) for q, (_, j) in enumerate(sel) for j2 in siblings(law.spec, j)
+            if family is None or term_kind(law.spec[j][1]).family == family]
     if not sibs or len(sel) > _NL_OE_MAX_TERMS or law.output is not None:
         return law, []
     p = y.shape[0]
@@ -1270,15 +1274,21 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
         return law, []
     neff = effective_samples(r)
     cur, best = oe_criterion(r, len(sel), neff), None
-    for q, j2, guess in promising:
-        s2 = sel[:q] + [(sel[q][0], j2)] + sel[q + 1:]
-        start = theta.copy()
-        start[q] = guess  # the screen's refined size (the fit is not convex in it)
+    for q, j2, guess, alone in promising:
+        if alone:  # the sibling as its component's whole law
+            rest = [k for k in range(len(sel)) if sel[k][0] != sel[q][0]]
+            s2 = [sel[k] for k in rest] + [(sel[q][0], j2)]
+            start, at = np.r_[theta[rest], guess], len(rest)
+        else:
+            s2, start, at = sel[:q] + [(sel[q][0], j2)] + sel[q + 1:], theta.copy(), q
+            start[q] = guess  # the screen's refined size (the fit is not convex in it)
         th, hf, r2 = fitted(s2, start)
-        if np.all(np.abs(r2) < 1e6) and np.sign(th[q]) == np.sign(theta[q]):
+        if np.all(np.abs(r2) < 1e6) and np.sign(th[at]) == np.sign(theta[q]):
             crit = oe_criterion(r2, len(s2), neff)
             if crit < cur and (best is None or crit < best[0]):
-                best = (crit, s2, th, hf, (law.spec[sel[q][1]][0], law.spec[j2][0]))
+                old = " + ".join(law.spec[j][0] for c, j in sel if c == sel[q][0]) \
+                    if alone else law.spec[sel[q][1]][0]
+                best = (crit, s2, th, hf, (old, law.spec[j2][0] + (" alone" if alone else "")))
     if best is None:
         return law, []
     _, sel, theta, half, (a, b) = best
@@ -1300,24 +1310,33 @@ def _same_size(coef: float, tscale: NDArray, j: int, j2: int) -> float:
 
 
 def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noise, W):
-    """The swaps ``(q, sibling term, coefficient)`` that already simulate better than the law
-    as it is at a guessed coefficient, best first: the term's own of the same RMS times
-    1/4 ... 4, the best refined by halving steps (``_SCREEN_REFINE``); each round one
-    simulation of every trial, the trials independent (see :func:`exchange_siblings`).
-    A first-order screen (the derivative at 0, as :func:`_by_score`) missed Coulomb
-    friction for the linear damping it was named as: the friction's effect on the
-    motion is far from linear in its size."""
+    """The swaps ``(q, sibling term, coefficient, alone)`` that already simulate better than
+    the law as it is at a guessed coefficient, best first: the sibling in its term's place
+    (``alone`` False) and, where its component of d has several terms, the sibling as that
+    component's whole law (``alone`` True: linear terms chosen together can mimic one odd
+    form, a relative deflection and velocity for a cubic spring); its size the term's own
+    of the same RMS times ``_SCREEN_FACTORS``, the best refined by halving steps
+    (``_SCREEN_REFINE``); each round one simulation of every trial, the trials independent (see
+    :func:`exchange_siblings`). A first-order screen (the derivative at 0, as
+    :func:`_by_score`) missed Coulomb friction for the linear damping it was named as: the
+    friction's effect on the motion is far from linear in its size."""
     ext = sel + [(sel[q][0], j2) for q, j2 in sibs]
     th = np.r_[theta0, np.zeros(len(sibs))]
     prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, ext, th, noise, W)
     size = np.array([_same_size(theta0[q], tscale, sel[q][1], j2) for q, j2 in sibs])
+    comp = np.array([c for c, _ in sel])
+    trials = [(s, False) for s in range(len(sibs))]
+    trials += [(s, True) for s, (q, _) in enumerate(sibs) if np.sum(comp == comp[q]) > 1]
 
-    def rss_at(fac):  # fac (nsibs, k): each sibling alone in its term's place at these sizes
+    def rss_at(fac):  # fac (ntrials, k): each trial at these sizes
         cols = [th]  # and the law as it is (its rss first)
-        for s, (q, _) in enumerate(sibs):
-            for f in fac[s]:
+        for t, (s, alone) in enumerate(trials):
+            q = sibs[s][0]
+            for f in fac[t]:
                 col = th.copy()
                 col[q] = 0.0
+                if alone:  # the other terms of its component of d out
+                    col[:len(sel)][comp == comp[q]] = 0.0
                 col[len(sel) + s] = f * size[s]
                 cols.append(col)
         with np.errstate(all="ignore"):  # trials independent: one diverging voids only itself
@@ -1325,26 +1344,33 @@ def _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale, noi
         r = np.sum(R ** 2, axis=1)  # _resid counts a diverged sample as 1e6: finite
         return r[0], r[1:].reshape(fac.shape)
 
-    fac = np.tile(np.array(_SCREEN_FACTORS), (len(sibs), 1))
+    fac = np.tile(np.array(_SCREEN_FACTORS), (len(trials), 1))
     base, rss = rss_at(fac)
-    f_best, r_best = fac[np.arange(len(sibs)), rss.argmin(1)], rss.min(1)
-    for step in _SCREEN_REFINE:  # each sibling's best size, refined around the grid's
+    rows = np.arange(len(trials))
+    f_best, r_best = fac[rows, rss.argmin(1)], rss.min(1)
+    for step in _SCREEN_REFINE:  # each trial's best size, refined around the grid's
         fac = f_best[:, None] * 2.0 ** np.array([-step, step])
         rss = rss_at(fac)[1]
         better = rss.min(1) < r_best
-        f_best = np.where(better, fac[np.arange(len(sibs)), rss.argmin(1)], f_best)
+        f_best = np.where(better, fac[rows, rss.argmin(1)], f_best)
         r_best = np.minimum(r_best, rss.min(1))
-    order = [s for s in np.argsort(r_best) if r_best[s] < base][:_SIBLING_FITS]
-    return [(*sibs[s], float(f_best[s] * size[s])) for s in order]
+    order = [t for t in np.argsort(r_best) if r_best[t] < base][:_SIBLING_FITS]
+    return [(*sibs[trials[t][0]], float(f_best[t] * size[trials[t][0]]), trials[t][1])
+            for t in order]
 
 
-_SCREEN_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0)
-#: Refinement of each sibling's best size on the grid: steps of 2^+-1/2, 2^+-1/4, 2^+-1/8
-#: (one batched simulation each). A friction's output error is sharply peaked in its
-#: size: on zoo coulomb seed 1627726626 draw 1, sign(v1) simulated worse than the law at
-#: every grid size (61.7 at 1x against 48.2) and better only within x0.77-0.92 (31.9 at
+#: Sizes of a sibling in its term's place, relative to the term's own of the same RMS: a
+#: factor 4 apart from 1/16 to 1024. An output-error fit of a wrong form shrinks it
+#: towards 0 where it cannot mimic the law (a linear spring for a cubic one: on zoo
+#: cubic_force seed 20261205 draw 14 the cube's right size was 32x the linear fit's of the
+#: same RMS, and 560x on seed 20261206 draw 0), so the range reaches far above 1.
+_SCREEN_FACTORS = tuple(4.0 ** np.arange(-2, 6))
+#: Refinement of each sibling's best size on the grid: steps of 2^+-1, 2^+-1/2, 2^+-1/4,
+#: 2^+-1/8 (one batched simulation each). A friction's output error is sharply peaked in
+#: its size: on zoo coulomb seed 1627726626 draw 1, sign(v1) simulated worse than the law
+#: at every grid size (61.7 at 1x against 48.2) and better only within x0.77-0.92 (31.9 at
 #: 0.84x).
-_SCREEN_REFINE = (0.5, 0.25, 0.125)
+_SCREEN_REFINE = (1.0, 0.5, 0.25, 0.125)
 #: Swaps refitted by output error: the screen's best few. Each is a nonlinear simulation
 #: fitted by Levenberg-Marquardt (~1 s at 2000 samples); a second-order actuator lag's
 #: static side law (tests/test_zoo.py draw 1) had 7 and 8 promising swaps, 21 of the
