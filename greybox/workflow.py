@@ -72,7 +72,8 @@ from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dyn
                              fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
     fit_shared_order2
-from .trace.joint import has_joint_parameters, joint_effect, refine_jointly
+from .trace.joint import has_joint_parameters, joint_effect, refine_jointly, \
+    without_dead_states
 from .trace.channels import (force_channel, input_channel, linked_forces, output_channel,
                              relative_coordinates)
 from .trace.laws import StaticLaw, direction, sensor_states
@@ -748,7 +749,7 @@ def _joint(P: Problem, passes, final, Qf):
         return None
     x0 = estimate_initial_state(discretize(final, P.dt), P.y, P.u)
     jr = refine_jointly(effs, final, P.y, P.u, Q=Qf, R=P.R, dt=P.dt, x0=x0, k0=20)
-    jr = _held_sensors_refitted(P, jr, passes)
+    jr = without_dead_states(_held_sensors_refitted(P, jr, passes), effs)
     if not (jr.se_after < jr.se_before or
             (jr.npar_after < jr.npar_before and jr.se_after <= 1.01 * jr.se_before)):
         return jr, None
@@ -2396,6 +2397,10 @@ def _refitted_steps(steps, passes, jr, row):
         else:
             eff = replace(eff, formula=law.formula, law=law,
                           parameter_notes=parameter_notes(base, ch, law))
+            if eff.dynamic_law is not None:  # every lag dropped: the feedthrough, static
+                st = replace(st, message=st.message.replace(
+                    f"dynamic effect of order {eff.order}", "static effect", 1))
+                eff = replace(eff, kind="static", order=0, dynamic_law=None, subsystem=None)
         new.append(replace(st, effect=eff))
     new[-1] = replace(new[-1], se_after=row.se.value, model=jr.model)
     return new

@@ -748,6 +748,29 @@ def test_a_stiff_cubic_law_is_validated_from_a_settled_prior_not_refused(seed, i
     assert any("settled" in n or "steady-state covariance" in n for n in rep.notes), rep.notes
 
 
+def test_a_first_order_law_whose_lag_the_joint_refit_drops_is_named_static():
+    """zoo state_sensor, seed 20261207, draw 1 (wrong on that fresh seed; at the test's
+    2000 samples the same): an 11-mass chain, all 22 states measured, m6's damping 1.91x in
+    the model and an offset of -0.0878 on the v8 sensor. Pass 1, before the offset is
+    known, chose a first-order law of v6 (3 parameters); the joint refit of both effects
+    drops its lag (the driver's gain, whose interval contains 0) and leaves the feedthrough
+    ``1.48*v6``. The report still named "a dynamic effect of order 1" with a time constant
+    "not determined by the data", and the model carried the state nothing drives any more.
+    Now that effect is the static law it is (trace.joint._feedthrough_law), its state out of
+    the model (trace.joint.without_dead_states): the zoo's right explanation, the damping
+    error within 10 %."""
+    d = zoo.draw_class("state_sensor", 20261207, 1, n_est=N_RUN)
+    rep = gb.close_the_loop(d.nominal, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
+                            delta=False)
+    s = zoo.score(d, rep)
+    assert rep.updated and s.right and s.coefficients_within, (s.why, s.found)
+    assert [st.effect.kind for st in rep.steps] == ["static", "static"], rep.message
+    assert rep.steps[0].effect.dynamic_law is None and "dynamic" not in rep.message
+    assert any("dropped eq(v6): lag v6" in x.reason for x in rep.decisions)
+    # the sensor's offset is the one state the model gains (the law's state is gone)
+    assert rep.model.sys.nstates == d.nominal.nstates + 1, rep.model.sys.state_labels
+
+
 def test_a_sensor_offset_beside_a_state_error_is_traced_with_the_sensor_first():
     """Two effects of different kinds (issue 27 item 5): a sensor's offset and a state
     equation's error. Zoo state_sensor, seed 2112803, draw 0 (the first draw of that class

@@ -41,7 +41,8 @@ from .shared_order2 import SharedLaw2
 from .shared_order2 import _law_from as _shared2_law_from
 from .shared_order2 import _Problem as _Shared2Problem
 
-__all__ = ["JointEffect", "JointRefinement", "has_joint_parameters", "refine_jointly"]
+__all__ = ["JointEffect", "JointRefinement", "has_joint_parameters", "refine_jointly",
+           "without_dead_states"]
 
 
 @dataclass(frozen=True)
@@ -502,6 +503,9 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged=()):
         e.append(values.get(qe, 0.0))
         hb.append(halves.get(qb, np.nan))
         he.append(halves.get(qe, np.nan))
+    if not any(q in values for q, p in mine if p.key[0] == "b"):
+        # every driver's lag dropped: the feedthrough left is a static law
+        return _feedthrough_law(base, ch, drv, e, he)
     dprob = _problem(base, ch, y, u, dt, _x0_of(prob, n), k0, drv)
     Qb = Q[:n, :n]
     # a feedthrough merged into an earlier effect's same term: the input's path through
@@ -510,6 +514,63 @@ def _rebuild(i, ef, ps, values, halves, y, u, Q, R, dt, k0, prob, merged=()):
                f"{p.name} (the same term as an earlier effect's)" in merged for q, p in mine)
     return _law_from(base, ch, dprob, drv, np.r_[a, b, e], np.r_[ha, hb, he], Qb, R,
                      reach=not held)
+
+
+def _feedthrough_law(base: ct.StateSpace, ch: Channel, drv, e, he) -> StaticLaw:
+    """The static law a first-order law leaves when the joint refit dropped every driver's
+    lag: its feedthrough terms, a continuous-time linear law of the channel's first
+    component of d (where the first-order law's gain enters), with their intervals."""
+    states, inputs = list(base.state_labels), list(base.input_labels)
+    spec = []
+    for kind, idx in drv:
+        if kind == "x":
+            spec.append((states[idx], "x", idx))
+        elif kind == "u":
+            spec.append((inputs[idx], "u", idx))
+        else:  # x_j - x_i
+            i, j = idx
+            spec.append((f"({states[j]}-{states[i]})", "rel", (i, j, 0)))
+    coef = np.zeros((ch.md, len(spec)))
+    half = np.full_like(coef, np.nan)
+    coef[0], half[0] = e, he
+    Ddx, Ddu = linear_part(spec, coef, base.nstates, base.ninputs)
+    kept = np.flatnonzero(coef[0])
+    formula = law_line(ch.labels[0], coef[0, kept], [spec[j][0] for j in kept],
+                       ch.units[0] if ch.units else "", half[0, kept])
+    return StaticLaw(spec=tuple(spec), eps=np.zeros(1), coef=coef, Ddx=Ddx, Ddu=Ddu,
+                     nonlinear=False, residual_var=np.full(ch.md, np.nan), bic_gain=np.nan,
+                     npar=int(kept.size), formula=formula, ci=half, time_base="continuous")
+
+
+def without_dead_states(jr: JointRefinement, effects) -> JointRefinement:
+    """``jr`` with the states no effect drives any more taken out of the final model: a
+    first-order law left static by the refit (no driver's lag kept:
+    :func:`_feedthrough_law`) leaves its state behind, here or in a later refit of the same
+    effects (the state then sits in the next effect's base). A law of the state equations
+    that is static adds no state, so the states between its base and the next effect's
+    (or the final model's) are such orphans: nothing drives them; from 0 they stay 0, and
+    they sit below the states they fed (block-triangular), so the other states' discrete
+    matrices are unchanged. The partial models keep them (a later effect's state indices
+    count them). A sensor law's states (an offset, a drift, a lag) are never touched."""
+    counts = [ef.base.nstates for ef in effects] + [jr.continuous.nstates]
+    dead = set()
+    for k, law in enumerate(jr.laws):
+        if isinstance(law, StaticLaw) and law.output is None:
+            dead |= set(range(counts[k], counts[k + 1]))
+    if not dead:
+        return jr
+    keep = [k for k in range(jr.continuous.nstates) if k not in dead]
+
+    def cut(sys):
+        A, B, C = (np.asarray(a, dtype=float) for a in (sys.A, sys.B, sys.C))
+        return named_ss(A[np.ix_(keep, keep)], B[keep], C[:, keep], sys.D, sys.dt,
+                        states=[sys.state_labels[k] for k in keep], inputs=sys.input_labels,
+                        outputs=sys.output_labels, name=sys.name)
+
+    m = jr.model
+    return replace(jr, continuous=cut(jr.continuous),
+                   model=replace(m, sys=cut(m.sys), Q=np.asarray(m.Q)[np.ix_(keep, keep)],
+                                 order=len(keep)))
 
 
 def _kept(ef, mine, values, halves, keys):
