@@ -1676,7 +1676,7 @@ class _Pass:
                                   for e in ch.equations], 0]
             where = (f"one force between {' and '.join(ch.equations)} (it enters {where} as "
                      f"{np.array2string(g, precision=3)})")
-        what = f"{v.kind} effect{'' if v.kind == 'static' else f' of order {effect.order}'}"
+        what = _effect_phrase(v.kind, effect.order)
         if effect.kind == "sensor":
             what = ("sensor dynamics, a first-order lag (one sensor state)"
                     if any(term_kind(sp[1]).time_constant for sp in effect.law.spec) else
@@ -2387,6 +2387,11 @@ def _refit_jointly(joint, passes, final, Qf, notes):
     return None if row is None else (jr, row)
 
 
+def _effect_phrase(kind: str, order: int) -> str:
+    """``"static effect"`` or ``"dynamic effect of order 2"``: an effect in a message."""
+    return f"{kind} effect{'' if kind == 'static' else f' of order {order}'}"
+
+
 def _refitted_steps(steps, passes, jr, row):
     """The steps with their effects' laws, formulas and notes at the refitted values."""
     new = []
@@ -2399,7 +2404,7 @@ def _refitted_steps(steps, passes, jr, row):
                           parameter_notes=parameter_notes(base, ch, law))
             if eff.dynamic_law is not None:  # every lag dropped: the feedthrough, static
                 st = replace(st, message=st.message.replace(
-                    f"dynamic effect of order {eff.order}", "static effect", 1))
+                    _effect_phrase(eff.kind, eff.order), _effect_phrase("static", 0), 1))
                 eff = replace(eff, kind="static", order=0, dynamic_law=None, subsystem=None)
         new.append(replace(st, effect=eff))
     new[-1] = replace(new[-1], se_after=row.se.value, model=jr.model)

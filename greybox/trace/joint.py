@@ -33,8 +33,8 @@ from .._lti import lti_states
 from ..system import named_ss
 from ..update import UpdatedModel
 from .channels import Channel
-from .dynamic import DynamicLaw, SharedLaw, _law_from, _problem, _shared_law_from, \
-    _shared_problem
+from .dynamic import DynamicLaw, SharedLaw, _driver_name, _law_from, _problem, \
+    _shared_law_from, _shared_problem
 from .laws import StaticLaw, law_line, _one_direction, linear_part
 from .oe import OutputError, zoh
 from .shared_order2 import SharedLaw2
@@ -520,16 +520,8 @@ def _feedthrough_law(base: ct.StateSpace, ch: Channel, drv, e, he) -> StaticLaw:
     """The static law a first-order law leaves when the joint refit dropped every driver's
     lag: its feedthrough terms, a continuous-time linear law of the channel's first
     component of d (where the first-order law's gain enters), with their intervals."""
-    states, inputs = list(base.state_labels), list(base.input_labels)
-    spec = []
-    for kind, idx in drv:
-        if kind == "x":
-            spec.append((states[idx], "x", idx))
-        elif kind == "u":
-            spec.append((inputs[idx], "u", idx))
-        else:  # x_j - x_i
-            i, j = idx
-            spec.append((f"({states[j]}-{states[i]})", "rel", (i, j, 0)))
+    spec = [(_driver_name(base, d), {"x": "x", "u": "u", "r": "rel"}[d[0]],
+             (*d[1], 0) if d[0] == "r" else d[1]) for d in drv]  # rel: (i, j, eps index)
     coef = np.zeros((ch.md, len(spec)))
     half = np.full_like(coef, np.nan)
     coef[0], half[0] = e, he
