@@ -43,6 +43,7 @@ from ._validation import (check_covariance, check_input_record, check_positive,
                           check_vector)
 from .exceptions import DataError, DimensionError, ModelError
 from .signals import SimulationResult, gaussian_noise, as_generator
+from .hold import as_hold
 from .system import named_ss
 
 __all__ = [
@@ -628,7 +629,7 @@ def with_unknown_inputs(sys, G: ArrayLike, labels=None) -> ct.NonlinearIOSystem:
 
 
 def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
-            hold: tuple | None = None) -> ct.NonlinearIOSystem:
+            hold=None) -> ct.NonlinearIOSystem:
     """The model with a law added to its state equations: ``f(t, x, u) + G law(x, u)``.
 
     Parameters
@@ -644,11 +645,13 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
         (md, npoints) (e.g. ``StaticLaw.evaluate``).
     name : str, optional
         Name of the new model (default ``<name>_updated``).
-    hold : (ndarray (nstates, md), ndarray (nstates, md)), optional
-        Discrete models only: ``(Gamma0, Gamma1)`` of a continuous law taken linear
-        between the samples (``StaticLaw.hold``): each step is then the Heun step
-        ``x+ = f(x, u) + Gamma0 law(x, u) + Gamma1 law(xs, u)`` with the predictor
-        ``xs = f(x, u) + (Gamma0 + Gamma1) law(x, u)`` (G is not used).
+    hold : greybox.hold.LawHold or (ndarray (nstates, md), ndarray (nstates, md)), optional
+        Discrete models only: a continuous law integrated over each sample
+        (``StaticLaw.hold``: :meth:`greybox.hold.LawHold.step`, fourth order;
+        G is not used). A pair ``(Gamma0, Gamma1)`` is a first-order hold of the
+        law, each step the Heun step ``x+ = f(x, u) + Gamma0 law(x, u) +
+        Gamma1 law(xs, u)`` with the predictor ``xs = f(x, u) + (Gamma0 +
+        Gamma1) law(x, u)``.
 
     Returns
     -------
@@ -671,21 +674,44 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
         raise ModelError("a first-order hold of the law needs a discrete model; found a "
                          "continuous one. Hint: add the law to the continuous model without "
                          "hold")
-    G0, G1 = (None, None) if hold is None else (_columns(hold[0], base.nstates),
-                                                _columns(hold[1], base.nstates))
+    hold = as_hold(hold)
+    if hold is not None:
+        _columns(hold.G0, base.nstates), _columns(hold.G1, base.nstates)  # checks the rows
+    if hold is not None and hold.E2 is not None and not isinstance(sys, ct.StateSpace):
+        raise ModelError("a law integrated over each sample (a LawHold) needs the discrete "
+                         f"StateSpace it was found on; found {type(sys).__name__}. Hint: pass "
+                         "the model as a StateSpace, or the hold as (hold.G0, hold.G1)")
 
     def upd(t, x, u, params):
         x = np.asarray(x, dtype=float)
         u = np.asarray(u, dtype=float)
+        if hold is not None and hold.E2 is not None:
+            return _law_step(sys, hold, law, x, u)
         fx, d = np.asarray(f(t, x, u, params), dtype=float), np.asarray(law(x, u), float)
-        if G0 is None:
+        if hold is None:
             return fx + G @ d
-        xs = fx + (G0 + G1) @ d  # predictor: d constant over the sample
-        return fx + G0 @ d + G1 @ np.asarray(law(xs, u), float)
+        xs = fx + (hold.G0 + hold.G1) @ d  # Heun: the predictor holds d over the sample
+        return fx + hold.G0 @ d + hold.G1 @ np.asarray(law(xs, u), float)
 
     return ct.nlsys(upd, base.outfcn, states=list(base.state_labels),
                     inputs=list(base.input_labels), outputs=list(base.output_labels),
                     dt=base.dt, params=dict(par or {}), name=name or f"{base.name}_updated")
+
+
+def _law_step(sys: ct.StateSpace, hold, law: Callable, x: NDArray, u: NDArray) -> NDArray:
+    """One sample of ``A x + B u`` with the law integrated over it (``hold.step``); x of
+    shape (nstates,) or (nstates, npoints), u (ninputs,) or (ninputs, npoints)."""
+    A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
+    col = x.ndim == 1
+    bu = B @ u
+    X, bu = (x[:, None], bu[:, None]) if col else (x, bu if bu.ndim == 2 else bu[:, None])
+    md = hold.G0.shape[1]
+
+    def f(Z):
+        return np.asarray(law(Z[:, 0] if col else Z, u), dtype=float).reshape(md, -1)
+
+    out = hold.step(A, X, bu, f)
+    return out[:, 0] if col else out
 
 
 def kinematic_identities(sys, X: ArrayLike, U: ArrayLike, *, rtol: float = 1e-9) -> list[str]:

@@ -2358,8 +2358,8 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
 
     The table's "updated" row of such a report simulates
     ``x[k+1] = A x + B u + G law(x, u)`` (discrete A, B, G of the traced
-    channel; the Heun step of ``law.hold`` for a continuous law taken linear
-    between the samples); this adds it as a ``NonlinearIOSystem`` (``rep.nonlinear``)
+    channel; ``law.hold`` integrates a continuous law over each sample); this
+    adds it as a ``NonlinearIOSystem`` (``rep.nonlinear``)
     with its linearization at the mean filtered state and input, and a note
     saying which row is which. Other reports are returned unchanged.
 

@@ -206,14 +206,15 @@ def test_silverbox_cubic_stiffness_is_in_the_velocity_equation(silverbox):
     for term, sign in (("y^3", -1), ("|y|", 1), (damping[0], -1)):
         assert term in nz and sign * coef[term] > ci[term] > 0, (term, law.formula)
     # the same structure as a continuous ODE with the band-limited input, by output error
-    # (bench/silverbox_structures.py): k3/m = -7.37e5, |y| 662; the discrete law (first-
-    # order hold, ZOH-equivalent input) differs by its integration: measured 4 % and 17 %
+    # (bench/silverbox_structures.py): k3/m = -7.37e5, |y| 662; the discrete law (ZOH-
+    # equivalent input, the law integrated over each sample by ETDRK4): measured -7.367e5
+    # and 710, 0.04 % and 7 % off (4 % and 8 % when the Heun step integrated it)
     np.testing.assert_allclose(coef["y^3"], -7.37e5, rtol=0.1)
     np.testing.assert_allclose(coef["|y|"], 662, rtol=0.3)
     se0, se1 = rep.table["nominal"].se.value, rep.table["updated"].se.value
     assert se0 / se1 >= 20.0, (se0, se1)  # measured 28.6 % -> 0.676 % (3.36 % held midpoint)
     # the arrow test without extrapolation, [100:32100]: measured 12.4 mV (nominal) ->
-    # 0.265 mV (0.304 mV with v^3 for v*|v|; was 1.47 mV with the midpoint held); goal 1 mV, published good nonlinear
+    # 0.246 mV (0.265 mV by the Heun step, 0.304 mV with v^3 for v*|v|; was 1.47 mV with the midpoint held); goal 1 mV, published good nonlinear
     # models 0.3-1 mV; the Duffing ODE's floor with this input is 0.36 mV. 0.5 mV: the
     # measured value plus 60 %, still half the goal
     k = 50

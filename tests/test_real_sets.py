@@ -169,12 +169,13 @@ def test_silverbox_cubic_stiffness_in_the_velocity_equation(silverbox):
 def test_silverbox_arrow_test_goal(silverbox):
     rms = silverbox["rms_mV"]
     # the official test (the arrow without extrapolation, [100:32100]): linear models 10+ mV
-    # published, ours 12.4 mV (measured); goal <= 1 mV, measured 0.265 mV (0.304 mV with a
-    # -v^3 damping before the signed square v*|v| joined the library)
+    # published, ours 12.4 mV (measured); goal <= 1 mV, measured 0.246 mV (0.265 mV when the
+    # law was integrated by the Heun step of its first-order hold, 0.304 mV with a -v^3
+    # damping before the signed square v*|v| joined the library)
     assert rms["nominal"] > 10 and rms["updated"] <= 1.0, rms
     # (deterministic code and data; 5 % covers BLAS/platform rounding in the law's
     # output-error refit, whose arrow simulation runs 32000 samples)
-    np.testing.assert_allclose(rms["updated"], 0.265, rtol=0.05)
+    np.testing.assert_allclose(rms["updated"], 0.246, rtol=0.05)
 
 
 @_marks("exchanger")

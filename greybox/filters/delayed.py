@@ -41,11 +41,11 @@ from dataclasses import dataclass
 import control as ct
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import expm
 
 from .._blas import single_thread_blas
 from .._validation import check_covariance, check_positive
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
+from ..hold import LawHold
 from ._memo import MEMO
 from .feedthrough import _unknown_feedthrough
 from .kernels import (
@@ -292,14 +292,8 @@ def first_order_hold(Ac: ArrayLike, Gc: ArrayLike, dt: float
     Gamma0, Gamma1 : ndarray, shape (nstates, md)
         Weights of d[k] and d[k+1] when d(t) is linear between the samples.
     """
-    Ac = np.asarray(Ac, dtype=float)
-    Gc = np.asarray(Gc, dtype=float).reshape(Ac.shape[0], -1)
-    n, md = Gc.shape
-    M = np.zeros((n + 2 * md, n + 2 * md))
-    M[:n, :n], M[:n, n:n + md], M[n:n + md, n + md:] = Ac, Gc, np.eye(md)
-    E = expm(M * dt)
-    Ga, Gb = E[:n, n:n + md], E[:n, n + md:] / dt
-    return Ga - Gb, Gb
+    hold = LawHold.of(Ac, Gc, dt)
+    return hold.G0, hold.G1
 
 
 def _weights(A, C, G, r, labels, foh=None):

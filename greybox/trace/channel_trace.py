@@ -24,7 +24,7 @@ from ..filters import (
     smooth_uikf,
     uikf,
 )
-from ..filters.delayed import first_order_hold
+from ..hold import LawHold
 from ..filters.smoother import smooth_feedthrough_of
 from ..metrics import autocorrelation
 from ..system import named_ss
@@ -834,7 +834,7 @@ def _held(law: StaticLaw, cont, r: int, midpoint: bool) -> StaticLaw:
     exactly (:func:`_static_model`)."""
     if cont is None or not (r >= 2 or midpoint):
         return law
-    law = replace(law, hold=first_order_hold(cont[0], cont[2], cont[3]))
+    law = replace(law, hold=LawHold.of(cont[0], cont[2], cont[3]))
     return law if law.nonlinear else replace(law, time_base="continuous")
 
 

@@ -15,6 +15,7 @@ from scipy.signal import lfilter
 from .._blas import single_thread_blas
 from ..exceptions import IdentificationError, ModelError
 from ..filters import FilterResult
+from ..hold import as_hold
 from ..ident.regression import SparseLaw, forward_selection, forward_selection_gram
 from ..terms import (BREAK_KINDS, BREAK_QUANTILES, LINEAR_KINDS, SAT_QUANTILES,
                      SENSOR_STATE_KINDS, SIBLING_KINDS, break_name, break_row, break_slope,
@@ -90,13 +91,14 @@ class StaticLaw:
         continuous G, d in the channel's physical units (the augmented model is
         discretized exactly); "discrete": ``d[j]`` acts through the
         ZOH-discretized G between samples j and j+1.
-    hold : tuple of two ndarrays (nstates, md), or None
-        ``(Gamma0, Gamma1)`` when the law is a continuous-time force taken as
-        linear between samples (first-order hold: ``x[k+1] = A x + B u +
-        Gamma0 d[k] + Gamma1 d[k+1]``), as a law fitted on a delayed d^ with
-        first-order-hold weights is; :func:`simulate_with_law` and
-        :func:`predict_with_law` then integrate it so (Heun step). None: d[k]
-        is held over the sample and enters through G.
+    hold : greybox.hold.LawHold or None
+        A continuous-time law (``dx/dt = Ac x + Bc u + Gc law(x, u)``, the
+        input held), as a law fitted on a delayed d^ or with first-order-hold
+        weights is: :func:`simulate_with_law` and :func:`predict_with_law`
+        integrate it over each sample (:meth:`greybox.hold.LawHold.step`,
+        fourth order; a ``(Gamma0, Gamma1)`` pair is taken as a first-order
+        hold integrated by the Heun step). None: d[k] is held over the sample
+        and enters through G.
     output : int or None
         Index of the output a sensor-error law adds to (``y_i = C_i x + D_i u
         + d``; Ddx, Ddu are then its linear part in the output equation);
@@ -496,34 +498,26 @@ def law_line(label: str, coefs, names, unit: str, half=None) -> str:
 # --------------------------------------------------------------------------- nonlinear laws
 def _step_cols(A, X, bu, G, law, uk):
     """:func:`_step` for the states in the columns of X (nstates, K); bu (nstates,)."""
-    F = law.evaluate(X, uk)
-    base = A @ X + bu[:, None]
-    if law.hold is None:
-        return base + G @ F
-    G0, G1 = law.hold
-    Xs = base + (G0 + G1) @ F  # predictor: d constant over the sample
-    return base + G0 @ F + G1 @ law.evaluate(Xs, uk)
+    hold = as_hold(law.hold)
+    if hold is None:
+        return A @ X + bu[:, None] + G @ law.evaluate(X, uk)
+    return hold.step(A, X, bu[:, None], lambda Z: law.evaluate(Z, uk))
 
 
 def _step(A, xk, bu, G, law, uk):
-    """``A x + B u + G d`` with d held (ZOH), or first-order hold of the law (Heun step)."""
-    fk = law.evaluate(xk[:, None], uk)[:, 0]
-    if law.hold is None:
-        return A @ xk + bu + G @ fk
-    G0, G1 = law.hold
-    base = A @ xk + bu
-    xs = base + (G0 + G1) @ fk  # predictor: d constant over the sample
-    return base + G0 @ fk + G1 @ law.evaluate(xs[:, None], uk)[:, 0]
+    """``A x + B u + G d`` with d held (ZOH), or the law integrated over the sample
+    (``law.hold``: :meth:`greybox.hold.LawHold.step`)."""
+    return _step_cols(A, xk[:, None], bu, G, law, uk)[:, 0]
 
 
 def step_matrix(A: NDArray, G: NDArray, law: StaticLaw) -> NDArray[np.float64]:
     """The state matrix of the model with the law replaced by its linear part ``Ddx``.
 
     A law held over the sample: ``A + G Ddx``. A law with ``law.hold`` (a
-    continuous-time law, simulated by the Heun step): the continuous model with
+    continuous-time law, integrated over each sample): the continuous model with
     ``Gc Ddx`` added, discretized exactly, ``expm(L11 + L12 Ddx)`` with ``L`` the
     matrix logarithm of ``[[A, G0 + G1], [0, I]]`` (= ``[[Ac, Gc], [0, 0]] dt``);
-    the Heun step's own linearization where that logarithm is not real.
+    the first-order hold's Heun step linearized where that logarithm is not real.
 
     The linear model whose process noise the law's simulation carries (the noise
     model of its intervals). A stiffening law in a lightly damped plant, added
@@ -533,9 +527,10 @@ def step_matrix(A: NDArray, G: NDArray, law: StaticLaw) -> NDArray[np.float64]:
     intervals 2600x the residual's.
     """
     A, D = np.asarray(A, dtype=float), np.asarray(law.Ddx, dtype=float)
-    if law.hold is None:
+    hold = as_hold(law.hold)
+    if hold is None:
         return A + np.asarray(G, dtype=float) @ D
-    G0, G1 = (np.asarray(g, dtype=float) for g in law.hold)
+    G0, G1 = hold.G0, hold.G1
     n, md = A.shape[0], D.shape[0]
     M = np.block([[A, G0 + G1], [np.zeros((md, n)), np.eye(md)]])
     try:

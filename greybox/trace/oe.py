@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from .._blas import single_thread_blas
 from .._lti import lti_output, lti_states, spectral_radius
 from ..filters.kernels import predicted_covariance
+from ..hold import as_hold
 from ..metrics import effective_samples, oe_criterion
 from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
@@ -542,7 +543,7 @@ class _OutputErrorNonlinearLaw:
         A diverging column stops the whole simulation (NaN from there on: the columns of
         a fit's Jacobian share their fate); with ``isolate`` (independent trials, a
         screen) only that column is NaN from where it diverged and the others go on."""
-        A, G, hold = self.A, self.G, self.law.hold
+        A, G, hold = self.A, self.G, as_hold(self.law.hold)
         K, N = TH.shape[1], self.u.shape[1]
         X = np.repeat(self.x0[:, None], K, axis=1)
         xs = np.full((N, A.shape[0], K), np.nan)
@@ -551,13 +552,10 @@ class _OutputErrorNonlinearLaw:
             for k in range(N):
                 xs[k] = X
                 uk = self.u[:, k:k + 1]
-                F = self._law(X, uk, TH)
-                base = A @ X + self.Bu[:, k:k + 1]
                 if hold is None:
-                    X = base + G @ F
+                    X = A @ X + self.Bu[:, k:k + 1] + G @ self._law(X, uk, TH)
                 else:
-                    X = base + hold[0] @ F + hold[1] @ self._law(base + (hold[0] + hold[1]) @ F,
-                                                                 uk, TH)
+                    X = hold.step(A, X, self.Bu[:, k:k + 1], lambda Z: self._law(Z, uk, TH))
                 # one reduction, no wrapper (per sample): NaN and inf fail the comparison
                 if not np.abs(X).max() <= 1e100:
                     if not isolate:
