@@ -84,12 +84,17 @@ class LawHold:
         Returns
         -------
         LawHold
+            With the ETDRK4 matrices; only ``G0, G1`` (the Heun step) where ``expm(Ac
+            dt/2) + I`` is singular (an undamped mode at an odd multiple of pi/dt).
         """
         Ac = np.asarray(Ac, dtype=float)
         Gc = np.asarray(Gc, dtype=float).reshape(Ac.shape[0], -1)
         E2, P2, _, _ = _phi_blocks(Ac, Gc, dt / 2)
         _, p1, p2, p3 = _phi_blocks(Ac, Gc, dt)
-        W = np.linalg.inv(E2 + np.eye(Ac.shape[0]))
+        I = np.eye(Ac.shape[0])
+        if np.linalg.cond(E2 + I) > 1e12:  # a mode at an odd multiple of pi/dt: aliased
+            return cls(G0=p1 - p2, G1=p2)  # the Heun step of the first-order hold
+        W = np.linalg.solve(E2 + I, I)
         return cls(G0=p1 - p2, G1=p2, E2=E2, P2=P2, W=W, F1=p1 - 3 * p2 + 4 * p3,
                    F23=2 * p2 - 4 * p3, F4=4 * p3 - p2)
 
@@ -112,6 +117,10 @@ class LawHold:
         -------
         ndarray, shape (nstates, K)
         """
+        X = np.asarray(X, dtype=float)
+        if X.ndim != 2:
+            raise ValueError(f"X must be (nstates, K); found shape {X.shape}")
+        bu = np.asarray(bu, dtype=float).reshape(X.shape[0], -1)
         fx = f(X)
         if self.E2 is None:  # (G0, G1) only: Heun, the predictor holds f over the sample
             base = A @ X + bu
@@ -130,4 +139,4 @@ def as_hold(hold) -> LawHold | None:
     if hold is None or isinstance(hold, LawHold):
         return hold
     G0, G1 = (np.asarray(g, dtype=float) for g in hold)
-    return LawHold(G0=G0, G1=G1)
+    return LawHold(G0=G0.reshape(G0.shape[0], -1), G1=G1.reshape(G1.shape[0], -1))

@@ -33,7 +33,7 @@ models inherit the property from the continuous function.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import control as ct
 import numpy as np
@@ -43,7 +43,7 @@ from ._validation import (check_covariance, check_input_record, check_positive,
                           check_vector)
 from .exceptions import DataError, DimensionError, ModelError
 from .signals import SimulationResult, gaussian_noise, as_generator
-from .hold import as_hold
+from .hold import LawHold, as_hold
 from .system import named_ss
 
 __all__ = [
@@ -629,7 +629,7 @@ def with_unknown_inputs(sys, G: ArrayLike, labels=None) -> ct.NonlinearIOSystem:
 
 
 def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
-            hold=None) -> ct.NonlinearIOSystem:
+            hold: LawHold | tuple | None = None) -> ct.NonlinearIOSystem:
     """The model with a law added to its state equations: ``f(t, x, u) + G law(x, u)``.
 
     Parameters
@@ -662,7 +662,10 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
     Raises
     ------
     DimensionError
-        G has the wrong number of rows.
+        G (or the hold's weights) has the wrong number of rows.
+    ModelError
+        ``law`` is not callable; a hold with a continuous model; a
+        :class:`~greybox.hold.LawHold` with a model that is not a StateSpace.
     """
     base = as_nonlinear(sys)
     G = _columns(G, base.nstates)
@@ -676,7 +679,8 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
                          "hold")
     hold = as_hold(hold)
     if hold is not None:
-        _columns(hold.G0, base.nstates), _columns(hold.G1, base.nstates)  # checks the rows
+        hold = replace(hold, G0=_columns(hold.G0, base.nstates),
+                       G1=_columns(hold.G1, base.nstates))
     if hold is not None and hold.E2 is not None and not isinstance(sys, ct.StateSpace):
         raise ModelError("a law integrated over each sample (a LawHold) needs the discrete "
                          f"StateSpace it was found on; found {type(sys).__name__}. Hint: pass "

@@ -23,7 +23,8 @@ C3 = 6.0  # [N/m^3]
 
 
 def _law(x, u):
-    return -C3 * np.atleast_2d(x)[0:1] ** 3
+    """(1,) for x of shape (2,), (1, K) for (2, K)."""
+    return -C3 * np.asarray(x)[0:1] ** 3
 
 
 def _truth(dt, u, x0):
@@ -81,8 +82,16 @@ def test_add_law_simulates_the_law_as_the_trace_does():
     hold = LawHold.of(AC, GC, dt)
     u = np.sin(1.3 * np.arange(60) * dt)[None] * 2.0
     x0 = np.array([0.8, 0.0])
-    model = add_law(sys, np.zeros((2, 1)), lambda x, uu: _law(x, uu)[0], hold=hold)
+    model = add_law(sys, np.zeros((2, 1)), _law, hold=hold)
     y = simulate_nonlinear(model, u, x0=x0).y_clean
     np.testing.assert_allclose(y, _scheme(dt, u, x0, hold), rtol=1e-12, atol=1e-14)
+    # a (Gamma0, Gamma1) pair (1-D for one law component) is the first-order hold's Heun step
+    pair = add_law(sys, np.zeros((2, 1)), _law,
+                   hold=(hold.G0[:, 0], hold.G1[:, 0]))
+    y2 = simulate_nonlinear(pair, u, x0=x0).y_clean
+    np.testing.assert_allclose(y2, _scheme(dt, u, x0, as_hold((hold.G0, hold.G1))), rtol=1e-12,
+                               atol=1e-14)
+    with pytest.raises(ValueError, match="nstates, K"):
+        hold.step(sys.A, x0, np.zeros((2, 1)), lambda Z: _law(Z, u[:, :1]))
     with pytest.raises(gb.ModelError, match="StateSpace"):
-        add_law(gb.as_nonlinear(sys), np.zeros((2, 1)), lambda x, uu: _law(x, uu)[0], hold=hold)
+        add_law(gb.as_nonlinear(sys), np.zeros((2, 1)), _law, hold=hold)

@@ -15,7 +15,7 @@ from scipy.signal import lfilter
 from .._blas import single_thread_blas
 from ..exceptions import IdentificationError, ModelError
 from ..filters import FilterResult
-from ..hold import as_hold
+from ..hold import LawHold, as_hold
 from ..ident.regression import SparseLaw, forward_selection, forward_selection_gram
 from ..terms import (BREAK_KINDS, BREAK_QUANTILES, LINEAR_KINDS, SAT_QUANTILES,
                      SENSOR_STATE_KINDS, SIBLING_KINDS, break_name, break_row, break_slope,
@@ -124,7 +124,7 @@ class StaticLaw:
     formula: str
     ci: NDArray[np.float64] | None = None
     time_base: str = "discrete"
-    hold: tuple | None = None
+    hold: LawHold | tuple | None = None
     output: int | None = None
 
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
@@ -548,7 +548,7 @@ def simulate_with_law(model: ct.StateSpace, G: NDArray, law: StaticLaw, u: NDArr
                       x0: NDArray) -> NDArray[np.float64]:
     """Simulated output of ``x[k+1] = A x + B u + G law(x, u)``, shape (noutputs, nsteps).
 
-    With ``law.hold`` the law is taken linear between samples instead (see
+    With ``law.hold`` the law is integrated over each sample instead (see
     :class:`StaticLaw`); with ``law.output`` it adds to that output instead
     (G is then zero).
     """

@@ -494,8 +494,8 @@ def _refine_static_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
 class _OutputErrorNonlinearLaw:
     """Simulation error on y of the model with a nonlinear static law, for output error.
 
-    ``x[k+1] = A x + B u + G law(x, u)`` (or the law's first-order hold, as
-    :func:`greybox.trace.simulate_with_law` integrates it), the law restricted
+    ``x[k+1] = A x + B u + G law(x, u)`` (or the law integrated over each sample by its
+    hold, as :func:`greybox.trace.simulate_with_law` does), the law restricted
     to the terms ``sel`` (pairs (component of d, term index)) at the
     coefficients theta. Several coefficient vectors are simulated at once,
     one per column of the state (the Jacobian's forward differences cost one
