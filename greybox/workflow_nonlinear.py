@@ -2391,7 +2391,9 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
                          operating_point=_OP_TEXT.format(what="unknown-input filter's"))
     note = ("which row is which: 'updated' simulates the full nonlinear law "
             "(report.nonlinear.model, a NonlinearIOSystem: " +
-            ("A x + B u + G law(x, u)" if eff.law.output is None else
+            (("A x + B u + G law(x, u)" if eff.law.hold is None else
+              "A x + B u, the continuous law integrated over each sample (ETDRK4)")
+             if eff.law.output is None else
              f"A x + B u, output {rep.nominal.output_labels[eff.law.output]} + law(x, u)") +
             " in discrete time); 'updated (linearized)' is report.model.sys, the StateSpace "
             "holding the law's best linear least-squares surrogate (a fit over the record, not "
