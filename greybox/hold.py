@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
-__all__ = ["LawHold", "as_hold"]
+__all__ = ["LawHold", "as_hold", "first_order_hold"]
 
 
 def _phi_blocks(Ac: NDArray, Gc: NDArray, h: float) -> tuple[NDArray, ...]:
@@ -35,6 +35,29 @@ def _phi_blocks(Ac: NDArray, Gc: NDArray, h: float) -> tuple[NDArray, ...]:
     M[n + md:n + 2 * md, n + 2 * md:] = np.eye(md)
     E = expm(M)
     return E[:n, :n], E[:n, n:n + md], E[:n, n + md:n + 2 * md], E[:n, n + 2 * md:]
+
+
+def first_order_hold(Ac: ArrayLike, Gc: ArrayLike, dt: float
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(Gamma0, Gamma1)`` of ``x[k+1] = A x + Gamma0 d[k] + Gamma1 d[k+1]`` (first-order hold).
+
+    Parameters
+    ----------
+    Ac : array_like, shape (nstates, nstates)
+        Continuous-time state matrix.
+    Gc : array_like, shape (nstates, md)
+        Continuous-time input matrix of d.
+    dt : float
+        Sampling period [s].
+
+    Returns
+    -------
+    Gamma0, Gamma1 : ndarray, shape (nstates, md)
+        Weights of d[k] and d[k+1] when d(t) is linear between the samples.
+    """
+    Ac = np.asarray(Ac, dtype=float)
+    _, p1, p2, _ = _phi_blocks(Ac, np.asarray(Gc, dtype=float).reshape(Ac.shape[0], -1), dt)
+    return p1 - p2, p2
 
 
 @dataclass(frozen=True, eq=False)

@@ -685,12 +685,14 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
         raise ModelError("a law integrated over each sample (a LawHold) needs the discrete "
                          f"StateSpace it was found on; found {type(sys).__name__}. Hint: pass "
                          "the model as a StateSpace, or the hold as (hold.G0, hold.G1)")
+    AB = None if hold is None or hold.E2 is None else \
+        (np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float))
 
     def upd(t, x, u, params):
         x = np.asarray(x, dtype=float)
         u = np.asarray(u, dtype=float)
         if hold is not None and hold.E2 is not None:
-            return _law_step(sys, hold, law, x, u)
+            return _law_step(AB, hold, law, x, u)
         fx, d = np.asarray(f(t, x, u, params), dtype=float), np.asarray(law(x, u), float)
         if hold is None:
             return fx + G @ d
@@ -702,10 +704,11 @@ def add_law(sys, G: ArrayLike, law: Callable, *, name: str | None = None,
                     dt=base.dt, params=dict(par or {}), name=name or f"{base.name}_updated")
 
 
-def _law_step(sys: ct.StateSpace, hold, law: Callable, x: NDArray, u: NDArray) -> NDArray:
-    """One sample of ``A x + B u`` with the law integrated over it (``hold.step``); x of
-    shape (nstates,) or (nstates, npoints), u (ninputs,) or (ninputs, npoints)."""
-    A, B = np.asarray(sys.A, dtype=float), np.asarray(sys.B, dtype=float)
+def _law_step(AB: tuple, hold, law: Callable, x: NDArray, u: NDArray) -> NDArray:
+    """One sample of ``A x + B u`` (``AB``: the discrete model's matrices) with the law
+    integrated over it (``hold.step``); x of shape (nstates,) or (nstates, npoints), u
+    (ninputs,) or (ninputs, npoints)."""
+    A, B = AB
     col = x.ndim == 1
     bu = B @ u
     X, bu = (x[:, None], bu[:, None]) if col else (x, bu if bu.ndim == 2 else bu[:, None])

@@ -45,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 from .._blas import single_thread_blas
 from .._validation import check_covariance, check_positive
 from ..exceptions import DimensionError, GreyboxError, ModelError, RankConditionError
-from ..hold import LawHold
+from ..hold import first_order_hold
 from ._memo import MEMO
 from .feedthrough import _unknown_feedthrough
 from .kernels import (
@@ -272,28 +272,6 @@ def input_weights(sys: ct.StateSpace, *, unknown: int | str | Sequence[int | str
                                  f"expected {A.shape} and {G.shape}")
         foh = first_order_hold(Ac, Gc, float(sys.dt))
     return _weights(A, C, G, r, labels, foh)
-
-
-def first_order_hold(Ac: ArrayLike, Gc: ArrayLike, dt: float
-                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``(Gamma0, Gamma1)`` of ``x[k+1] = A x + Gamma0 d[k] + Gamma1 d[k+1]`` (first-order hold).
-
-    Parameters
-    ----------
-    Ac : array_like, shape (nstates, nstates)
-        Continuous-time state matrix.
-    Gc : array_like, shape (nstates, md)
-        Continuous-time input matrix of d.
-    dt : float
-        Sampling period [s].
-
-    Returns
-    -------
-    Gamma0, Gamma1 : ndarray, shape (nstates, md)
-        Weights of d[k] and d[k+1] when d(t) is linear between the samples.
-    """
-    hold = LawHold.of(Ac, Gc, dt)
-    return hold.G0, hold.G1
 
 
 def _weights(A, C, G, r, labels, foh=None):
