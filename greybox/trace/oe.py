@@ -638,9 +638,9 @@ class _OutputErrorNonlinearLaw:
         return half, cov
 
 
-# A nonlinear law fitted on d^ is refitted by output error only when its simulation's mean
-# squared error is above this many times what the noise model alone gives (noise_floor):
-# 10x in RMS. Measured ratios: a right cubic law under process noise 0.7-44 (20 records of
+# Where process noise dominates the noise floor (_process_noise_dominates), a nonlinear law
+# fitted on d^ is refitted by output error only when its simulation's mean squared error is
+# above this many times what the noise model alone gives (noise_floor): 10x in RMS. Measured ratios: a right cubic law under process noise 0.7-44 (20 records of
 # tests/test_trace_delayed.py; the floor leaves out the initial state's error and the law's
 # nonlinearity), EMPS 0.8, Silverbox 344, a static law for a lagged damper 2e4 (windows of
 # 4000 samples; the right-law records are 2000 samples long).
@@ -699,7 +699,9 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     the outputs (PAPER_NOTES §9.3: output error is consistent on a noisy d^;
     the simulation integrates the law as :func:`simulate_with_law` does).
 
-    The d^ fit is kept, and nothing is fitted, when its simulation's mean
+    The d^ fit is kept, and nothing is fitted, where process noise makes up
+    most of the noise floor (:func:`_process_noise_dominates`: only there is
+    the d^ fit the more efficient estimate) and its simulation's mean
     squared error on y is within ``_FLOOR_FACTOR`` times what the noise
     model ``noise = (Q, R)`` alone gives (:func:`noise_floor`): the law
     already simulates as well as the noise allows. It is kept too when it
@@ -746,10 +748,10 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     if not np.isfinite(se0) or se0 >= 1e6:
         return law, se0, se0
     if noise is not None:  # the d^ law already simulates as well as the noise model allows
+        floor = noise_floor(prob.A_lin, prob.C, noise[0], noise[1], k0, W)
         r0 = prob.resid(theta0 / prob.theta_scale).reshape(prob.y.shape[0], -1)
         ms = np.mean(r0**2, axis=1) * prob.scale_y**2
-        floor = noise_floor(prob.A_lin, prob.C, noise[0], noise[1], k0, W)
-        if np.all(ms <= _FLOOR_FACTOR * floor):
+        if _process_noise_dominates(floor, noise[1]) and np.all(ms <= _FLOOR_FACTOR * floor):
             return law, se0, se0
     keep = list(range(len(sel)))
     theta, half, cov = prob.fit(keep, theta0)
@@ -772,6 +774,21 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     if not se1 < se0:
         return law, se0, se0
     return _nl_law_with(law, sel, keep, theta, half, labels, units, tscale), se0, se1
+
+
+def _process_noise_dominates(floor: NDArray, R: NDArray) -> bool:
+    """Whether process noise makes up more than half of the noise floor on some output.
+
+    Only there is the d^ fit (which the filter weighs against the process noise) the more
+    efficient estimate; where the measurement noise dominates every output, output error is
+    nearly the maximum-likelihood criterion and the d^ fit's bias (the delayed d^ averages
+    the law over a few samples; the state estimate's error enters a nonlinear term) is the
+    larger error. Measured shares: 0.79-0.81 on tests/test_trace_delayed.py's process-noise
+    records, where output error spreads 7x wider than the d^ fit; 0.01-0.06 on zoo
+    cubic_force 20261204 #0, whose d^ fit was 1.8 % off (2.2 half-widths) and its output-
+    error fit 0.8 %."""
+    meas = np.diag(np.atleast_2d(R))
+    return bool(np.any(floor - meas > meas))
 
 
 #: An output-error interval is kept only where the simulated cost rises at its ends by at
