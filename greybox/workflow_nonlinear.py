@@ -2383,12 +2383,22 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
         model = add_law(res.sys, res.G, eff.law.evaluate, name=f"{rep.nominal.name}_updated",
                         hold=eff.law.hold)
     k0 = res.settled(SKIP)
-    x_op = res.x_filt[:, k0:].mean(axis=1)
+    # the samples whose filtered state is finite (a channel's filter may diverge part-way:
+    # zoo coulomb 20261210 #0, one output of a 3-mass chain, NaN from sample 152 on)
+    ok = np.flatnonzero(np.all(np.isfinite(res.x_filt), axis=0))
+    ok = ok[ok >= k0] if np.any(ok >= k0) else ok
     u = np.asarray(res.u, dtype=float)
-    u_op = u[:, k0:].mean(axis=1) if u.shape[0] else np.zeros(0)
+    if ok.size:
+        x_op = res.x_filt[:, ok].mean(axis=1)
+        u_op = u[:, ok].mean(axis=1) if u.shape[0] else np.zeros(0)
+        where = "unknown-input filter's"
+    else:
+        x_op, u_op = np.zeros(model.nstates), np.zeros(u.shape[0])
+        where = None
     lin = linearize_at(model, x_op, u_op)
     nl = NonlinearUpdate(model=model, discrete=model, linearization=lin, x_op=x_op, u_op=u_op,
-                         operating_point=_OP_TEXT.format(what="unknown-input filter's"))
+                         operating_point=_OP_TEXT.format(what=where) if where else
+                         "the origin (the unknown-input filter's states are not finite)")
     note = ("which row is which: 'updated' simulates the full nonlinear law "
             "(report.nonlinear.model, a NonlinearIOSystem: " +
             (("A x + B u + G law(x, u)" if eff.law.hold is None else

@@ -270,6 +270,34 @@ def test_cubic_law_returns_the_exact_nonlinear_model_and_a_linearization():
     assert "nonlinear" in rep.as_dict()
 
 
+def test_a_filter_that_diverged_part_way_still_gives_the_nonlinear_model():
+    """The exact nonlinear model's linearization is taken at the mean of the filtered states
+    that are finite: a channel's unknown-input filter may diverge part-way (zoo coulomb
+    20261210 #0, one output of a 3-mass chain: NaN from sample 152 on) and the mean over
+    the whole record was NaN, so close_the_loop raised "x_op contains NaN" on valid data."""
+    import dataclasses
+
+    from greybox.workflow_nonlinear import nonlinear_update_of_linear
+
+    rep, _ = run_case("cubic")
+    res = rep.trace.filter_result
+    X = res.x_filt.copy()
+    half = X.shape[1] // 2
+    X[:, half:] = np.nan                               # diverged half-way
+    broken = dataclasses.replace(rep, nonlinear=None, trace=dataclasses.replace(
+        rep.trace, filter_result=dataclasses.replace(res, x_filt=X)))
+    nl = nonlinear_update_of_linear(broken).nonlinear
+    k0 = res.settled(20)
+    # the same mean as the finite samples' (rounding only)
+    np.testing.assert_allclose(nl.x_op, res.x_filt[:, k0:half].mean(axis=1), rtol=1e-12)
+    assert "filtered states" in nl.operating_point
+    X[:] = np.nan                                      # no finite sample: the origin, said so
+    nothing = dataclasses.replace(broken, trace=dataclasses.replace(
+        rep.trace, filter_result=dataclasses.replace(res, x_filt=X)))
+    nl = nonlinear_update_of_linear(nothing).nonlinear
+    assert np.all(nl.x_op == 0) and "not finite" in nl.operating_point
+
+
 def test_partial_measurement_still_finds_the_equation():
     rep, _ = run_case("partial")
     assert rep.updated and rep.effect.equations == ("v2",)
