@@ -2385,10 +2385,13 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
     k0 = res.settled(SKIP)
     # the samples whose filtered state is finite (a channel's filter may diverge part-way:
     # zoo coulomb 20261210 #0, one output of a 3-mass chain, NaN from sample 152 on)
-    ok = np.flatnonzero(np.all(np.isfinite(res.x_filt), axis=0))
+    finite = np.all(np.isfinite(res.x_filt), axis=0)
+    ok = np.flatnonzero(finite)
     ok = ok[ok >= k0] if np.any(ok >= k0) else ok
+    if np.all(finite[k0:]):  # a slice: the same sums to the last bit as ever
+        ok = slice(k0, None)
     u = np.asarray(res.u, dtype=float)
-    if ok.size:
+    if not isinstance(ok, np.ndarray) or ok.size:
         x_op = res.x_filt[:, ok].mean(axis=1)
         u_op = u[:, ok].mean(axis=1) if u.shape[0] else np.zeros(0)
         where = "unknown-input filter's"
