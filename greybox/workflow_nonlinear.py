@@ -2416,4 +2416,12 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
              "near 0: use greybox.linearize_at at your own operating point)"
              if any(term_kind(s[1]).smoothed and np.any(eff.law.coef[:, j])
                     for j, s in enumerate(eff.law.spec)) else ""))
-    return replace(rep, nonlinear=nl).with_decision("validate", "", note)
+    out = replace(rep, nonlinear=nl).with_decision("validate", "", note)
+    if not isinstance(ok, slice):  # say so: the law was traced on a filter that diverged
+        k_bad = k0 + int(np.argmin(finite[k0:]))
+        out = out.with_decision("validate", "", (
+            f"the traced channel's unknown-input filter diverged: its states are not finite "
+            f"from sample {k_bad} of {finite.size} on; the law was chosen by the output error "
+            f"of the updated model, but its d^ and the operating point rest on the "
+            f"{ok.size} samples before"))
+    return out

@@ -291,6 +291,9 @@ def test_a_filter_that_diverged_part_way_still_gives_the_nonlinear_model():
     # the same mean as the finite samples' (rounding only)
     np.testing.assert_allclose(nl.x_op, res.x_filt[:, k0:half].mean(axis=1), rtol=1e-12)
     assert "filtered states" in nl.operating_point
+    note = [n for n in nonlinear_update_of_linear(broken).notes if "filter diverged" in n]
+    assert len(note) == 1 and f"from sample {half} of {X.shape[1]}" in note[0], note
+    assert not any("filter diverged" in n for n in rep.notes)  # the run as it was: none
     X[:] = np.nan                                      # no finite sample: the origin, said so
     nothing = dataclasses.replace(broken, trace=dataclasses.replace(
         rep.trace, filter_result=dataclasses.replace(res, x_filt=X)))
