@@ -2386,12 +2386,13 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
     # the samples whose filtered state is finite (a channel's filter may diverge part-way:
     # zoo coulomb 20261210 #0, one output of a 3-mass chain, NaN from sample 152 on)
     finite = np.all(np.isfinite(res.x_filt), axis=0)
-    ok = np.flatnonzero(finite)
-    ok = ok[ok >= k0] if np.any(ok >= k0) else ok
-    if np.all(finite[k0:]):  # a slice: the same sums to the last bit as ever
-        ok = slice(k0, None)
+    diverged = not finite[k0:].all()
+    ok = slice(k0, None)  # a slice where all is finite: the same sums to the last bit as ever
+    if diverged:
+        ok = np.flatnonzero(finite)
+        ok = ok[ok >= k0] if np.any(ok >= k0) else ok
     u = np.asarray(res.u, dtype=float)
-    if not isinstance(ok, np.ndarray) or ok.size:
+    if not diverged or ok.size:
         x_op = res.x_filt[:, ok].mean(axis=1)
         u_op = u[:, ok].mean(axis=1) if u.shape[0] else np.zeros(0)
         where = "unknown-input filter's"
@@ -2417,7 +2418,7 @@ def nonlinear_update_of_linear(rep: LoopReport) -> LoopReport:
              if any(term_kind(s[1]).smoothed and np.any(eff.law.coef[:, j])
                     for j, s in enumerate(eff.law.spec)) else ""))
     out = replace(rep, nonlinear=nl).with_decision("validate", "", note)
-    if not isinstance(ok, slice):  # say so: the law was traced on a filter that diverged
+    if diverged:  # say so: the law was traced on a filter that diverged
         k_bad = k0 + int(np.argmin(finite[k0:]))
         out = out.with_decision("validate", "", (
             f"the traced channel's unknown-input filter diverged: its states are not finite "

@@ -640,7 +640,8 @@ class _OutputErrorNonlinearLaw:
 
 # Where process noise dominates the noise floor (_process_noise_dominates), a nonlinear law
 # fitted on d^ is refitted by output error only when its simulation's mean squared error is
-# above this many times what the noise model alone gives (noise_floor): 10x in RMS. Measured ratios: a right cubic law under process noise 0.7-44 (20 records of
+# above this many times what the noise model alone gives (noise_floor): 10x in RMS.
+# Measured ratios: a right cubic law under process noise 0.7-44 (20 records of
 # tests/test_trace_delayed.py; the floor leaves out the initial state's error and the law's
 # nonlinearity), EMPS 0.8, Silverbox 344, a static law for a lagged damper 2e4 (windows of
 # 4000 samples; the right-law records are 2000 samples long).
@@ -749,10 +750,11 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
         return law, se0, se0
     if noise is not None:  # the d^ law already simulates as well as the noise model allows
         floor = noise_floor(prob.A_lin, prob.C, noise[0], noise[1], k0, W)
-        r0 = prob.resid(theta0 / prob.theta_scale).reshape(prob.y.shape[0], -1)
-        ms = np.mean(r0**2, axis=1) * prob.scale_y**2
-        if _process_noise_dominates(floor, noise[1]) and np.all(ms <= _FLOOR_FACTOR * floor):
-            return law, se0, se0
+        if _process_noise_dominates(floor, noise[1]):  # else the simulation is not needed
+            r0 = prob.resid(theta0 / prob.theta_scale).reshape(prob.y.shape[0], -1)
+            ms = np.mean(r0**2, axis=1) * prob.scale_y**2
+            if np.all(ms <= _FLOOR_FACTOR * floor):
+                return law, se0, se0
     keep = list(range(len(sel)))
     theta, half, cov = prob.fit(keep, theta0)
     if _wald(theta0 - theta, cov) <= chi2.ppf(0.99, len(sel)):
@@ -784,9 +786,9 @@ def _process_noise_dominates(floor: NDArray, R: NDArray) -> bool:
     nearly the maximum-likelihood criterion and the d^ fit's bias (the delayed d^ averages
     the law over a few samples; the state estimate's error enters a nonlinear term) is the
     larger error. Measured shares: 0.79-0.81 on tests/test_trace_delayed.py's process-noise
-    records, where output error spreads 7x wider than the d^ fit; 0.01-0.06 on zoo
-    cubic_force 20261204 #0, whose d^ fit was 1.8 % off (2.2 half-widths) and its output-
-    error fit 0.8 %."""
+    records, where output error spreads 7x wider than the d^ fit; 0.001-0.26 on zoo
+    cubic_force 20261204 #0 (its d^ fit 1.8 % off, 2.2 half-widths; output error 0.8 %) and
+    quadratic_drag 90210 #0-#2."""
     meas = np.diag(np.atleast_2d(R))
     return bool(np.any(floor - meas > meas))
 
