@@ -163,6 +163,29 @@ def test_silverbox_cubic_stiffness_in_the_velocity_equation(silverbox):
     # and, simulated alone on the arrow test, under the goal too (measured 0.396 mV against
     # greybox's six-term law's 0.304 mV)
     assert sb["duffing_on_dhat"]["rms_mV"] < 1.0, sb["duffing_on_dhat"]
+    # three effects in one law (measured -(7.68e5 +- 0.011e5)*y^3 + (777 +- 45)*|y| -
+    # (2.63e-4 +- 0.38e-4)*v^3, beside small corrections of the linear part y, v, u):
+    # the cubic hardening spring, an asymmetric (even) stiffness and a cubic damping,
+    # each with an interval excluding 0. With the midpoint input held (before
+    # zoh_equivalent_input) only y^3 mattered: |y| and v^3 lowered the arrow RMS by 0.01 mV
+    # (bench/silverbox_structures.py: the hold's error masked them, Duffing floor 1.48 mV
+    # held against 0.357 mV with the band-limited input; the two terms gain 0.09 mV).
+    # The damping is one odd shape of v: v^3 until the signed square v*|v| joined the
+    # library, v*|v| since (the two are alternatives: never both in one law)
+    terms = sb["terms"]
+    damping = [t for t in ("v^3", "v*|v|") if t in terms]
+    assert len(damping) == 1, sb["formula"]
+    for term, sign in (("y^3", -1), ("|y|", 1), (damping[0], -1)):
+        assert term in terms and sign * terms[term][0] > terms[term][1] > 0, (term,
+                                                                             sb["formula"])
+    # the same structure as a continuous ODE with the band-limited input, by output error
+    # (bench/silverbox_structures.py): k3/m = -7.37e5, |y| 662; the discrete law (ZOH-
+    # equivalent input, the law integrated over each sample by ETDRK4): measured -7.367e5
+    # and 710, 0.04 % and 7 % off (4 % and 8 % when the Heun step integrated it)
+    np.testing.assert_allclose(terms["y^3"][0], -7.37e5, rtol=0.1)
+    np.testing.assert_allclose(terms["|y|"][0], 662, rtol=0.3)
+    # the final model's residuals no longer correlate with the input (0.75x the 99 % band)
+    assert not any("correlate with input" in n for n in sb["notes"]), sb["notes"]
 
 
 @_marks("silverbox")

@@ -144,7 +144,7 @@ print(f"  the Duffing law on the same d^: d_v = {th_s[0]:.4g}*y + {th_s[1]:.3g}*
       f"{rms['updated']:.3g} mV)")
 
 summary = {**verdict(rep), "kind": rep.effect.kind, "formula": rep.effect.formula, "terms": terms,
-           "table": table, "rms_mV": rms, "relative_degree": fs["r"],
+           "table": table, "rms_mV": rms, "relative_degree": fs["r"], "notes": list(rep.notes),
            "duffing_on_dhat": {"coef": th_s.tolist(), "halfwidth": hw_s.tolist(),
                                "rms_mV": rms_duf},
            "nominal": {"k1/m": w2, "d/m": c_d, "1/m": b_in, "offset": off},
