@@ -35,16 +35,19 @@ import greybox.trace.screen as screen  # noqa: E402
 SPARSE_MAX = 3
 
 
+def _rss(X, d):
+    """Residual sum of squares of the least-squares fit of d on the columns of X."""
+    return float(np.sum((d - X @ np.linalg.lstsq(X, d, rcond=None)[0]) ** 2))
+
+
 def sparse_z(W, D, smax=SPARSE_MAX):
     """Per column of D (N_b, neq): the sparse statistic's z on the regressors W (N_b, k)."""
     nb, k = W.shape
     out = []
-    for i in range(D.shape[1]):
-        d = D[:, i]
+    for d in D.T:
         tss, sel, logp = d @ d, [], 0.0
-        for s in range(1, smax + 1):
-            rss, j = min((np.sum((d - W[:, sel + [j]] @ np.linalg.lstsq(
-                W[:, sel + [j]], d, rcond=None)[0]) ** 2), j) for j in range(k) if j not in sel)
+        for s in range(1, smax + 1):  # greedy: the regressor that lowers the RSS most
+            rss, j = min((_rss(W[:, sel + [j]], d), j) for j in range(k) if j not in sel)
             sel.append(j)
             log_subsets = gammaln(k + 1) - gammaln(s + 1) - gammaln(k - s + 1)
             logp = min(logp, stats.chi2.logsf(nb * (1 - rss / tss), s) + log_subsets
@@ -70,9 +73,8 @@ def _screen(nom, d):
 
 def row(n_masses: int, measured: str, N: int, right_model: bool = False) -> str:
     nom, d, i, meas = chain_data(n_masses, measured, N)
-    if right_model:
-        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-        from plantlib import chain
+    if right_model:  # the same record, the spring in the model
+        from plantlib import chain  # on the path chain_data put it on
         nom = chain(n_masses, k=20.0, measured=meas)
     t = time.perf_counter()
     s, seen = _screen(nom, d)
