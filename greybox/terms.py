@@ -18,8 +18,9 @@ plant zoo (which scores greybox's laws against its truths) can use it too.
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import ClassVar
 
 import numpy as np
@@ -142,6 +143,15 @@ class TermKind:
         """The term on x (nstates, ...) and u (ninputs, ...); shape x.shape[1:]."""
         raise NotImplementedError
 
+    def batch(self, indices: list, eps: NDArray) -> Callable[[NDArray, NDArray], NDArray]:
+        """``f(x, u)``: the terms of this kind at ``indices`` stacked, shape
+        (len(indices),) + x.shape[1:], the same numbers as :meth:`value` of each. Built
+        once per law: a simulation evaluates the law at every sample, and a kind whose
+        form is one elementwise expression evaluates all its terms in one call."""
+        value = self.value
+        return lambda x, u: np.array([value(i, x, u, eps) for i in indices]).reshape(
+            (len(indices),) + x.shape[1:])
+
     def add_linear(self, index, col: NDArray, Ddx: NDArray, Ddu: NDArray) -> None:
         """Add ``col`` (md,) times the term to the linear part ``(Ddx, Ddu)`` (linear kinds)."""
 
@@ -209,6 +219,13 @@ def kinds_where(**attrs) -> tuple[str, ...]:
 
 
 # ============================================================= states, inputs, pairs
+def _per_row(a: NDArray, rows) -> dict[int, NDArray]:
+    """``a[rows]`` shaped to broadcast against ``x[rows]``, by the number of dimensions of
+    x: ``{1: (g,), 2: (g, 1), 3: (g, 1, 1)}``."""
+    v = np.asarray(a, dtype=float)[rows]
+    return {d: v.reshape((-1,) + (1,) * (d - 1)) for d in (1, 2, 3)}
+
+
 def _one(name: str, row: NDArray, kind: str, index) -> list[tuple[NDArray, tuple]]:
     return [(row, (name, kind, index))]
 
@@ -224,6 +241,11 @@ class _OfState(TermKind):
 
     def value(self, index, x, u, eps):
         return self.form(x[index], eps[index] if self.smoothed else None)
+
+    def batch(self, indices, eps):
+        rows, form = np.asarray(indices, dtype=np.intp), self.form
+        e = _per_row(eps, rows) if self.smoothed else None
+        return lambda x, u: form(x[rows], None if e is None else e[x.ndim])
 
     def display(self, s: str) -> str:
         raise NotImplementedError
@@ -246,6 +268,11 @@ class _OfPair(TermKind):
     def value(self, index, x, u, eps):
         a, b, e = index
         return self.form(x[b] - x[a], eps[e] if self.smoothed else None)
+
+    def batch(self, indices, eps):
+        a, b, e = (np.asarray([ix[k] for ix in indices], dtype=np.intp) for k in range(3))
+        form, w = self.form, _per_row(eps, e) if self.smoothed else None
+        return lambda x, u: form(x[b] - x[a], None if w is None else w[x.ndim])
 
     def display(self, s: str) -> str:
         raise NotImplementedError
@@ -290,6 +317,10 @@ class Input(TermKind):
 
     def value(self, index, x, u, eps):
         return u[index]
+
+    def batch(self, indices, eps):
+        rows = np.asarray(indices, dtype=np.intp)
+        return lambda x, u: u[rows]
 
     def add_linear(self, index, col, Ddx, Ddu):
         Ddu[:, index] += col
@@ -341,7 +372,7 @@ class Cube(_OfState):
     kind, family = "x^3", "state"
 
     def form(self, v, eps):
-        return v ** 3
+        return v * v * v
 
     def display(self, s):
         return f"{s}^3"
@@ -409,7 +440,7 @@ class RelativeCube(_OfPair):
     kind = "rel^3"
 
     def form(self, v, eps):
-        return v ** 3
+        return v * v * v
 
     def display(self, s):
         return f"{s}^3"
@@ -557,6 +588,11 @@ class _Hinge(TermKind):
     def value(self, index, x, u, eps):
         return self.fn(x[index[0]] - index[1], 0.0)
 
+    def batch(self, indices, eps):
+        rows = np.asarray([ix[0] for ix in indices], dtype=np.intp)
+        c, fn = _per_row(np.asarray([ix[1] for ix in indices], dtype=float), slice(None)), self.fn
+        return lambda x, u: fn(x[rows] - c[x.ndim], 0.0)
+
     def candidates(self, V, i):
         out = []
         for c in np.nanquantile(V.x[i], self.quantiles):
@@ -680,7 +716,7 @@ class ReadingCube(_OfOutput):
     kind, written = "yhat^3", "{}^3"
 
     def form(self, v, index):
-        return v ** 3
+        return v * v * v
 
     def sensor_note(self, out, c, pm, drift):
         return f"sensor {out}: {c:.4g}{pm} * {out}^3 (negative: saturation)"
@@ -865,13 +901,24 @@ def evaluate_terms(spec, eps: NDArray, x: NDArray, u: NDArray) -> NDArray:
 def evaluator(spec, eps: NDArray):
     """``f(x, u)``: :func:`evaluate_terms` of ``spec`` with the kinds looked up once (a
     simulation evaluates a law at every sample)."""
-    items = [(term_kind(kind).value, i) for _, kind, i in spec]
-    n = len(items)
+    groups: dict[str, tuple[list, list]] = {}  # per kind: (rows of the result, indices)
+    for r, (_, kind, i) in enumerate(spec):
+        rows, idx = groups.setdefault(kind, ([], []))
+        rows.append(r)
+        idx.append(i)
+    n, calls = len(spec), []
+    for kind, (rows, idx) in groups.items():
+        t = term_kind(kind)
+        if len(idx) == 1:  # one term: no gather
+            calls.append((rows[0], partial(t.value, idx[0], eps=eps)))
+        else:
+            calls.append((slice(None) if len(groups) == 1 else np.asarray(rows, dtype=np.intp),
+                          t.batch(idx, eps)))
 
     def evaluate(x: NDArray, u: NDArray) -> NDArray:
         out = np.empty((n,) + x.shape[1:])
-        for r, (value, i) in enumerate(items):
-            out[r] = value(i, x, u, eps)
+        for rows, f in calls:
+            out[rows] = f(x, u)
         return out
     return evaluate
 

@@ -42,6 +42,24 @@ def test_every_kind_of_the_library_evaluates_as_its_library_row():
         assert expect in names, expect
 
 
+@pytest.mark.parametrize("shape", [(), (7,), (3, 4)])
+def test_a_law_evaluates_its_terms_by_kind_as_each_term_alone(shape):
+    """The evaluator gathers the terms of one kind into one call (a simulation evaluates
+    the law at every sample, for K coefficient columns at once): bit for bit each
+    term's own value, in the spec's order, on a shuffled spec, at one sample (x (n,)),
+    on K columns and on a stack of them."""
+    from greybox.terms import evaluator
+    _, _, _, spec, eps = _library()
+    rng = np.random.default_rng(1)
+    x, u = rng.standard_normal((3,) + shape), rng.standard_normal((2,) + shape)
+    for order in (np.arange(len(spec)), rng.permutation(len(spec))):
+        sp = [spec[i] for i in order]
+        out = evaluator(sp, eps)(x, u)
+        each = np.array([term_kind(k).value(i, x, u, eps) * np.ones(shape) for _, k, i in sp])
+        assert out.shape == (len(sp),) + shape
+        np.testing.assert_array_equal(out, each)
+
+
 def test_the_linear_part_is_exactly_the_linear_terms():
     x, u, T, spec, eps = _library(1)
     rng = np.random.default_rng(2)
