@@ -24,7 +24,7 @@ PKG = Path(__file__).resolve().parents[1] / "greybox"
 LAYER = {
     "exceptions": 0, "_validation": 0, "_lti": 0, "_blas": 0, "progress": 0,
     "system": 1, "signals": 1, "plants": 1, "nonlinear": 1, "hold": 1,
-    "metrics": 2, "zoo": 2, "terms": 2,
+    "metrics": 2, "zoo": 2, "terms": 2, "lawsim": 2,
     "filters": 3,
     "ident": 4,
     "update": 5, "validate": 5,

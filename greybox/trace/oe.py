@@ -15,6 +15,7 @@ from .._blas import single_thread_blas
 from .._lti import lti_output, lti_states, spectral_radius
 from ..filters.kernels import predicted_covariance
 from ..hold import as_hold
+from ..lawsim import compiled_terms, simulate_columns
 from ..metrics import effective_samples, oe_criterion
 from ..terms import evaluator, term_kind
 from .intervals import hac_covariance, residual_colour, undetermined
@@ -520,6 +521,8 @@ class _OutputErrorNonlinearLaw:
         self.theta_scale = np.where(np.abs(theta0) > 0, np.abs(theta0), 1.0)
         self.spec = [law.spec[j] for _, j in self.sel]
         self._terms = evaluator(self.spec, law.eps)  # kinds looked up once, not per sample
+        self._compiled = compiled_terms(self.spec, law.eps)  # None: the numpy loop
+        self.comp = np.array([c for c, _ in self.sel], dtype=np.int64)
         self.mask = np.zeros((md, len(self.sel)))  # which component each term feeds
         for q, (c, _) in enumerate(self.sel):
             self.mask[c, q] = 1.0
@@ -542,7 +545,17 @@ class _OutputErrorNonlinearLaw:
 
         A diverging column stops the whole simulation (NaN from there on: the columns of
         a fit's Jacobian share their fate); with ``isolate`` (independent trials, a
-        screen) only that column is NaN from where it diverged and the others go on."""
+        screen) only that column is NaN from where it diverged and the others go on.
+        Compiled (:func:`greybox.lawsim.simulate_columns`) where numba is installed and
+        knows every kind of the law; else the same recursion in numpy."""
+        xs = simulate_columns(self.A, self.G, self.law.hold, self.Bu, self.u, self.x0,
+                              TH, self._compiled, self.comp, isolate)
+        if xs is None:
+            xs = self._states(TH, isolate)
+        return np.einsum("pn,knK->Kpk", self.C, xs) + self.Du[None]
+
+    def _states(self, TH: NDArray, isolate: bool) -> NDArray:
+        """States (N, nstates, K) of :meth:`simulate`, in numpy."""
         A, G, hold = self.A, self.G, as_hold(self.law.hold)
         K, N = TH.shape[1], self.u.shape[1]
         X = np.repeat(self.x0[:, None], K, axis=1)
@@ -568,7 +581,7 @@ class _OutputErrorNonlinearLaw:
                         break
             for c in np.flatnonzero(dead < N):
                 xs[dead[c]:, :, c] = np.nan
-            return np.einsum("pn,knK->Kpk", self.C, xs) + self.Du[None]
+        return xs
 
     def _resid(self, Y):
         """Scaled output errors after k0, one flat row per simulated column."""
@@ -610,6 +623,8 @@ class _OutputErrorNonlinearLaw:
         sub.sel = [self.sel[q] for q in keep]
         sub.spec = [self.spec[q] for q in keep]
         sub._terms = evaluator(sub.spec, self.law.eps)
+        sub._compiled = compiled_terms(sub.spec, self.law.eps)
+        sub.comp = self.comp[keep]
         sub.mask = self.mask[:, keep]
         sub.theta_scale = self.theta_scale[keep]
         with single_thread_blas():
