@@ -104,15 +104,15 @@ def simulate_columns(A: NDArray, G: NDArray, hold, Bu: NDArray, u: NDArray, x0: 
         return None
     h = as_hold(hold)
     n, md = A.shape[0], G.shape[1]
-    z = np.zeros((n, md))
-    if h is None:
-        mode, mats = 0, (G, z, z, z, z, z, np.zeros((n, n)), np.zeros((n, n)))
+    z, zn = np.zeros((n, md)), np.zeros((n, n))
+    if h is None:  # M1..M4: (n, md) weights of the law's values; E2, W: (n, n)
+        mode, mats = 0, (G, z, z, z, zn, zn)
     elif h.E2 is None:
-        mode, mats = 1, (h.G0, h.G1, z, z, z, z, np.zeros((n, n)), np.zeros((n, n)))
+        mode, mats = 1, (h.G0, h.G1, z, z, zn, zn)
     else:
-        mode, mats = 2, (h.P2, h.F1, h.F23, h.F4, z, z, h.E2, h.W)
+        mode, mats = 2, (h.P2, h.F1, h.F23, h.F4, h.E2, h.W)
     mats = tuple(np.ascontiguousarray(np.asarray(M, dtype=float).reshape(s))
-                 for M, s in zip(mats, [(n, md)] * 6 + [(n, n)] * 2))
+                 for M, s in zip(mats, [(n, md)] * 4 + [(n, n)] * 2))
     return _kernel()(np.ascontiguousarray(A, dtype=float), *mats, mode,
                      np.ascontiguousarray(Bu, dtype=float), np.ascontiguousarray(u, dtype=float),
                      np.ascontiguousarray(x0, dtype=float),
@@ -182,35 +182,42 @@ def _mv(M, v, out):  # out = M @ v
             s += M[r, c] * v[c]
         out[r] = s
 
-def _run(A, M1, M2, M3, M4, M5, M6, E2, W, mode, Bu, u, x0, TH, codes, ti, tj, tw, comp,
+def _run(A, M1, M2, M3, M4, E2, W, mode, Bu, u, x0, TH, codes, ti, tj, tw, comp,
         md, isolate):
+    """States (N, n, K): :func:`simulate_columns`' recursion, column by column.
+
+    ``mode`` 0: ``x' = A x + Bu + M1 f(x)``; 1: Heun of the first-order hold (M1 = G0,
+    M2 = G1); 2: ETDRK4 (:meth:`greybox.hold.LawHold.step`: M1 = P2, M2..M4 = F1, F23,
+    F4, with E2 and W)."""
     n, N, K = A.shape[0], Bu.shape[1], TH.shape[1]
     xs = np.full((N, n, K), np.nan)
     dead = np.full(K, N)
-    X = np.empty((n, K))
+    X = np.empty((K, n))  # one row per column: contiguous
     for c in range(K):
-        X[:, c] = x0
+        X[c] = x0
+    THt, uT, BuT = np.ascontiguousarray(TH.T), np.ascontiguousarray(u.T), \
+        np.ascontiguousarray(Bu.T)
     fx, fa, fb, fc = np.empty(md), np.empty(md), np.empty(md), np.empty(md)
     t1, t2, t3, t4, bh = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     dd = np.empty(md)
-    th = np.empty(TH.shape[0])
     for k in range(N):
-        xs[k] = X
-        uk, bu = u[:, k], Bu[:, k]
+        for c in range(K):
+            for r in range(n):
+                xs[k, r, c] = X[c, r]
+        uk, bu = uT[k], BuT[k]
         if mode == 2:
             _mv(W, bu, bh)
         stop = False
         for c in range(K):
             if dead[c] < N:
                 continue
-            x = X[:, c].copy()
-            th[:] = TH[:, c]
+            x, th = X[c], THt[c]
             _law(x, uk, th, codes, ti, tj, tw, comp, fx)
             _mv(A, x, t1)
             if mode == 0:  # x' = A x + B u + G f(x)
                 _mv(M1, fx, t2)
                 for r in range(n):
-                    X[r, c] = t1[r] + bu[r] + t2[r]
+                    x[r] = t1[r] + bu[r] + t2[r]
             elif mode == 1:  # Heun of the first-order hold
                 for r in range(n):
                     t1[r] += bu[r]
@@ -223,7 +230,7 @@ def _run(A, M1, M2, M3, M4, M5, M6, E2, W, mode, Bu, u, x0, TH, codes, ti, tj, t
                 _mv(M1, fx, t2)
                 _mv(M2, fa, t4)
                 for r in range(n):
-                    X[r, c] = t1[r] + t2[r] + t4[r]
+                    x[r] = t1[r] + t2[r] + t4[r]
             else:  # ETDRK4 (LawHold.step)
                 _mv(E2, x, t2)
                 for r in range(n):
@@ -247,17 +254,17 @@ def _run(A, M1, M2, M3, M4, M5, M6, E2, W, mode, Bu, u, x0, TH, codes, ti, tj, t
                     s = t1[r] + bu[r]
                     for q in range(md):
                         s += M2[r, q] * fx[q] + M3[r, q] * (fa[q] + fb[q]) + M4[r, q] * fc[q]
-                    X[r, c] = s
+                    x[r] = s  # x's old values are read above only (t1 = A x, t2 = E2 x)
             ok = True
             for r in range(n):
-                if not abs(X[r, c]) <= 1e100:
+                if not abs(x[r]) <= 1e100:
                     ok = False
             if not ok:
                 if not isolate:
                     stop = True
                     break
                 dead[c] = k + 1
-                X[:, c] = 0.0
+                x[:] = 0.0
         if stop:
             break
         alive = False
