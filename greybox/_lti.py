@@ -27,6 +27,8 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
+from ._jit import HAVE_NUMBA, lazy_njit
+
 __all__ = ["lti_states", "lti_output", "LTIRecursion", "single_thread_blas", "spectral_radius"]
 
 from ._blas import single_thread_blas  # noqa: E402  (re-exported for the filters)
@@ -135,6 +137,10 @@ class LTIRecursion:
                 rows.append((r, False))
                 r += 1
         self.Vr, self.Wr, self.mode_lam, self.mode_rows = Vr, Wr, lam_r, rows
+        self._modes = (np.array([r for r, _ in rows], dtype=np.int64),
+                       np.array([p for _, p in rows], dtype=np.bool_),
+                       np.array([complex(v).real for v in lam_r]),
+                       np.array([complex(v).imag for v in lam_r]))
         return True
 
     # ----------------------------------------------------------------- run
@@ -181,16 +187,19 @@ class LTIRecursion:
         r0 = self.Wr @ x0
         rr = np.empty((n, c + 1))  # r[0..c]; r[c] is the next chunk's start
         rr[:, 0] = r0
-        for lam, (r, pair) in zip(self.mode_lam, self.mode_rows):
-            if pair:
-                z0 = complex(r0[r], r0[r + 1])
-                wc = np.empty(c, dtype=complex)
-                wc.real, wc.imag = w[r], w[r + 1]
-                z = lfilter([1.0], [1.0, -lam], wc, zi=[lam * z0])[0]
-                rr[r, 1:] = z.real
-                rr[r + 1, 1:] = z.imag
-            else:
-                rr[r, 1:] = lfilter([1.0], [1.0, -lam], w[r], zi=[lam * r0[r]])[0]
+        if HAVE_NUMBA:  # the modes' first-order recursions in one compiled loop
+            _modal_recursions(np.ascontiguousarray(w, dtype=float), *self._modes, rr)
+        else:
+            for lam, (r, pair) in zip(self.mode_lam, self.mode_rows):
+                if pair:
+                    z0 = complex(r0[r], r0[r + 1])
+                    wc = np.empty(c, dtype=complex)
+                    wc.real, wc.imag = w[r], w[r + 1]
+                    z = lfilter([1.0], [1.0, -lam], wc, zi=[lam * z0])[0]
+                    rr[r, 1:] = z.real
+                    rr[r + 1, 1:] = z.imag
+                else:
+                    rr[r, 1:] = lfilter([1.0], [1.0, -lam], w[r], zi=[lam * r0[r]])[0]
         np.matmul(self.Vr if Cv is None else Cv, rr[:, :c], out=out)
         return self.Vr @ rr[:, c]
 
@@ -297,3 +306,26 @@ def lti_output(Phi: NDArray, B: NDArray, C: NDArray, D: NDArray, u: NDArray,
         if np.any(D):
             y += D @ u
     return y
+
+
+@lazy_njit
+def _modal_recursions(w, rows, pairs, lre, lim, rr):
+    """``r[t+1] = lam r[t] + w[t]`` of every mode (a pair in complex arithmetic on its two
+    rows, as ``lfilter([1], [1, -lam])`` computes it) into rr[:, 1:] (rr[:, 0] = r[0])."""
+    c = w.shape[1]
+    for q in range(rows.shape[0]):
+        r = rows[q]
+        a, b = lre[q], lim[q]
+        if pairs[q]:
+            zr, zi = rr[r, 0], rr[r + 1, 0]
+            for t in range(c):
+                nr = (a * zr - b * zi) + w[r, t]
+                zi = (a * zi + b * zr) + w[r + 1, t]
+                zr = nr
+                rr[r, t + 1] = zr
+                rr[r + 1, t + 1] = zi
+        else:
+            z = rr[r, 0]
+            for t in range(c):
+                z = a * z + w[r, t]
+                rr[r, t + 1] = z

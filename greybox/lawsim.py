@@ -16,16 +16,15 @@ as ``(state or input, second state or input, level or eps)``.
 
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 from numpy.typing import NDArray
 
+from ._jit import HAVE_NUMBA as _HAVE
 from .hold import as_hold
 
-#: numba is installed (the ``fast`` extra); imported on the first compiled simulation
-#: only (80 ms: a command that never simulates a law does not pay it).
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+#: numba is installed (the ``fast`` extra; :mod:`greybox._jit`). Imported on the first
+#: compiled simulation only (80 ms: a command that never simulates a law does not pay it).
+HAVE_NUMBA = _HAVE
 
 #: kind -> (code, reader of the spec index into (i, j, level or eps index)). Pairs read
 #: (a, b, e) as x_b - x_a; a smoothed sign's eps is looked up by index.

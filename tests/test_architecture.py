@@ -22,7 +22,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "greybox"
 
 LAYER = {
-    "exceptions": 0, "_validation": 0, "_lti": 0, "_blas": 0, "progress": 0,
+    "exceptions": 0, "_validation": 0, "_lti": 0, "_blas": 0, "progress": 0, "_jit": 0,
     "system": 1, "signals": 1, "plants": 1, "nonlinear": 1, "hold": 1,
     "metrics": 2, "zoo": 2, "terms": 2, "lawsim": 2,
     "filters": 3,

@@ -1,6 +1,9 @@
-"""The compiled simulation of a model with a static law (greybox.lawsim) against the numpy
-recursion it replaces: every compiled kind, each hold, independent and shared columns,
-divergence at the same sample, and the numpy path where numba or a kind's code is absent.
+"""The compiled loops (numba, the ``fast`` extra) against the NumPy/SciPy code they replace.
+
+The simulation of a model with a static law (greybox.lawsim): every compiled kind, each
+hold, independent and shared columns, divergence at the same sample, and the numpy path
+where numba or a kind's code is absent. The modal recursions of an LTI simulation
+(greybox._lti): as ``lfilter`` computes them.
 
 Tolerance: the two paths sum the same products in another order (a matrix product by
 BLAS, a loop compiled), so they differ by roundings that a 400-sample recursion of a
@@ -111,3 +114,24 @@ def test_without_numba_the_numpy_recursion_runs(monkeypatch):
                                    p.comp, False) is None
     p._compiled = lawsim.compiled_terms(p.spec, p.law.eps)
     np.testing.assert_allclose(p.simulate(TH), fast, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [2, 3, 7])
+def test_the_modal_recursions_compiled_are_lfilter_s(monkeypatch, n):
+    """Real modes and complex pairs, over several chunks, outputs and states: the same
+    numbers as ``lfilter`` per mode (bit for bit on the machine it was written on: the
+    same products and sums in the same order; 1e-13 allows a SciPy built with fused
+    multiply-adds; a wrong pole or a swapped real and imaginary part moves them by 1e-2)."""
+    import greybox._lti as lti
+
+    rng = np.random.default_rng(n)
+    A = rng.standard_normal((n, n))
+    A /= 1.02 * np.abs(np.linalg.eigvals(A)).max()
+    B, C = rng.standard_normal((n, 2)), rng.standard_normal((3, n))
+    u, x0 = rng.standard_normal((2, 2 * lti.CHUNK + 17)), rng.standard_normal(n)
+    assert lti.LTIRecursion(A).kind == "modal"
+    y, x = lti.lti_output(A, B, C, np.zeros((3, 2)), u, x0), lti.lti_states(A, B @ u, x0)
+    monkeypatch.setattr(lti, "HAVE_NUMBA", False)
+    np.testing.assert_allclose(y, lti.lti_output(A, B, C, np.zeros((3, 2)), u, x0),
+                               rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(x, lti.lti_states(A, B @ u, x0), rtol=1e-13, atol=1e-13)

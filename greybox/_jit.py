@@ -1,0 +1,33 @@
+"""numba, where installed (the ``fast`` extra): compiled loops that cannot be vectorized.
+
+:data:`HAVE_NUMBA` says whether it is installed; :func:`lazy_njit` compiles a function
+on its first call (numba imported then, 80 ms, not at ``import greybox``) and caches the
+machine code on disk, so a later process loads it in ~0.1 s instead of compiling. The
+callers keep a NumPy/SciPy path for a machine without numba.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Callable
+
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+
+
+def lazy_njit(fn: Callable) -> Callable:
+    """``fn`` compiled by ``numba.njit(cache=True)`` on its first call.
+
+    Only for a function that calls no other compiled function (those are compiled by
+    the caller's own first use, see :mod:`greybox.lawsim`)."""
+    compiled: list = []
+
+    def call(*args):
+        if not compiled:
+            import numba
+
+            compiled.append(numba.njit(cache=True)(fn))
+        return compiled[0](*args)
+
+    call.__wrapped__ = fn
+    call.__doc__ = fn.__doc__
+    return call
