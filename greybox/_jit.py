@@ -1,6 +1,7 @@
 """numba, where installed (the ``fast`` extra): compiled loops that cannot be vectorized.
 
-:data:`HAVE_NUMBA` says whether it is installed; :func:`lazy_njit` compiles a function
+:data:`HAVE_NUMBA` says whether it is installed (and not switched off by
+``GREYBOX_NO_NUMBA=1``); :func:`lazy_njit` compiles a function
 on its first call (numba imported then, 80 ms, not at ``import greybox``) and caches the
 machine code on disk, so a later process loads it in ~0.1 s instead of compiling. The
 callers keep a NumPy/SciPy path for a machine without numba.
@@ -9,9 +10,13 @@ callers keep a NumPy/SciPy path for a machine without numba.
 from __future__ import annotations
 
 import importlib.util
+import os
 from collections.abc import Callable
 
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+#: numba installed and not switched off (``GREYBOX_NO_NUMBA=1`` runs the NumPy/SciPy
+#: paths: a comparison, or a machine where numba misbehaves).
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None and \
+    os.environ.get("GREYBOX_NO_NUMBA", "") != "1"
 
 
 def lazy_njit(fn: Callable) -> Callable:

@@ -22,7 +22,8 @@ from greybox.hold import LawHold
 from greybox.terms import KINDS
 from greybox.trace.oe import _OutputErrorNonlinearLaw
 
-pytestmark = pytest.mark.skipif(not lawsim.HAVE_NUMBA, reason="numba not installed")
+pytestmark = pytest.mark.skipif(not lawsim.HAVE_NUMBA,
+                                reason="numba not installed or GREYBOX_NO_NUMBA=1")
 
 #: One term of every compiled kind on a 4-state, 2-input model (eps by index, levels).
 SPEC = [("x1^3", "x^3", 1), ("sign(x2)", "sign", 2), ("x0", "x", 0), ("u1", "u", 1),
