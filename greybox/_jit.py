@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import threading
 from collections.abc import Callable
 
 #: numba installed and not switched off (``GREYBOX_NO_NUMBA=1`` runs the NumPy/SciPy
@@ -25,12 +26,15 @@ def lazy_njit(fn: Callable) -> Callable:
     Only for a function that calls no other compiled function (those are compiled by
     the caller's own first use, see :mod:`greybox.lawsim`)."""
     compiled: list = []
+    lock = threading.Lock()  # a fleet's threads may reach the first call together
 
     def call(*args):
         if not compiled:
-            import numba
+            with lock:
+                if not compiled:
+                    import numba
 
-            compiled.append(numba.njit(cache=True)(fn))
+                    compiled.append(numba.njit(cache=True)(fn))
         return compiled[0](*args)
 
     call.__wrapped__ = fn

@@ -16,6 +16,8 @@ as ``(state or input, second state or input, level or eps)``.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -120,18 +122,20 @@ def simulate_columns(A: NDArray, G: NDArray, hold, Bu: NDArray, u: NDArray, x0: 
 
 
 _COMPILED: list = []
+_LOCK = threading.Lock()  # a fleet's threads may reach the first call together
 
 
 def _kernel():
     """The compiled :func:`_run` (its helpers compiled first; numba caches the machine
     code on disk, so a later process loads it in ~0.1 s instead of compiling for ~4 s)."""
     global _term, _law, _mv  # noqa: PLW0603 - replaced by their compiled versions once
-    if not _COMPILED:
-        import numba
+    with _LOCK:
+        if not _COMPILED:
+            import numba
 
-        jit = numba.njit(cache=True)
-        _term, _law, _mv = jit(_term), jit(_law), jit(_mv)
-        _COMPILED.append(jit(_run))
+            jit = numba.njit(cache=True)
+            _term, _law, _mv = jit(_term), jit(_law), jit(_mv)
+            _COMPILED.append(jit(_run))
     return _COMPILED[0]
 
 
