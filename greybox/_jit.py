@@ -20,22 +20,32 @@ HAVE_NUMBA = importlib.util.find_spec("numba") is not None and \
     os.environ.get("GREYBOX_NO_NUMBA", "") != "1"
 
 
+def compile_once(build: Callable) -> Callable[[], object]:
+    """``get()``: ``build(numba)`` run on the first call only (under a lock: a fleet's
+    threads may reach it together), its result returned on every call."""
+    done: list = []
+    lock = threading.Lock()
+
+    def get():
+        if not done:
+            with lock:
+                if not done:
+                    import numba
+
+                    done.append(build(numba))
+        return done[0]
+    return get
+
+
 def lazy_njit(fn: Callable) -> Callable:
     """``fn`` compiled by ``numba.njit(cache=True)`` on its first call.
 
-    Only for a function that calls no other compiled function (those are compiled by
-    the caller's own first use, see :mod:`greybox.lawsim`)."""
-    compiled: list = []
-    lock = threading.Lock()  # a fleet's threads may reach the first call together
+    Only for a function that calls no other compiled function (a kernel with compiled
+    helpers builds them together with :func:`compile_once`, see :mod:`greybox.lawsim`)."""
+    get = compile_once(lambda numba: numba.njit(cache=True)(fn))
 
     def call(*args):
-        if not compiled:
-            with lock:
-                if not compiled:
-                    import numba
-
-                    compiled.append(numba.njit(cache=True)(fn))
-        return compiled[0](*args)
+        return get()(*args)
 
     call.__wrapped__ = fn
     call.__doc__ = fn.__doc__

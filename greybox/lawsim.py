@@ -16,12 +16,11 @@ as ``(state or input, second state or input, level or eps)``.
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 from numpy.typing import NDArray
 
 from ._jit import HAVE_NUMBA as _HAVE
+from ._jit import compile_once
 from .hold import as_hold
 
 #: numba is installed (the ``fast`` extra; :mod:`greybox._jit`). Imported on the first
@@ -117,26 +116,20 @@ def simulate_columns(A: NDArray, G: NDArray, hold, Bu: NDArray, u: NDArray, x0: 
     return _kernel()(np.ascontiguousarray(A, dtype=float), *mats, mode,
                      np.ascontiguousarray(Bu, dtype=float), np.ascontiguousarray(u, dtype=float),
                      np.ascontiguousarray(x0, dtype=float),
-                     np.array(TH, dtype=float, order="C"), *terms,
+                     np.ascontiguousarray(np.asarray(TH, dtype=float).T), *terms,
                      np.ascontiguousarray(comp, dtype=np.int64), md, bool(isolate))
 
 
-_COMPILED: list = []
-_LOCK = threading.Lock()  # a fleet's threads may reach the first call together
-
-
-def _kernel():
-    """The compiled :func:`_run` (its helpers compiled first; numba caches the machine
-    code on disk, so a later process loads it in ~0.1 s instead of compiling for ~4 s)."""
+def _build(numba):
+    """The compiled :func:`_run`, its helpers compiled first (numba caches the machine
+    code on disk: a later process loads it in ~0.1 s instead of compiling for ~4 s)."""
     global _term, _law, _mv  # noqa: PLW0603 - replaced by their compiled versions once
-    with _LOCK:
-        if not _COMPILED:
-            import numba
+    jit = numba.njit(cache=True)
+    _term, _law, _mv = jit(_term), jit(_law), jit(_mv)
+    return jit(_run)
 
-            jit = numba.njit(cache=True)
-            _term, _law, _mv = jit(_term), jit(_law), jit(_mv)
-            _COMPILED.append(jit(_run))
-    return _COMPILED[0]
+
+_kernel = compile_once(_build)
 
 
 def _term(code, i, j, w, x, u):
@@ -185,21 +178,20 @@ def _mv(M, v, out):  # out = M @ v
             s += M[r, c] * v[c]
         out[r] = s
 
-def _run(A, M1, M2, M3, M4, E2, W, mode, Bu, u, x0, TH, codes, ti, tj, tw, comp,
+def _run(A, M1, M2, M3, M4, E2, W, mode, Bu, u, x0, THt, codes, ti, tj, tw, comp,
         md, isolate):
     """States (N, n, K): :func:`simulate_columns`' recursion, column by column.
 
     ``mode`` 0: ``x' = A x + Bu + M1 f(x)``; 1: Heun of the first-order hold (M1 = G0,
     M2 = G1); 2: ETDRK4 (:meth:`greybox.hold.LawHold.step`: M1 = P2, M2..M4 = F1, F23,
-    F4, with E2 and W)."""
-    n, N, K = A.shape[0], Bu.shape[1], TH.shape[1]
+    F4, with E2 and W). ``THt`` (K, nterms): one row of coefficients per column."""
+    n, N, K = A.shape[0], Bu.shape[1], THt.shape[0]
     xs = np.full((N, n, K), np.nan)
     dead = np.full(K, N)
     X = np.empty((K, n))  # one row per column: contiguous
     for c in range(K):
         X[c] = x0
-    THt, uT, BuT = np.ascontiguousarray(TH.T), np.ascontiguousarray(u.T), \
-        np.ascontiguousarray(Bu.T)
+    uT, BuT = np.ascontiguousarray(u.T), np.ascontiguousarray(Bu.T)
     fx, fa, fb, fc = np.empty(md), np.empty(md), np.empty(md), np.empty(md)
     t1, t2, t3, t4, bh = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     dd = np.empty(md)
