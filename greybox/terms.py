@@ -963,6 +963,9 @@ def siblings(spec, j: int) -> list[int]:
 
 #: Kinds entering a law's linear part exactly.
 LINEAR_KINDS = kinds_where(linear=True)
+#: The forms of a state a one-equation law is offered when it lacks its own equation's
+#: state (its damping, loss, friction, drag: :func:`greybox.trace.oe.offer_terms`).
+OWN_STATE_KINDS = ("x", "x^3", "sign", "x|x|")
 #: Input breakpoint kinds (a refitted level: one more parameter).
 BREAK_KINDS = kinds_where(level="input")
 #: State hinge kinds (a level on a grid of quantiles).

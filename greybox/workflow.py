@@ -67,7 +67,7 @@ from .trace import (
     trace_channel,
 )
 from .trace.channel_trace import law_estimate_of, refit_sensor_on_states, whole_inputs
-from .terms import BREAK_KINDS, term_kind
+from .terms import BREAK_KINDS, OWN_STATE_KINDS, term_kind
 from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
                              fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
@@ -106,6 +106,9 @@ SCREEN_REL = 0.25
 # moves the direction only part way: 64-state chain, positions only, -0.90 -> -0.976 ->
 # -1.00); at most this many re-traces, each kept only if it is better.
 _MAX_RETRACE = 3
+# At most this many candidates of a choice pruned before it (besides the chosen one): each
+# prune is one more trace of its channel (:meth:`_Pass._contenders_pruned`).
+_MAX_PRUNED = 3
 # A model with more outputs than default_channels offers sensor channels for (6) has its
 # sensors offered by evidence instead: an offset that explains the innovations' mean
 # (_offset_sensors), and the SENSOR_TOP outputs whose own sensor law explains most of the
@@ -335,9 +338,9 @@ def close_the_loop(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike, y_val: ArrayL
     # 41 s vs 54 s wall)
     with single_thread_blas():
         rep = _loop(once, P.sys, P.nominal, P.Q, channels, P.chans, P.settings.delta,
-                    P.settings.max_effects, P.dt, functools.partial(_joint, P),
+                    P.settings.max_effects, P.dt, _JointRefit(P),
                     functools.partial(_refit_sensors, P))
-        for other in (_fused, _split, _reordered, _sensor_first):  # other explanations
+        for other in (_fused, _split, _split_input, _reordered, _sensor_first):  # others
             rep = other(P, rep)
         rep = _with_record(rep, P.y, P.u, P.Q, P.R, P.sys)
         P.tick("validation", 1, 1)  # the report is complete (after every pass of the loop)
@@ -377,7 +380,7 @@ def _fused(P: Problem, rep: LoopReport) -> LoopReport:
     pair = resolve_channel_spec(P.sys, [tuple(eqs)])
     try:
         alt = _loop(lambda *a: _Pass(P2, *a).run(), P.sys, P.nominal, P.Q, [tuple(eqs)],
-                    pair, False, 1, P.dt, functools.partial(_joint, P2))
+                    pair, False, 1, P.dt, _JointRefit(P2))
     except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
         return rep.with_decision("loop", "", f"the effects' pair traced as one channel: {e}")
     eff = alt.effect if alt.updated else None
@@ -447,6 +450,45 @@ def _split(P: Problem, rep: LoopReport) -> LoopReport:
                          ("the one effect kept", "the two effects, a lower criterion"))
 
 
+def _split_input(P: Problem, rep: LoopReport) -> LoopReport:
+    """One static law of several state equations that holds an input's gain error beside
+    another effect (issue 27 item 5: two effects of different kinds fused).
+
+    A law of the equations can stand for an actuator's error wherever the input enters:
+    its terms in the input (``G Ddu``) then fall in rows of ``B[:, j]`` only, and the
+    law adds a coefficient per row (zoo state_input: a damping error in eq(v5) and a
+    gain of F found as one law of eq(v5), eq(v6), eq(v8), F in two rows at two
+    coefficients). The loop is then run again as two passes (:func:`_two_passes`): the
+    input's channel alone, then a linear static law of each equation of the effect on
+    the updated model; the one criterion on the estimation record decides which
+    explanation is kept (:func:`_by_criterion`, every effect's parameters counted)."""
+    if not _may_retry(P, rep) or len(rep.steps) > 1 or rep.channel is None or \
+            rep.channel.kind != "equation" or len(rep.channel.equations) < 2:
+        return rep
+    law = rep.effect.law
+    if rep.effect.dynamic_law is not None or not isinstance(law, StaticLaw) or law.nonlinear \
+            or law.output is not None:
+        return rep
+    B = np.asarray(P.sys.B, dtype=float)
+    dB = np.asarray(rep.channel.G, dtype=float) @ np.asarray(law.Ddu, dtype=float)
+    inputs = [j for j in range(B.shape[1]) if np.any(dB[:, j] != 0) and
+              np.all((B[:, j] != 0) | (dB[:, j] == 0)) and
+              np.count_nonzero(dB[:, j]) >= 2]
+    if not inputs:
+        return rep
+    j = max(inputs, key=lambda j: np.linalg.norm(dB[:, j]) / np.linalg.norm(B[:, j]))
+    ch = input_channel(P.sys, j)
+    eqs = [(e,) for e in rep.channel.equations]
+    what = f"{ch.name} first, then " + ", ".join(f"eq({e})" for (e,) in eqs)
+    tried = (f"the effect in {rep.channel.name} (terms in {P.sys.input_labels[j]} where it "
+             "enters) tried as two of different kinds")
+    alt = _two_passes(P, ch, eqs)
+    if isinstance(alt, str):
+        return rep.with_decision("loop", "", f"{tried}: {what}: {alt}; the one effect kept")
+    return _by_criterion(P, rep, alt, tried, "one effect", what,
+                         ("the one effect kept", "the two effects, a lower criterion"))
+
+
 def _may_retry(P: Problem, rep: LoopReport) -> bool:
     """Whether a linear update may be tried as another set of effects (:func:`_split`,
     :func:`_reordered`): greybox chose the channels, two effects are allowed, and the
@@ -490,6 +532,14 @@ def _estimation_fit(P: Problem, rep: LoopReport):
     if rep.effect.nonlinear and rep.trace is not None and len(rep.steps) <= 1:
         res = rep.trace.filter_result
         plant = LawPlant(res.sys, res.G, rep.trace.static, rep.model.sys)
+    return _model_fit(P, plant)
+
+
+def _model_fit(P: Problem, model):
+    """The :class:`greybox.metrics.OutputFit` of ``model`` (a discrete ``StateSpace`` or a
+    plant adapter) simulated on the estimation (search) record from its estimated
+    initial state."""
+    plant = LinearPlant(model) if isinstance(model, ct.StateSpace) else model
     with np.errstate(all="ignore"):  # a diverging simulation loses, it does not warn
         ysim = plant.simulate(P.us, plant.initial_state(P.ys, P.us))
     return output_fit(P.ys, ysim, skip=_Pass.SKIP)
@@ -540,7 +590,7 @@ def _sensor_first(P: Problem, rep: LoopReport) -> LoopReport:
                                      "gain) that passes the gate; the effects kept")
         alt = _loop(lambda *a: first.pop() if first else once(*a), P.sys, P.nominal, P.Q,
                     None, (sensor,), False, S.max_effects, P.dt,
-                    functools.partial(_joint, P), functools.partial(_refit_sensors, P))
+                    _JointRefit(P), functools.partial(_refit_sensors, P))
     except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
         return rep.with_decision("loop", "", f"the effects tried with {tried}: failed ({e})")
     if not alt.updated or len(alt.steps) < 2 or alt.nonlinear is not None:
@@ -617,21 +667,21 @@ def _first_then(P: Problem, first: Settings, rest: Settings):
 
 
 def _two_passes(P: Problem, sensor: Channel, eqs: list) -> LoopReport | str:
-    """The loop run as two passes: the sensor channel alone, then a linear static law of
-    each of the equations ``eqs`` alone on the updated model (the one linear law they
-    would replace is the alternative), both refitted jointly (a sensor lag's time constant is
-    biased by the equation's error until then); why not, as a string, when it finds
-    fewer than two effects."""
+    """The loop run as two passes: the channel ``sensor`` alone (a sensor's, an input's),
+    then a linear static law of each of the equations ``eqs`` alone on the updated model
+    (the one linear law they would replace is the alternative), both refitted jointly (a
+    sensor lag's time constant is biased by the equation's error until then); why not, as
+    a string, when it finds fewer than two effects."""
     once = _first_then(P, replace(P.settings, channels=[sensor]),
                        replace(P.settings, channels=eqs, max_order=0, nonlinear=False))
     try:
         alt = _loop(once, P.sys, P.nominal, P.Q, eqs, (sensor,),
-                    False, 2, P.dt, functools.partial(_joint, P),
+                    False, 2, P.dt, _JointRefit(P),
                     functools.partial(_refit_sensors, P))
     except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
         return f"failed ({e})"
     if not alt.updated:
-        return "the sensor's law alone fails the gate"
+        return f"the law of {sensor.name} alone fails the gate"
     if len(alt.steps) < 2:
         return "no second effect"
     return alt
@@ -759,6 +809,33 @@ def _joint(P: Problem, passes, final, Qf):
     return jr, row
 
 
+@dataclass(frozen=True)
+class _JointRefit:
+    """The loop's joint refit of its effects (:func:`_joint`, called as ``joint(passes,
+    final, Qf)``) and the one criterion that compares two refits (:meth:`prefers`)."""
+
+    P: Problem
+
+    def __call__(self, passes, final, Qf):
+        return _joint(self.P, passes, final, Qf)
+
+    def prefers(self, new, old) -> tuple[bool, str]:
+        """Whether the refit ``new`` (JointRefinement) beats ``old`` by the one criterion
+        (:func:`greybox.metrics.criterion_scores` at ``bic_factor``, every effect's
+        parameters counted, on the estimation record), and the comparison in words: an
+        equal fit with fewer terms wins (a lag the data cannot see, dropped in one refit
+        and kept in the other)."""
+        P = self.P
+        fits = [_model_fit(P, jr.model.sys) for jr in (new, old)]
+        npars = [sum(int(law.npar) for law in jr.laws) for jr in (new, old)]
+        best = int(np.argmin([f.se for f in fits]))
+        crit = criterion_scores(fits, npars, n_eff=fits[best].n_eff,
+                                factor=P.settings.bic_factor)
+        return bool(crit[0] < crit[1]), (
+            f"{npars[0]} parameters, SE {fits[0].se:.3g} %, criterion {crit[0] - crit[1]:+.4g} "
+            f"against {npars[1]} parameters, SE {fits[1].se:.3g} %")
+
+
 def _held_sensors_refitted(P: Problem, jr, passes):
     """The joint refit ``jr`` with the static sensor laws it held (a gain, an offset: they
     act on C, not on A and B) refitted on its model's simulation, its model's rows of C
@@ -872,6 +949,7 @@ class _Pass:
         self.unstable = unstable_reason(nominal, P.y.shape[1])
         self.big = P.settings.channels is None and nominal.nstates > SCREEN_ABOVE
         self._enough = None  # (the best static candidate, whether it leaves white innovations)
+        self._prune_tried: set[int] = set()  # ids of the traces pruned, or pruned from
 
     def run(self) -> LoopReport:
         """The stages in order."""
@@ -1498,6 +1576,7 @@ class _Pass:
         if not finite:
             return None
         self.n_eff = min(finite, key=lambda s: s.se).fit.n_eff
+        finite += self._contenders_pruned(finite)
         crit = self._criterion(finite)
         order = sorted(range(len(finite)), key=lambda i: (crit[i], finite[i].npar,
                                                           finite[i].trace.channel.md,
@@ -1515,26 +1594,69 @@ class _Pass:
         return criterion_scores([c.fit for c in cands], [c.npar for c in cands],
                                 n_eff=n_eff, factor=self.S.bic_factor)
 
+    def _contenders_pruned(self, cands) -> list[Candidate]:
+        """Every static law among ``cands`` that pruning could make the best, pruned
+        (:meth:`pruned`): the candidates are chosen as their laws would be kept, not as
+        fitted (zoo static_state: eq(T2)'s 6-term law lost to a force's 2 parameters at
+        the same SE; pruned, it is the one true term). A law of k terms is a contender
+        when its criterion less ``k - 1`` parameters' price beats the best criterion and
+        its fit alone (the criterion less all its parameters' price) is within one
+        parameter's price of the best's: pruning weighs explanations that fit alike by
+        their terms, it does not rescue a worse fit (the drives' rectifying sensor, 3
+        parameters at SE 38 %, against a 3-term law of the speed's equation at 89 %, on 36
+        effective samples). At most ``_MAX_PRUNED`` of them, the most promising first.
+        Returns the pruned candidates (to be scored beside the others)."""
+        crit = self._criterion(cands)
+        price = self.S.bic_factor * np.log(max(float(np.sum(self.n_eff)), 2.0))
+        ib = int(np.argmin(crit))
+        best, fit_best = float(crit[ib]), float(crit[ib]) - price * cands[ib].npar
+        hope = [(crit[i] - price * (c.npar - 1), i) for i, c in enumerate(cands)
+                if c.kind == "static" and c.npar >= 2 and c.trace.static is not None and
+                c.trace.static.output is None and id(c.trace) not in self._prune_tried and
+                crit[i] > best and crit[i] - price * c.npar < fit_best + price]
+        out = []
+        for h, i in sorted(hope)[:_MAX_PRUNED]:
+            if h >= best:
+                break
+            new = self.pruned(cands[i])
+            if new is not cands[i]:
+                out.append(new)
+        return out
+
     def pruned(self, pick: Candidate) -> Candidate:
         """The chosen static law traced again with its terms pruned by the one criterion
-        (:func:`greybox.trace.oe.prune_by_criterion`), scored; ``pick`` itself when no
-        term was dropped or the pruned law cannot be simulated."""
-        law = pick.trace.static
-        if pick.kind != "static" or law is None or law.npar < 2 or law.output is not None:
+        (:func:`greybox.trace.oe.prune_by_criterion`), a one-equation law that lacks its
+        equation's own state offered it first (``own``: :func:`greybox.trace.oe.offer_terms`),
+        scored; ``pick`` itself when its terms are kept as they are, the new law cannot be
+        simulated, a changed law does not lower the criterion, or the law was pruned
+        already (:meth:`_contenders_pruned`)."""
+        law, ch = pick.trace.static, pick.trace.channel
+        if pick.kind != "static" or law is None or law.output is not None or \
+                id(pick.trace) in self._prune_tried or \
+                not (law.npar >= 2 or
+                     (law.npar == 1 and _lacks_own_state(ch, law, self.sys.state_labels))):
             return pick
+        self._prune_tried.add(id(pick.trace))
         breaks = any(sp[1] in BREAK_KINDS for sp in law.spec)
         n_before = len(self.scored)
         try:
-            tr = self._trace(pick.trace.channel, nonlinear=self.S.nonlinear, max_order=0,
-                             breaks=breaks, prune=self.S.bic_factor)
+            tr = self._trace(ch, nonlinear=self.S.nonlinear, max_order=0, breaks=breaks,
+                             prune=self.S.bic_factor, own=True)
         except (GreyboxError, np.linalg.LinAlgError) as e:
-            self.note("choose", pick.trace.channel.name, f"criterion prune failed: {e}")
+            self.note("choose", ch.name, f"criterion prune failed: {e}")
             return pick
-        if tr.status != "ok" or tr.static is None or tr.static.npar >= law.npar:
+        if tr.status != "ok" or tr.static is None or \
+                np.array_equal(tr.static.coef != 0, law.coef != 0):
             return pick
         self.score(tr)
         new = [s for s in self.scored[n_before:] if s.kind == "static" and np.isfinite(s.se)]
-        return new[0] if new else pick
+        self._prune_tried.update(id(s.trace) for s in new)
+        if not new:
+            return pick
+        if new[0].npar < law.npar:  # the same terms, fewer: the prune's own criterion chose
+            return new[0]
+        crit = self._criterion([pick, new[0]])
+        return new[0] if crit[1] < crit[0] else pick
 
     # ------------------------------------------------------------------ 3. gate
     def judge(self, r: Residual, chosen: Candidate) -> Verdict:
@@ -1687,6 +1809,17 @@ class _Pass:
                           candidates=tuple(self.cands), gate=self.gate, criterion=r.crit,
                           nominal=self.nominal, model=v.model, table=table, trace=tr,
                           decisions=tuple(self.decisions))
+
+
+def _lacks_own_state(ch: Channel, law, states) -> bool:
+    """Whether ``law`` is a one-equation channel's law with no form of that equation's own
+    state among its terms (v, v^3, sign(v), v|v|: what :meth:`_Pass.pruned` offers it);
+    ``states``: the model's state labels (the terms' indices)."""
+    if ch.kind != "equation" or ch.md != 1 or len(ch.equations) != 1:
+        return False
+    i = list(states).index(ch.equations[0])
+    own = [j for j, sp in enumerate(law.spec) if sp[1] in OWN_STATE_KINDS and sp[2] == i]
+    return bool(own) and not np.any(law.coef[:, own] != 0)
 
 
 def _logdet_gain(d, r) -> float:
@@ -2418,8 +2551,8 @@ def _retrace_last(once, joint, jr, passes, Q, steps, chans, dt, notes):
     fitted first absorbs some of an actuator lag); the last pass then traced
     what was left and may have picked the wrong drivers. Once the joint
     refit has dropped the borrowed terms, the last effect is traced again on
-    that model and the whole set refitted; the better set by estimation
-    output error is kept. Returns ``(jr, row, steps)`` or None. Not traced again where
+    that model and the whole set refitted; the better set by the one criterion
+    (``joint.prefers``: an equal fit with fewer terms wins) is kept. Returns ``(jr, row, steps)`` or None. Not traced again where
     the joint refit moved no coefficient by its 95 % half-width and dropped no term
     (``jr.moved`` False): the last pass then saw what it would see now.
     """
@@ -2442,10 +2575,16 @@ def _retrace_last(once, joint, jr, passes, Q, steps, chans, dt, notes):
     alt = passes[:-1] + [(base, rep.channel, rep.effect)]
     out = _refit_jointly(joint, earlier + [(base, rep.channel, rep.effect)],
                          _next_model(base, rep), rep.model.Q, notes)
-    if out is None or not out[0].se_after < jr.se_after:
+    if out is None:
         notes.append(Decision("refit", "", "re-trace of the last effect on the refitted model: "
                               "no better"))
         return None
+    better, how = joint.prefers(out[0], jr)
+    if not better:
+        notes.append(Decision("refit", "", "re-trace of the last effect on the refitted model: "
+                              f"no better by the criterion ({how})"))
+        return None
+    notes.append(Decision("refit", "", f"the re-traced set by the criterion: {how}"))
     jr2, row2 = out
     tb = rep.table
     last = EffectStep(effect=rep.effect, channel=rep.channel.name, message=rep.message,

@@ -28,7 +28,7 @@ from ..hold import LawHold
 from ..filters.smoother import smooth_feedthrough_of
 from ..metrics import autocorrelation
 from ..system import named_ss
-from ..terms import term_kind
+from ..terms import OWN_STATE_KINDS, term_kind
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 from ..validate import has_marginal_pole, unstable_reason
 from .channels import Channel, channel_model
@@ -51,6 +51,7 @@ from .oe import (
     _select_static_oe,
     exchange_siblings,
     checked_intervals,
+    offer_terms,
     prune_by_criterion,
     noise_covariance,
     oe_window,
@@ -721,8 +722,12 @@ def _free_direction(sys, channel, model, cont, law, y, u, x0, k0, Q, R, notes):
     """A force's G along its direction refitted with its law, or None (:func:`refine_force_direction`).
 
     The smaller of the two entries of G is freed (``G[b] (1 + r)``); None
-    when the data do not contradict the given direction.
+    when the data do not contradict the given direction, or for any channel but a force
+    of a continuous model with a linear law in continuous time.
     """
+    if channel.kind != "force" or cont is None or not law.npar or law.nonlinear or \
+            law.time_base != "continuous":
+        return None
     G = np.asarray(channel.G, dtype=float)[:, 0]
     rows = [list(sys.state_labels).index(e) for e in channel.equations]
     b = min(rows, key=lambda i: abs(G[i]))
@@ -938,14 +943,38 @@ def _pruned(law, model, channel: Channel, y, u, x0, k0, cont, noise, prune: floa
     return law
 
 
+def _own_offers(law, model, channel: Channel, fit_data) -> tuple[list, list]:
+    """The forms of an equation's own state (v, v^3, sign(v), v|v|: its damping, loss,
+    friction, drag) a one-equation law lacks, as ``(offers, guesses)`` for
+    :func:`greybox.trace.oe.offer_terms`; none when the law has a form of it already. Each
+    guess is the least-squares coefficient of the term on what the law leaves of d^."""
+    if channel.kind != "equation" or channel.md != 1 or len(channel.equations) != 1:
+        return [], []
+    i = list(model.state_labels).index(channel.equations[0])
+    own = [j for j, sp in enumerate(law.spec) if sp[1] in OWN_STATE_KINDS and sp[2] == i]
+    if not own or np.any(law.coef[0, own] != 0):
+        return [], []
+    d, xw, uw, align = fit_data
+    sel = np.flatnonzero(law.coef[0])
+    spec = [law.spec[j] for j in list(sel) + own]
+    tm = aligned(_eval_terms(spec, law.eps, xw, uw), align[0])
+    K = min(tm.shape[1], d.shape[1])
+    rest = d[0, :K] - law.coef[0, sel] @ tm[:len(sel), :K]
+    tt = tm[len(sel):, :K]
+    guesses = (tt @ rest) / np.maximum(np.sum(tt * tt, axis=1), 1e-300)
+    return [(0, j) for j in own], list(guesses)
+
+
 def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whitened: bool,
                  averaged: bool, excess: float, oe_ok: bool, fit_data, at, notes,
-                 prune: float = 0.0):
+                 prune: float = 0.0, own: bool = False):
     """The static law fitted on d^, refined by output error on y where that is defined:
     chosen by output error when d^ is mostly noise or the d^ law is not sparse, its
     coefficients refined (linear or nonlinear), then its terms kept only where the one
-    criterion supports them (:func:`greybox.trace.oe.prune_by_criterion`). ``fit_data``:
-    ``(d, xw, uw, align)`` of the d^ fit; ``at``: the aligned ``(x, u)``."""
+    criterion supports them (:func:`greybox.trace.oe.prune_by_criterion`); with ``own``
+    (and ``prune``), an equation's own state offered first (:func:`_own_offers`,
+    :func:`greybox.trace.oe.offer_terms`). ``fit_data``: ``(d, xw, uw, align)`` of the
+    d^ fit; ``at``: the aligned ``(x, u)``."""
     d, xw, uw, align = fit_data
     x, uu = at
     labels = list(channel.labels)
@@ -998,6 +1027,14 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
         if se_y < se_d:
             notes.append(f"nonlinear static law refined by output error on y: estimation SE "
                          f"{se_d:.3g}% -> {se_y:.3g}%")
+    if own and prune and oe_ok and law.npar and not has_marginal_pole(model):
+        offers, guesses = _own_offers(law, model, channel, fit_data)
+        if offers:
+            law, more = offer_terms(law, model, channel.md, y, u, x0, k0, labels,
+                                    channel.units, law.term_scale(x, uu), offers, guesses,
+                                    cont if law.time_base == "continuous" else None, noise,
+                                    factor=float(prune))
+            notes += more
     # the one criterion: terms only where the data support them (by output error: not for a
     # model with an integrator, whose simulation drifts; EMPS lost its |v| term so)
     law = _pruned(law, model, channel, y, u, x0, k0, cont, noise, prune, oe_ok, at, notes)
@@ -1025,7 +1062,7 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                   Q: NDArray, R: NDArray, dt: float | None = None, nonlinear: bool = True,
                   max_order: int = 2, min_order: int = 1, skip: int | None = None,
                   cond_tol: float = 1e-6, smooth: bool | str = "auto",
-                  breaks: bool = False, prune: float = 0.0) -> ChannelTrace:
+                  breaks: bool = False, prune: float = 0.0, own: bool = False) -> ChannelTrace:
     """Run the unknown-input filter for one channel and fit static and dynamic laws.
 
     Parameters
@@ -1063,6 +1100,9 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
         penalty, falls; True is 1, the BIC). Close the loop asks it for the
         candidate it chose, at its ``bic_factor``: the price its choice between
         candidates pays (pruning every candidate cost 2-6x the trace).
+    own : bool
+        With ``prune``: a one-equation law without its own state offered its forms first
+        (:func:`greybox.trace.oe.offer_terms`).
     smooth : bool or "auto"
         Fit the static law on the fixed-interval smoothed d^ and x^
         (:func:`greybox.smooth_uikf`, the whole record is available) rather
@@ -1122,13 +1162,9 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                      "on d^ (no output-error refinement: its simulation diverges)")
     law = _refined_law(law, model, channel, y, u, res.x_filt[:, 0], k0, cont, (Q, R),
                        est.smoothed or r >= 2, averaged, excess, oe_ok, (d, xw, uw, align),
-                       (x, uu), notes, prune)
-    if channel.kind == "force" and cont is not None and oe_ok and law.npar \
-            and not law.nonlinear and law.time_base == "continuous":
-        refined_G = _free_direction(sys, channel, model, cont, law, y, u, res.x_filt[:, 0], k0,
-                                    Q, R, notes)
-    else:
-        refined_G = None
+                       (x, uu), notes, prune, own)
+    refined_G = _free_direction(sys, channel, model, cont, law, y, u, res.x_filt[:, 0], k0,
+                                Q, R, notes) if oe_ok else None
     sub0 = _static_subsystem(law, replace(res, d_cov=dnoise), d, x, uu)
     static_model = _static_model(model, sub0, law, labels, Q, R, cont)
     dyn, dyn_model = None, None

@@ -1330,6 +1330,80 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
                         tscale), [note]
 
 
+def offer_terms(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
+                x0: NDArray, k0: int, labels, units, tscale: NDArray, offers, guesses,
+                cont=None, noise=None, factor: float = 1.0) -> tuple[StaticLaw, list[str]]:
+    """A static law with the one offered term that the output-error criterion wants most.
+
+    The terms a law is chosen among on d^ can miss the one the plant has (an equation
+    measured only through others: d^ is delayed and mostly noise, and a law of five
+    neighbours' states stands in for the equation's own loss; Coulomb friction on a mass
+    whose speed is not measured found as a damping of its neighbour's). Each of
+    ``offers`` ((component of d, term index) pairs, the law lacks them) is fitted beside
+    the law's terms by output error from 0 (``guesses``: its scale), and in their place
+    (its component's whole law: several terms can stand in for it together and fit as
+    well as it does beside them); the trial that lowers
+    :func:`greybox.metrics.oe_criterion` most (each parameter priced at ``factor`` times
+    its BIC penalty, on the effective samples of the law's own residual, the law refitted
+    the same way: a linear trial as the linear law, a nonlinear one simulated) is taken;
+    the caller's prune (:func:`prune_by_criterion`) then drops the terms it makes
+    redundant. Returns ``(law, notes)``: the law unchanged
+    and no note when no offer lowers the criterion.
+    """
+    sel, theta0 = _selected(law)
+    todo = [(o, g) for o, g in zip(offers, guesses) if o not in sel and np.isfinite(g)]
+    if not todo or not sel or len(sel) + 1 > _NL_OE_MAX_TERMS or law.output is not None:
+        return law, []
+    p, W = y.shape[0], _nl_window(y, k0)
+    bases: dict = {}
+
+    def fitted(s, start, nonlinear, scale=None):
+        if nonlinear:  # (``scale``: the coefficients' scales, where ``start`` holds a 0)
+            prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, s,
+                                            start if scale is None else scale, noise, W)
+            theta, half, _ = prob.fit(list(range(len(s))), start)
+            return theta, half, prob.resid(theta / prob.theta_scale).reshape(p, -1), None
+        prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
+        sol = prob.fit(s, start)
+        return sol.x, prob.halfwidths(sol, s), np.asarray(prob.resid(sol.x, s)).reshape(
+            p, -1), prob
+
+    best = None
+    for (c, j), g in todo:
+        nl = law.nonlinear or not term_kind(law.spec[j][1]).linear
+        if nl not in bases:
+            th0, _, r0, _ = fitted(sel, theta0, nl)
+            ok = bool(np.all(np.abs(r0) < 1e6))
+            neff = effective_samples(r0) if ok else None
+            bases[nl] = (oe_criterion(r0, len(sel), neff, factor) if ok else None, neff, th0)
+        cur, neff, th0 = bases[nl]
+        if cur is None:
+            continue
+        # beside the law, and as its component's whole law (terms that stand in for it
+        # together fit as well as it does beside them); from 0 (the law as it is: the
+        # guess on d^ can be far off, even in sign, where d^ could not pick the term), at
+        # the guess's scale
+        rest = [q for q in range(len(sel)) if sel[q][0] != c]
+        for s2, th_s in ((sel + [(c, j)], th0), ([sel[q] for q in rest] + [(c, j)],
+                                                 th0[rest])):
+            th, hf, r2, prob = fitted(s2, np.r_[th_s, 0.0], nl, np.r_[th_s, g])
+            if not np.all(np.abs(r2) < 1e6):
+                continue
+            crit = oe_criterion(r2, len(s2), neff, factor)
+            if crit < cur and (best is None or crit - cur < best[0]):
+                best = (crit - cur, s2, th, hf, prob, len(s2) <= len(sel))
+    if best is None:
+        return law, []
+    gain, s2, th, hf, prob, alone = best
+    note = (f"term offered by output error: {law.spec[s2[-1][1]][0]} "
+            f"{'in place of the law' if alone else 'added'} (the output-error criterion "
+            f"{gain:+.4g})")
+    if prob is None:
+        return _nl_law_with(law, s2, list(range(len(s2))), th, hf, labels, units, tscale), \
+            [note]
+    return prob.law_with(s2, th, labels, units, tscale, ci=hf, npar=len(s2)), [note]
+
+
 def _nl_window(y: NDArray, k0: int) -> int:
     """Samples after k0 a whole-law output-error fit of a nonlinear law uses (the criterion's
     prune and the siblings' exchange): at most ``_NL_OE_WINDOW`` and ``oe_window(p)``."""
