@@ -765,6 +765,19 @@ def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
                           f"; {len(scr.states) - len(top)} other equations below"))
     keep = [c for c in chans if c.kind in ("input", "output") or
             (c.md == 1 and c.equations and c.equations[0] in top)]
+    if not top and sys is P.sys:
+        # no equation above the screen's threshold (positions only: its d^ is a second
+        # difference of them): the inputs' own channels still, an input that enters one
+        # equation included (otherwise that equation's channel stands for it), a few
+        # traces where an actuator's error is the likeliest (zoo actuator_gain: a chain
+        # of 9, positions only, F's gain 0.794 left unnamed at 52x the true model's error)
+        B = np.asarray(sys.B, dtype=float)
+        have = {c.name for c in keep}
+        extra = [input_channel(sys, j) for j in range(sys.ninputs) if np.any(B[:, j] != 0)]
+        keep += [c for c in extra if c.name not in have]
+        notes.append(Decision("screen", "", "no equation above the screen's threshold: the "
+                              "inputs' channels traced (" +
+                              ", ".join(c.name for c in extra) + ")"))
     if nominal.noutputs >= 2:
         idx = sorted(list(sys.state_labels).index(s) for s in top)
         for a, i in enumerate(idx):

@@ -1404,6 +1404,20 @@ def offer_terms(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: ND
     return prob.law_with(s2, th, labels, units, tscale, ci=hf, npar=len(s2)), [note]
 
 
+def simulates_better(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
+                     x0: NDArray, k0: int) -> bool:
+    """Whether the model with ``law`` at its coefficients simulates y better (a lower,
+    finite SE on the output-error window) than the model without it."""
+    sel, theta0 = _selected(law)
+    if not sel:
+        return False
+    prob = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, sel, theta0, None,
+                                    _nl_window(y, k0))
+    with np.errstate(all="ignore"):  # a diverging law loses, it does not warn
+        se, se0 = prob.se(theta0), prob.se(np.zeros_like(theta0))
+    return bool(np.isfinite(se) and se < se0)
+
+
 def _nl_window(y: NDArray, k0: int) -> int:
     """Samples after k0 a whole-law output-error fit of a nonlinear law uses (the criterion's
     prune and the siblings' exchange): at most ``_NL_OE_WINDOW`` and ``oe_window(p)``."""
