@@ -935,6 +935,12 @@ def linear_part(spec, coef: NDArray, n: int, m: int) -> tuple[NDArray, NDArray]:
     return Ddx, Ddu
 
 
+def own_state_terms(spec, i: int) -> list[int]:
+    """Indices of the terms of ``spec`` that are forms of state ``i`` an equation's own law
+    is offered (:data:`OWN_STATE_KINDS`: v, v^3, sign(v), v|v|)."""
+    return [j for j, sp in enumerate(spec) if sp[1] in OWN_STATE_KINDS and sp[2] == i]
+
+
 def shapes(spec) -> list:
     """Per term, a label shared by the nonlinear odd shapes of one variable (v^3, sign(v),
     v*|v|: alternatives, at most one in a law's selection on d^), else None.

@@ -67,7 +67,7 @@ from .trace import (
     trace_channel,
 )
 from .trace.channel_trace import law_estimate_of, refit_sensor_on_states, whole_inputs
-from .terms import BREAK_KINDS, OWN_STATE_KINDS, term_kind
+from .terms import BREAK_KINDS, own_state_terms, term_kind
 from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
                              fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
@@ -438,16 +438,23 @@ def _split(P: Problem, rep: LoopReport) -> LoopReport:
     sensor = _split_sensor(P, rep.channel)
     if sensor is None:
         return rep
-    eqs = [(e,) for e in rep.channel.equations]
-    what = f"{sensor.name} first, then " + ", ".join(f"eq({e})" for (e,) in eqs)
-    alt = _two_passes(P, sensor, eqs)
+    return _as_two(P, rep, sensor, [(e,) for e in rep.channel.equations],
+                   f"the effect in {rep.channel.name} ({_effects_npar(rep)} parameters) "
+                   "tried as two of different kinds", "one effect",
+                   ("the one effect kept", "the two effects, a lower criterion"))
+
+
+def _as_two(P: Problem, rep: LoopReport, first: Channel, eqs: list, tried: str, name0: str,
+            verdicts: tuple[str, str]) -> LoopReport:
+    """``rep`` or the loop run as two passes (:func:`_two_passes`: the channel ``first``,
+    then each equation of ``eqs``), whichever the one criterion prefers
+    (:func:`_by_criterion`); the decision trail says which, or why there were not two
+    (``tried``, ``name0``, ``verdicts``: as :func:`_by_criterion` takes them)."""
+    what = f"{first.name} first, then " + ", ".join(f"eq({e})" for (e,) in eqs)
+    alt = _two_passes(P, first, eqs)
     if isinstance(alt, str):
-        return rep.with_decision("loop", "", f"the effect in {rep.channel.name} "
-                                 f"({_effects_npar(rep)} parameters) tried as two: {what}: "
-                                 f"{alt}; the one effect kept")
-    return _by_criterion(P, rep, alt, f"the effect in {rep.channel.name} tried as two of "
-                         "different kinds", "one effect", what,
-                         ("the one effect kept", "the two effects, a lower criterion"))
+        return rep.with_decision("loop", "", f"{tried}: {what}: {alt}; {verdicts[0]}")
+    return _by_criterion(P, rep, alt, tried, name0, what, verdicts)
 
 
 def _split_input(P: Problem, rep: LoopReport) -> LoopReport:
@@ -477,16 +484,10 @@ def _split_input(P: Problem, rep: LoopReport) -> LoopReport:
     if not inputs:
         return rep
     j = max(inputs, key=lambda j: np.linalg.norm(dB[:, j]) / np.linalg.norm(B[:, j]))
-    ch = input_channel(P.sys, j)
-    eqs = [(e,) for e in rep.channel.equations]
-    what = f"{ch.name} first, then " + ", ".join(f"eq({e})" for (e,) in eqs)
-    tried = (f"the effect in {rep.channel.name} (terms in {P.sys.input_labels[j]} where it "
-             "enters) tried as two of different kinds")
-    alt = _two_passes(P, ch, eqs)
-    if isinstance(alt, str):
-        return rep.with_decision("loop", "", f"{tried}: {what}: {alt}; the one effect kept")
-    return _by_criterion(P, rep, alt, tried, "one effect", what,
-                         ("the one effect kept", "the two effects, a lower criterion"))
+    return _as_two(P, rep, input_channel(P.sys, j), [(e,) for e in rep.channel.equations],
+                   f"the effect in {rep.channel.name} (terms in {P.sys.input_labels[j]} where "
+                   "it enters) tried as two of different kinds", "one effect",
+                   ("the one effect kept", "the two effects, a lower criterion"))
 
 
 def _may_retry(P: Problem, rep: LoopReport) -> bool:
@@ -626,14 +627,10 @@ def _reordered(P: Problem, rep: LoopReport) -> LoopReport:
     for c in chans[:-1]:
         eqs += [(e,) for e in c.equations if (e,) not in eqs]
     sensor = chans[-1]
-    what = f"{sensor.name} first, then " + ", ".join(f"eq({e})" for (e,) in eqs)
-    tried = (f"the effects in {', '.join(c.name for c in chans[:-1])} and then {sensor.name} "
-             "tried the other way round")
-    alt = _two_passes(P, sensor, eqs)
-    if isinstance(alt, str):
-        return rep.with_decision("loop", "", f"{tried}: {what}: {alt}; the effects kept")
-    return _by_criterion(P, rep, alt, tried, "as found", what,
-                         ("the effects kept as found", "the sensor first, a lower criterion"))
+    return _as_two(P, rep, sensor, eqs,
+                   f"the effects in {', '.join(c.name for c in chans[:-1])} and then "
+                   f"{sensor.name} tried the other way round", "as found",
+                   ("the effects kept as found", "the sensor first, a lower criterion"))
 
 
 def _split_sensor(P: Problem, ch: Channel) -> Channel | None:
@@ -1831,7 +1828,7 @@ def _lacks_own_state(ch: Channel, law, states) -> bool:
     if ch.kind != "equation" or ch.md != 1 or len(ch.equations) != 1:
         return False
     i = list(states).index(ch.equations[0])
-    own = [j for j, sp in enumerate(law.spec) if sp[1] in OWN_STATE_KINDS and sp[2] == i]
+    own = own_state_terms(law.spec, i)
     return bool(own) and not np.any(law.coef[:, own] != 0)
 
 

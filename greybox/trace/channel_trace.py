@@ -28,7 +28,7 @@ from ..hold import LawHold
 from ..filters.smoother import smooth_feedthrough_of
 from ..metrics import autocorrelation
 from ..system import named_ss
-from ..terms import OWN_STATE_KINDS, term_kind
+from ..terms import own_state_terms, term_kind
 from ..update import Subsystem, UpdatedModel, augment_model, identify_subsystem
 from ..validate import has_marginal_pole, unstable_reason
 from .channels import Channel, channel_model
@@ -952,7 +952,7 @@ def _own_offers(law, model, channel: Channel, fit_data) -> tuple[list, list]:
     if channel.kind != "equation" or channel.md != 1 or len(channel.equations) != 1:
         return [], []
     i = list(model.state_labels).index(channel.equations[0])
-    own = [j for j, sp in enumerate(law.spec) if sp[1] in OWN_STATE_KINDS and sp[2] == i]
+    own = own_state_terms(law.spec, i)
     if not own or np.any(law.coef[0, own] != 0):
         return [], []
     d, xw, uw, align = fit_data
