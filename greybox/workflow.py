@@ -66,8 +66,9 @@ from .trace import (
     resolve_channel_spec,
     trace_channel,
 )
-from .trace.channel_trace import law_estimate_of, refit_sensor_on_states, whole_inputs
-from .terms import BREAK_KINDS, own_state_terms, term_kind
+from .trace.channel_trace import (lacked_own_terms, law_estimate_of, refit_sensor_on_states,
+                                  whole_inputs)
+from .terms import BREAK_KINDS, term_kind
 from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dynamic,
                              fit_sparse_dynamic)
 from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
@@ -1644,7 +1645,7 @@ class _Pass:
         if pick.kind != "static" or law is None or law.output is not None or \
                 id(pick.trace) in self._prune_tried or \
                 not (law.npar >= 2 or
-                     (law.npar == 1 and _lacks_own_state(ch, law, self.sys.state_labels))):
+                     (law.npar == 1 and lacked_own_terms(law, ch, self.sys.state_labels))):
             return pick
         self._prune_tried.add(id(pick.trace))
         breaks = any(sp[1] in BREAK_KINDS for sp in law.spec)
@@ -1819,17 +1820,6 @@ class _Pass:
                           candidates=tuple(self.cands), gate=self.gate, criterion=r.crit,
                           nominal=self.nominal, model=v.model, table=table, trace=tr,
                           decisions=tuple(self.decisions))
-
-
-def _lacks_own_state(ch: Channel, law, states) -> bool:
-    """Whether ``law`` is a one-equation channel's law with no form of that equation's own
-    state among its terms (v, v^3, sign(v), v|v|: what :meth:`_Pass.pruned` offers it);
-    ``states``: the model's state labels (the terms' indices)."""
-    if ch.kind != "equation" or ch.md != 1 or len(ch.equations) != 1:
-        return False
-    i = list(states).index(ch.equations[0])
-    own = own_state_terms(law.spec, i)
-    return bool(own) and not np.any(law.coef[:, own] != 0)
 
 
 def _logdet_gain(d, r) -> float:

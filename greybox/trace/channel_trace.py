@@ -944,16 +944,23 @@ def _pruned(law, model, channel: Channel, y, u, x0, k0, cont, noise, prune: floa
     return law
 
 
+def lacked_own_terms(law, channel: Channel, states) -> list[int]:
+    """The term indices of the forms of a one-equation channel's own state (v, v^3,
+    sign(v), v|v|) when ``law`` holds none of them; empty for any other channel or law.
+    ``states``: the model's state labels (the terms' indices)."""
+    if channel.kind != "equation" or channel.md != 1 or len(channel.equations) != 1:
+        return []
+    own = own_state_terms(law.spec, list(states).index(channel.equations[0]))
+    return [] if np.any(law.coef[:, own] != 0) else own
+
+
 def _own_offers(law, model, channel: Channel, fit_data) -> tuple[list, list]:
     """The forms of an equation's own state (v, v^3, sign(v), v|v|: its damping, loss,
     friction, drag) a one-equation law lacks, as ``(offers, guesses)`` for
     :func:`greybox.trace.oe.offer_terms`; none when the law has a form of it already. Each
     guess is the least-squares coefficient of the term on what the law leaves of d^."""
-    if channel.kind != "equation" or channel.md != 1 or len(channel.equations) != 1:
-        return [], []
-    i = list(model.state_labels).index(channel.equations[0])
-    own = own_state_terms(law.spec, i)
-    if not own or np.any(law.coef[0, own] != 0):
+    own = lacked_own_terms(law, channel, model.state_labels)
+    if not own:
         return [], []
     d, xw, uw, align = fit_data
     sel = np.flatnonzero(law.coef[0])

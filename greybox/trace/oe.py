@@ -1356,6 +1356,7 @@ def offer_terms(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: ND
         return law, []
     p, W = y.shape[0], _nl_window(y, k0)
     bases: dict = {}
+    lin = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
 
     def fitted(s, start, nonlinear, scale=None):
         if nonlinear:  # (``scale``: the coefficients' scales, where ``start`` holds a 0)
@@ -1363,7 +1364,7 @@ def offer_terms(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: ND
                                             start if scale is None else scale, noise, W)
             theta, half, _ = prob.fit(list(range(len(s))), start)
             return theta, half, prob.resid(theta / prob.theta_scale).reshape(p, -1), None
-        prob = _OutputErrorLaw(law, model, md, y, u, x0, k0, cont, noise)
+        prob = lin
         sol = prob.fit(s, start)
         return sol.x, prob.halfwidths(sol, s), np.asarray(prob.resid(sol.x, s)).reshape(
             p, -1), prob
@@ -1384,8 +1385,10 @@ def offer_terms(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: ND
         # guess on d^ can be far off, even in sign, where d^ could not pick the term), at
         # the guess's scale
         rest = [q for q in range(len(sel)) if sel[q][0] != c]
-        for s2, th_s in ((sel + [(c, j)], th0), ([sel[q] for q in rest] + [(c, j)],
-                                                 th0[rest])):
+        trials = [(sel + [(c, j)], th0)]
+        if len(rest) < len(sel):  # (else "in its place" is the same trial)
+            trials.append(([sel[q] for q in rest] + [(c, j)], th0[rest]))
+        for s2, th_s in trials:
             th, hf, r2, prob = fitted(s2, np.r_[th_s, 0.0], nl, np.r_[th_s, g])
             if not np.all(np.abs(r2) < 1e6):
                 continue
