@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import control as ct
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from .._lti import lti_states
 from .._validation import check_statespace, resolve_channels
@@ -29,6 +29,10 @@ from ..exceptions import DimensionError, RankConditionError
 from ..system import named_ss, split_inputs
 from ._memo import schedule
 from .kernels import FilterResult, GainSchedule, _check_options, _prepare
+
+#: [bytes] Largest record of the covariances of (x[k|k], d[k]) a feedthrough filter's gain
+#: schedule keeps for its smoother (beyond it, the smoother runs the recursion again).
+JOINT_BYTES = 32 * 2**20
 
 __all__ = ["feedthrough_uikf", "with_sensor_error"]
 
@@ -106,9 +110,17 @@ def _feedthrough_gains(Pp, C, H, R):
     return K, M, Pd, Rt, 0.5 * (Pf + Pf.T), Pxd
 
 
-def _predict_cov(A, G, Pf, Pxd, Pd, Q):
-    AG = np.hstack([A, G])
-    J = np.block([[Pf, Pxd], [Pxd.T, Pd]])
+def joint_block(Pf, Pxd, Pd):
+    """``[[Pf, Pxd], [Pxd^T, Pd]]``: the covariance of (x[k|k], d[k]) (the numbers and
+    layout ``np.block`` gives, without its per-call checks: it ran once per sample)."""
+    n = Pf.shape[0]
+    J = np.empty((n + Pd.shape[0],) * 2)
+    J[:n, :n], J[:n, n:], J[n:, :n], J[n:, n:] = Pf, Pxd, Pxd.T, Pd
+    return J
+
+
+def _predict_cov(AG, J, Q):
+    """``P[k+1|k]`` from ``J`` (:func:`joint_block`) and ``AG = [A G]``."""
     Pp = AG @ J @ AG.T + Q
     return 0.5 * (Pp + Pp.T)
 
@@ -244,17 +256,25 @@ def feedthrough_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = Non
 class _FeedthroughSchedule(GainSchedule):
     """:class:`~greybox.filters.kernels.GainSchedule` of :func:`_run_feedthrough`: the
     gains of steps k < ``kend`` (from :func:`_feedthrough_gains`); ``final`` (K, M, Pd,
-    Rt, Pf, Pxd)."""
+    Rt, Pf, Pxd); ``joint`` (n + md, n + md, kend) the covariances of (x[k|k], d[k]) at
+    those steps, or None where they would take more than ``JOINT_BYTES``."""
+
+    joint: NDArray | None = None
 
 
 def _feedthrough_schedule(A, C, G, H, Q, R, P0, N: int, auto: bool, tol: float,
                           keep_pf: bool) -> _FeedthroughSchedule:
-    """The covariance recursion of :func:`_run_feedthrough` (no data)."""
+    """The covariance recursion of :func:`_run_feedthrough` (no data); its ``joint`` the
+    covariances of (x[k|k], d[k]) of the steps k < ``kend`` (:func:`joint_block`) that the
+    smoother reads (:mod:`greybox.filters.smoother`), while they take at most
+    ``JOINT_BYTES``."""
     n, md = A.shape[0], G.shape[1]
     Phist = np.empty((n, n, N)) if keep_pf else None
     tiny = np.finfo(float).tiny
     Ks, Ms, dv = [], [], np.empty((N, md))
     Pp, Pp_prev, kconv = P0, None, None
+    AG = np.hstack([A, G])
+    joint, keep = [], 8 * (n + md) ** 2  # [bytes] per step
     k = 0
     while k < N:
         if auto and Pp_prev is not None and np.max(np.abs(Pp - Pp_prev)) <= \
@@ -268,7 +288,12 @@ def _feedthrough_schedule(A, C, G, H, Q, R, P0, N: int, auto: bool, tol: float,
         if Phist is not None:
             Phist[:, :, k] = Pf
         Pp_prev = Pp
-        Pp = _predict_cov(A, G, Pf, Pxd, Pd, Q)
+        J = joint_block(Pf, Pxd, Pd)
+        if joint is not None:
+            joint = joint if keep * (k + 1) <= JOINT_BYTES else None
+            if joint is not None:
+                joint.append(J)
+        Pp = _predict_cov(AG, J, Q)
         k += 1
     converged = kconv is not None
     if not auto and Pp_prev is not None:
@@ -280,7 +305,21 @@ def _feedthrough_schedule(A, C, G, H, Q, R, P0, N: int, auto: bool, tol: float,
     return _FeedthroughSchedule(
         K=tuple(Ks), M=tuple(Ms), d_var=dv[:k], kend=k, kconv=kconv, converged=converged,
         P_pred=Pp_prev if kconv is None else Pp, final=(K, M, Pd, Rt, Pf, Pxd),
-        Pf_history=Phist)
+        Pf_history=Phist,
+        joint=None if joint is None else np.stack(joint, axis=2) if joint else
+        np.empty((n + md, n + md, 0)))
+
+
+def feedthrough_schedule(A, C, G, H, Q, R, P0, N: int, auto: bool, tol: float,
+                         keep_pf: bool = False) -> _FeedthroughSchedule:
+    """:func:`_feedthrough_schedule`, computed once per model, (Q, R, P0) and options in a
+    process (:func:`greybox.filters._memo.schedule`; not the P history ``keep_pf``
+    asks for): the forward filter and its smoother read the same one."""
+    def compute():
+        return _feedthrough_schedule(A, C, G, H, Q, R, P0, N, auto, tol, keep_pf)
+
+    return compute() if keep_pf else \
+        schedule(compute, ("feedthrough gains", A, C, G, H, Q, R, P0, auto, tol), N)
 
 
 def _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0, *, level, gain,
@@ -295,12 +334,7 @@ def _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0, *, lev
     yk_all = y - D @ u if m and np.any(D) else y
     auto = gain == "auto"
 
-    def compute():
-        return _feedthrough_schedule(A, C, G, H, Q, R, P0, N, auto, tol, store_covariances)
-
-    # computed once per model, (Q, R, P0) and options in a process (not the history)
-    sc = compute() if store_covariances else \
-        schedule(compute, ("feedthrough gains", A, C, G, H, Q, R, P0, auto, tol), N)
+    sc = feedthrough_schedule(A, C, G, H, Q, R, P0, N, auto, tol, store_covariances)
     xp = x0
     for k in range(sc.kend):
         K, M = sc.K[k], sc.M[k]

@@ -42,6 +42,8 @@ from .feedthrough import (
     _feedthrough_gains,
     _predict_cov,
     _run_feedthrough,
+    feedthrough_schedule,
+    joint_block,
     _unknown_feedthrough,
     _use_feedthrough,
 )
@@ -170,9 +172,9 @@ def _smooth(fwd: FilterResult, A, G, Q, R, C, P0, tol, store_covariances):
                    P_filt_history=Phist, smoothed=True)
 
 
-def _joint_gains(A, G, Q, Jk):
-    """(L, Pp) of the RTS step for s[k] = (x[k], d[k]) of the feedthrough filter."""
-    AG = np.hstack([A, G])
+def _joint_gains(AG, Q, Jk):
+    """(L, Pp) of the RTS step for s[k] = (x[k], d[k]) of the feedthrough filter;
+    ``AG = [A G]``."""
     Pp = AG @ Jk @ AG.T + Q
     Pp = 0.5 * (Pp + Pp.T)
     try:
@@ -186,18 +188,21 @@ def _joint_gains(A, G, Q, Jk):
 
 
 def _joint_covariances(A, C, G, H, Q, R, P0, nsteps):
-    """``[[P[k|k], P^xd], [P^dx, Pd]]`` of the feedthrough filter for k < nsteps."""
+    """``[[P[k|k], P^xd], [P^dx, Pd]]`` of the feedthrough filter for k < nsteps (the
+    forward gain schedule's ``joint`` where it kept them)."""
     n, md = G.shape
     out = np.empty((n + md, n + md, nsteps))
+    AG = np.hstack([A, G])
     Pp = P0
     for k in range(nsteps):
         _, _, Pd, _, Pf, Pxd = _feedthrough_gains(Pp, C, H, R)
-        out[:, :, k] = np.block([[Pf, Pxd], [Pxd.T, Pd]])
-        Pp = _predict_cov(A, G, Pf, Pxd, Pd, Q)
+        out[:, :, k] = J = joint_block(Pf, Pxd, Pd)
+        Pp = _predict_cov(AG, J, Q)
     return out
 
 
-def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_covariances):
+def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_covariances,
+                        auto: bool = True):
     """RTS on s[k] = (x[k], d[k]): s^[k|N] = s^[k|k] + L (x^[k+1|N] - x^[k+1|k]).
 
     With feedthrough, Pd of the filter is finite, so this is the plain RTS
@@ -208,10 +213,15 @@ def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_cova
     md = G.shape[1]
     xf, xp, df = fwd.x_filt, fwd.x_pred, fwd.d_est
     kc = fwd.period_converged if fwd.period_converged is not None else N
-    J_tv = MEMO.call(_joint_covariances, A, C, G, H, Q, R, P0, min(kc, N))
+    # the forward filter's own recursion (memoized): the same steps, computed once
+    sc = feedthrough_schedule(A, C, G, H, Q, R, P0, N, auto, tol)
+    J_tv = sc.joint if sc.joint is not None and sc.kconv == fwd.period_converged and \
+        sc.joint.shape[2] >= min(kc, N) else \
+        MEMO.call(_joint_covariances, A, C, G, H, Q, R, P0, min(kc, N))
+    AG = np.hstack([A, G])
     if kc < N:
         _, _, Pd, _, Pf, Pxd = _feedthrough_gains(fwd.P_pred, C, H, R)
-        J_c = np.block([[Pf, Pxd], [Pxd.T, Pd]])
+        J_c = joint_block(Pf, Pxd, Pd)
     xs = np.empty((n, N))
     ds = np.empty((md, N))
     dv = np.empty((md, N))
@@ -225,7 +235,7 @@ def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_cova
     Pd_last = Ps[n:, n:]
     k = N - 2
     if kc <= N - 2:
-        L, Pp = _joint_gains(A, G, Q, J_c)
+        L, Pp = _joint_gains(AG, Q, J_c)
         k_settled = kc
         for k in range(N - 2, kc - 1, -1):
             Pn = J_c + L @ (Ps[:n, :n] - Pp) @ L.T
@@ -247,7 +257,7 @@ def _smooth_feedthrough(fwd: FilterResult, A, C, G, H, Q, R, P0, tol, store_cova
         k = kc - 1
     for k in range(k, -1, -1):
         Jk = J_tv[:, :, k]
-        L, Pp = _joint_gains(A, G, Q, Jk)
+        L, Pp = _joint_gains(AG, Q, Jk)
         delta = xs[:, k + 1] - xp[:, k + 1]
         xs[:, k] = xf[:, k] + L[:n] @ delta
         ds[:, k] = df[:, k] + L[n:] @ delta
@@ -270,7 +280,7 @@ def smooth_feedthrough_of(fwd: FilterResult, sys: ct.StateSpace, y, u, *, unknow
         sys, y, u, unknown, Q, R, None, None, allow_no_unknown=False, check_rank=False)
     H = _unknown_feedthrough(sys, labels)
     _check_feedthrough_rank(H, labels)
-    return _smooth_feedthrough(fwd, A, C, G, H, Q, R, P0, 1e-12, False)
+    return _smooth_feedthrough(fwd, A, C, G, H, Q, R, P0, 1e-12, False, True)
 
 
 def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
@@ -363,7 +373,8 @@ def smooth_uikf(sys: ct.StateSpace, y: ArrayLike, u: ArrayLike | None = None, *,
         _check_feedthrough_rank(H, labels)
         fwd = _run_feedthrough(model, A, B, C, D, G, H, labels, y, u, Q, R, x0, P0,
                                level=level, gain=gain, tol=tol, store_covariances=False)
-        return _smooth_feedthrough(fwd, A, C, G, H, Q, R, P0, tol, store_covariances)
+        return _smooth_feedthrough(fwd, A, C, G, H, Q, R, P0, tol, store_covariances,
+                                   gain == "auto")
     parts, r, Gt, G = _delayed_parts(sys, y, u, unknown, Q, R, x0, P0, relative_degree)
     fwd = _run(*parts, level=level, gain=gain, tol=tol, store_covariances=False)
     A, C, Gr, Q, R, P0 = parts[1], parts[3], parts[5], parts[9], parts[10], parts[12]
