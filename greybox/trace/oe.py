@@ -1292,7 +1292,8 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
     W = _nl_window(y, k0)
     promising = _sibling_screen(law, model, md, y, u, x0, k0, sel, theta0, sibs, tscale,
                                 noise, W)
-    if not promising:
+    shared = _shared_swaps(sel, sibs)
+    if not promising and not shared:
         return law, []
 
     def fitted(s, start):
@@ -1321,6 +1322,17 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
                 old = " + ".join(law.spec[j][0] for c, j in sel if c == sel[q][0]) \
                     if alone else law.spec[sel[q][1]][0]
                 best = (crit, s2, th, hf, (old, law.spec[j2][0] + (" alone" if alone else "")))
+    for qs, j2 in shared:  # one shape for a variable in every component that holds it
+        s2 = [(c, j2) if k in qs else (c, j) for k, (c, j) in enumerate(sel)]
+        start = theta.copy()
+        for k in qs:
+            start[k] = _same_size(theta[k], tscale, sel[k][1], j2)
+        th, hf, r2 = fitted(s2, start)
+        if np.all(np.abs(r2) < 1e6) and all(np.sign(th[k]) == np.sign(theta[k]) for k in qs):
+            crit = oe_criterion(r2, len(s2), neff)
+            if crit < cur and (best is None or crit < best[0]):
+                best = (crit, s2, th, hf, (law.spec[sel[qs[0]][1]][0],
+                                           f"{law.spec[j2][0]} in {len(qs)} components"))
     if best is None:
         return law, []
     _, sel, theta, half, (a, b) = best
@@ -1328,6 +1340,22 @@ def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray,
             f"samples): {b} for {a}")
     return _nl_law_with(law, sel, list(range(len(sel))), theta, half, labels, units,
                         tscale), [note]
+
+
+def _shared_swaps(sel, sibs) -> list[tuple[list[int], int]]:
+    """``(positions in sel, sibling term)`` for each term that several components of d hold
+    (a force's relative coordinate in both bodies' equations) and each of its siblings in
+    ``sibs`` ((position, sibling) pairs): the swap :func:`exchange_siblings` weighs in every
+    such component at once (swapped in one of them only, the two bodies' forces disagree
+    and neither trial simulates better: zoo cubic_force, seed 53736598 #0)."""
+    held: dict[int, list[int]] = {}
+    for q, (_, j) in enumerate(sel):
+        held.setdefault(j, []).append(q)
+    out = []
+    for j, qs in held.items():
+        if len(qs) > 1:
+            out += [(qs, j2) for q, j2 in sibs if q == qs[0]]
+    return out
 
 
 def offer_terms(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
