@@ -794,7 +794,42 @@ def _screened_channels(P: Problem, sys, nominal, Q, chans, notes):
                     not _kinematic_in(sys, pair) else None
                 if fch is not None and not _along_an_input(sys, fch):
                     keep.append(fch)
+    if sys is P.sys:
+        lone = _lone_forces(sys, top)
+        if lone:
+            keep += lone
+            notes.append(Decision("screen", "", "an equation ranked without the bodies it is "
+                                  "linked to: its force with each, along the link's direction "
+                                  "(" + ", ".join(c.name for c in lone) + ")"))
     return _without_definitions(P.sys, keep)
+
+
+def _lone_forces(sys: ct.StateSpace, top) -> list[Channel]:
+    """The forces between each screened equation and the bodies the model links it to
+    (:func:`_traceable_linked_forces`), for an equation the screen ranks without any of
+    them. A force between two bodies acts on both, but the screen may see it in one only
+    (the lighter or the more moving body; positions only, where d^ is a second difference):
+    zoo cubic_force 20261207 #1 and #2 ranked one body of the spring's pair, and the pair
+    was never traced. Each force is one more candidate, chosen or not by the criterion."""
+    if ct.isdtime(sys, strict=True) or not top:
+        return []
+    A = np.asarray(sys.A, dtype=float)
+    labels = list(sys.state_labels)
+    defs = set(definitions(sys))
+    out: list[Channel] = []
+    for s in top:
+        a = labels.index(s)
+        near = set()
+        for c in np.flatnonzero(A[a]):
+            if labels[c] in defs:  # a position: its body's equation is the velocity's
+                c = int(np.flatnonzero(A[c])[0])
+            if c != a and labels[c] not in defs:
+                near.add(labels[c])
+        forces = [f for b in sorted(near, key=labels.index)
+                  for f in _traceable_linked_forces(sys, [s, b])]
+        if forces and not any(set(f.equations) - {s} <= set(top) for f in forces):
+            out += [f for f in forces if f.name not in {o.name for o in out}]
+    return out
 
 
 def _joint(P: Problem, passes, final, Qf):

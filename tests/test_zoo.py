@@ -649,6 +649,28 @@ def test_a_cubic_spring_s_shape_is_weighed_in_both_bodies_equations_at_once():
     assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
 
 
+@pytest.mark.parametrize("i,pair", [(1, ("v9", "v10")), (2, ("v6", "v7"))])
+def test_a_force_the_screen_sees_in_one_body_only_is_traced_between_both(i, pair):
+    """zoo cubic_force, seed 20261207 (fresh, drawn for the thirty-second session's
+    side-by-side run), draws 1 and 2: chains of 10 and 12 masses, a cubic spring between
+    m9 and m10 (the chain's end) and between m6 and m7. The equation screen ranked one
+    body of the pair (eq(v10), eq(v7)) and no pair was formed: a 3-term law of eq(v10) at
+    26x, and -0.723*p8 + 0.611*p9 in eq(v7) at 7x, the true model's validation error. An
+    equation ranked without the bodies the model links it to now brings its force with
+    each (workflow._lone_forces); the criterion chooses the force: the one cubic term of
+    the relative coordinate in both equations, coefficients within 10 %."""
+    d, rep, s = _run_full_draw("cubic_force", 20261207, i)
+    assert rep.updated and s.right and s.coefficients_within, (s.why, s.found)
+    assert set(rep.channel.equations) == set(pair), rep.message
+    law = rep.effect.law
+    rel = f"(p{pair[1][1:]}-p{pair[0][1:]})^3"
+    assert [law.spec[j][0] for j in np.flatnonzero(np.any(law.coef, axis=0))] == [rel], \
+        law.formula
+    assert any("an equation ranked without the bodies it is linked to" in n
+               for n in rep.notes), rep.notes
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+
+
 # The first three seeds >= 1 whose sensor_lag draw has more than 6 outputs (chosen by size
 # alone, by scanning seeds 1, 2, ...; asserted below): above 6 outputs no sensor channel is
 # offered by default, so the sensor must come from the screen of sensor laws.
