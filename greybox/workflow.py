@@ -1180,6 +1180,8 @@ class _Pass:
             self.note("trace", ch_.name, str(e))
             return None
         if tr_.status != "ok":
+            if tr_.reason:
+                self.note("trace", ch_.name, tr_.reason)
             return None
         if breaks and not (tr_.static is not None and tr_.static.breakpoints):
             self.note("trace", ch_.name, "no input dead zone or saturation selected")

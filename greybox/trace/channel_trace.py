@@ -724,7 +724,9 @@ def _free_direction(sys, channel, model, cont, law, y, u, x0, k0, Q, R, notes):
 
     The smaller of the two entries of G is freed (``G[b] (1 + r)``); None
     when the data do not contradict the given direction, or for any channel but a force
-    of a continuous model with a linear law in continuous time.
+    of a continuous model with a linear law in continuous time. The name of the other
+    body's equation when the refitted share of ``b`` is not distinguishable from 0 (its
+    95 % interval holds 0): the force then acts on that body alone.
     """
     if channel.kind != "force" or cont is None or not law.npar or law.nonlinear or \
             law.time_base != "continuous":
@@ -743,7 +745,34 @@ def _free_direction(sys, channel, model, cont, law, y, u, x0, k0, Q, R, notes):
     notes.append(f"force direction refitted by output error: {sys.state_labels[b]}/"
                  f"{sys.state_labels[a]} ratio {old:.4g} -> {now:.4g} "
                  f"(+-{abs(G[b] / G[a]) * hr:.2g}); estimation SE {se0:.3g}% -> {se1:.3g}%")
+    if abs(1 + r) <= hr:
+        return sys.state_labels[a]
     return (G + r * dG)[:, None]
+
+
+def _one_body(channel: Channel, model, body: str, notes) -> ChannelTrace:
+    """A force whose refitted direction acts on one body alone (:func:`_free_direction`):
+    skipped, since it is that body's equation's own law (traced on its own where the
+    screen ranks it) with one parameter more: zoo state_sensor 20261207 #1, a damping of
+    m6 named as force(v6,v7) with a v7 share of -0.0007 +- 0.014."""
+    return ChannelTrace(channel=channel, status="skipped", model=model,
+                        reason=f"the refitted direction acts on {body} alone (the other "
+                               f"body's share holds 0): eq({body})'s own law, not a force "
+                               "between two bodies", notes=tuple(notes))
+
+
+def _dynamic_part(res, min_order, max_order, k0, model, labels, Q, R, notes):
+    """``(dyn, dyn_model)``: the unstructured subsystem of orders ``min_order..max_order``
+    fitted on d^ and the model augmented with it, or ``(None, None)`` (none asked, or
+    the fit failed: said in ``notes``)."""
+    if max_order < max(min_order, 1):
+        return None, None
+    try:
+        dyn = _dynamic_fit(res, min_order, max_order, k0)
+        return dyn, augment_model(model, dyn, unknown=labels, Q=Q, R=R)
+    except (GreyboxError, np.linalg.LinAlgError) as e:
+        notes.append(f"dynamic fit failed: {e}")
+        return None, None
 
 
 def law_estimate_of(sys: ct.StateSpace, tr: ChannelTrace, y: NDArray, u: NDArray, Q, R,
@@ -1177,15 +1206,11 @@ def trace_channel(sys: ct.StateSpace, channel: Channel, y: NDArray, u: NDArray, 
                        (x, uu), notes, prune, own)
     refined_G = _free_direction(sys, channel, model, cont, law, y, u, res.x_filt[:, 0], k0,
                                 Q, R, notes) if oe_ok else None
+    if isinstance(refined_G, str):
+        return _one_body(channel, model, refined_G, notes)
     sub0 = _static_subsystem(law, replace(res, d_cov=dnoise), d, x, uu)
     static_model = _static_model(model, sub0, law, labels, Q, R, cont)
-    dyn, dyn_model = None, None
-    if max_order >= max(min_order, 1):
-        try:
-            dyn = _dynamic_fit(res, min_order, max_order, k0)
-            dyn_model = augment_model(model, dyn, unknown=labels, Q=Q, R=R)
-        except (GreyboxError, np.linalg.LinAlgError) as e:
-            notes.append(f"dynamic fit failed: {e}")
+    dyn, dyn_model = _dynamic_part(res, min_order, max_order, k0, model, labels, Q, R, notes)
     return ChannelTrace(channel=channel, status="ok", model=model, filter_result=res,
                         law_estimate=est, relative_degree=r, static=law, static_model=static_model, dynamic=dyn,
                         dynamic_model=dyn_model, notes=tuple(notes), refined_G=refined_G)
