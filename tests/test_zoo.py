@@ -776,13 +776,28 @@ def test_a_hidden_mass_no_dense_fit_reveals_is_one_shared_state():
     static law; here it fitted worse (SE 2.52 % against 0.383 %) and a 7-term static law
     of the pair was named (wrong kind). Now the pair whose static law fits best is also
     tried where the best static law leaves coloured innovations: one state shared by T1
-    and T2, driven by both, at the true model's error. Its pole is not within 10 % of
-    the truth (-0.54 against -0.358 1/s, measured): the kind, the order, the channel and
-    the drivers are asserted, not the coefficients."""
+    and T2, driven by both, at the true model's error. Its pole was -0.54 against the
+    true -0.358 1/s while the shared state's fit stopped at 80 residual evaluations; fitted
+    to convergence (trace.dynamic._DynProblem.fit) it is -0.360: the coefficients are
+    asserted too (within 10 %)."""
     d, rep, s = _run_full_draw("thermal_mass", 244465831, 0)
     assert d.description.startswith("row of 3") and "hidden thermal mass" in d.description
     assert rep.updated and s.right_channel and s.right_kind and s.right_order, (s.why, s.found)
-    assert s.right_terms, (s.why, s.found)
+    assert s.right_terms and s.coefficients_within and s.right, (s.why, s.found)
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+
+
+def test_a_shared_state_is_fitted_to_convergence_not_to_a_fixed_budget():
+    """zoo thermal_mass, seed 270939893 (fresh, drawn for the thirty-third session's zoo
+    run), draw 0: a row of 7 bodies, all measured, a hidden mass on T3 and T4. The
+    shared state's template start (driven by the pair's own states) stopped at 80
+    residual evaluations, 11 iterations in, its pole at -0.836 against the -0.706 1/s the
+    same start reaches in 93; the 6-parameter truth then lost to an 8-parameter and a
+    9-parameter second-order law (named: order 2, driven by T3, T4, T5, T7). Fitted to
+    convergence: order 1, driven by T3 and T4, the pole within 1 % of the truth."""
+    d, rep, s = _run_full_draw("thermal_mass", 270939893, 0)
+    assert rep.updated and s.right and s.coefficients_within, (s.why, s.found)
+    assert rep.effect.order == 1 and set(rep.channel.equations) == {"T3", "T4"}, rep.message
     assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
 
 
