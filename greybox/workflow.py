@@ -810,10 +810,14 @@ def _lone_forces(sys: ct.StateSpace, top) -> list[Channel]:
     them. A force between two bodies acts on both, but the screen may see it in one only
     (the lighter or the more moving body; positions only, where d^ is a second difference):
     zoo cubic_force 20261207 #1 and #2 ranked one body of the spring's pair, and the pair
-    was never traced. Each force is one more candidate, chosen or not by the criterion."""
+    was never traced. Each force is one more candidate, chosen or not by the criterion.
+    Only towards a body whose own state no output reads: where one does, that body's d^
+    enters the outputs at relative degree 1 and the screen sees it as well as the first
+    body's, so its not ranking it is evidence against the force."""
     if ct.isdtime(sys, strict=True) or not top:
         return []
     A = np.asarray(sys.A, dtype=float)
+    read = np.any(np.asarray(sys.C, dtype=float) != 0, axis=0)
     labels = list(sys.state_labels)
     defs = set(definitions(sys))
     out: list[Channel] = []
@@ -823,7 +827,7 @@ def _lone_forces(sys: ct.StateSpace, top) -> list[Channel]:
         for c in np.flatnonzero(A[a]):
             if labels[c] in defs:  # a position: its body's equation is the velocity's
                 c = int(np.flatnonzero(A[c])[0])
-            if c != a and labels[c] not in defs:
+            if c != a and labels[c] not in defs and not read[c]:
                 near.add(labels[c])
         forces = [f for b in sorted(near, key=labels.index)
                   for f in _traceable_linked_forces(sys, [s, b])]
