@@ -827,12 +827,14 @@ def _lone_forces(sys: ct.StateSpace, top) -> list[Channel]:
         for c in np.flatnonzero(A[a]):
             if labels[c] in defs:  # a position: its body's equation is the velocity's
                 c = int(np.flatnonzero(A[c])[0])
-            if c != a and labels[c] not in defs and not read[c]:
-                near.add(labels[c])
-        forces = [f for b in sorted(near, key=labels.index)
-                  for f in _traceable_linked_forces(sys, [s, b])]
-        if forces and not any(set(f.equations) - {s} <= set(top) for f in forces):
-            out += [f for f in forces if f.name not in {o.name for o in out}]
+            if c != a and labels[c] not in defs:
+                near.add(c)
+        forces = [(b, f) for b in sorted(near)
+                  for f in _traceable_linked_forces(sys, [s, labels[b]])]
+        if any(labels[b] in top for b, _ in forces):
+            continue  # ranked with a body it is linked to: that pair is traced
+        have = {o.name for o in out}
+        out += [f for b, f in forces if not read[b] and f.name not in have]
     return out
 
 
