@@ -16,7 +16,7 @@ laws by ETDRK4: 0.002-0.04 % (``bench/RESULTS_zoo.md``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from collections.abc import Callable
 
 import numpy as np
@@ -120,6 +120,18 @@ class LawHold:
         W = np.linalg.solve(E2 + I, I)
         return cls(G0=p1 - p2, G1=p2, E2=E2, P2=P2, W=W, F1=p1 - 3 * p2 + 4 * p3,
                    F23=2 * p2 - 4 * p3, F4=4 * p3 - p2)
+
+    def columns(self, keep) -> LawHold:
+        """The hold of the law's components ``keep`` alone: the columns of its (nstates,
+        md) weights (each is its component's column of Gc mapped by the same matrix
+        function of Ac), ``E2`` and ``W`` unchanged."""
+        keep = list(keep)
+
+        def pick(M):
+            return None if M is None else np.asarray(M)[:, keep]
+
+        return replace(self, G0=pick(self.G0), G1=pick(self.G1), P2=pick(self.P2),
+                       F1=pick(self.F1), F23=pick(self.F23), F4=pick(self.F4))
 
     def step(self, A: NDArray, X: NDArray, bu: NDArray,
              f: Callable[[NDArray], NDArray]) -> NDArray[np.float64]:

@@ -75,9 +75,10 @@ from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
     fit_shared_order2
 from .trace.joint import has_joint_parameters, joint_effect, refine_jointly, \
     without_dead_states
-from .trace.channels import (force_channel, input_channel, linked_forces, output_channel,
+from .trace.channels import (equation_subset, force_channel, input_channel, linked_forces,
+                              output_channel,
                              relative_coordinates)
-from .trace.laws import StaticLaw, direction, sensor_states
+from .trace.laws import StaticLaw, direction, law_rows, sensor_states
 from .trace.screen import screen_equations, screen_sensor_laws, screen_sensors
 from .plant_adapter import LawPlant, LinearPlant, validation
 from .update import Subsystem, UpdatedModel, delta_update
@@ -2403,6 +2404,11 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
                 jr, row, steps = alt
             table["updated"], model = row, jr.model
             steps = _without_empty(steps)
+            by_name = {ch.name: ch for _, ch, _ in passes}
+            narrowed = [_narrowed(st, by_name.get(st.channel)) for st in steps]
+            steps = [st for st, _ in narrowed]
+            if narrowed[0][1] is not None and steps[0].channel != first.channel.name:
+                first = replace(first, channel=narrowed[0][1])
     first = replace(first, effect=steps[0].effect)
     msg = (f"{len(steps)} effects found: " +
            "; then ".join(st.message.split(";")[0].replace("model error found in ", "")
@@ -2537,6 +2543,30 @@ def _without_empty(steps: list) -> list:
         return steps
     kept[-1] = replace(kept[-1], se_after=steps[-1].se_after, model=steps[-1].model)
     return kept
+
+
+def _narrowed(st, ch):
+    """``(step, channel)``: a static law of several state equations that kept a term in
+    some of them only after the joint refit, stated as the law of those equations (its
+    channel narrowed, :func:`greybox.trace.channels.equation_subset`; its law's rows,
+    :func:`greybox.trace.laws.law_rows`; the step's message and the effect's channel
+    with them); the same numbers. ``(st, ch)`` otherwise (``ch`` None: the step's channel
+    is not one of the passes')."""
+    law = st.effect.law
+    if ch is None or ch.kind != "equation" or ch.md < 2 or len(ch.equations) != ch.md or \
+            st.effect.dynamic_law is not None or not isinstance(law, StaticLaw) or \
+            law.output is not None or "one direction" in law.formula:
+        return st, ch
+    keep = [k for k in range(ch.md) if np.any(law.coef[k])]
+    if not keep or len(keep) == ch.md:
+        return st, ch
+    sub = equation_subset(ch, keep)
+    new = law_rows(law, keep, sub.labels, sub.units)
+    where = ", ".join(f"eq({s})" for s in ch.equations)
+    eff = replace(st.effect, law=new, formula=new.formula, channel=sub.name,
+                  equations=sub.equations)
+    msg = st.message.replace(where, ", ".join(f"eq({s})" for s in sub.equations), 1)
+    return replace(st, effect=eff, channel=sub.name, message=msg), sub
 
 
 def _refit_jointly(joint, passes, final, Qf, notes):

@@ -93,6 +93,21 @@ def _eq_channel(sys: ct.StateSpace, idx: Sequence[int]) -> Channel:
                    equations=tuple(names))
 
 
+def equation_subset(ch: Channel, keep: Sequence[int]) -> Channel:
+    """The channel of some of the equations of an equation channel (kind "equation", one
+    column of G per equation, as :func:`resolve_channel_spec` forms them): the columns
+    ``keep`` of G, their labels, units and equations, named as such a channel is named
+    (``"eq(v2)"``, ``"eq(v2)+eq(v4)"``)."""
+    if ch.kind != "equation" or len(ch.equations) != ch.md:
+        raise ValueError(f"equation_subset: {ch.name} is not a channel of state equations")
+    keep = list(keep)
+    eqs = tuple(ch.equations[k] for k in keep)
+    return Channel(name="+".join(f"eq({s})" for s in eqs), G=np.asarray(ch.G)[:, keep],
+                   labels=tuple(ch.labels[k] for k in keep),
+                   units=tuple(ch.units[k] for k in keep) if len(ch.units) == ch.md else (),
+                   equations=eqs)
+
+
 def input_channel(sys: ct.StateSpace, j: int) -> Channel:
     """The channel of input j: G = B[:, j], d in the input's units (an actuator error).
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import control as ct
@@ -486,6 +486,41 @@ def _static_subsystem(law: StaticLaw, res: FilterResult, d: NDArray, x, u) -> Su
                      input_labels=tuple(res.sys.input_labels),
                      state_labels=tuple(res.sys.state_labels),
                      unknown_labels=tuple(res.unknown_labels))
+
+
+def law_rows(law: StaticLaw, keep, labels, units) -> StaticLaw:
+    """The law of the components ``keep`` of d alone (a channel narrowed to some of its
+    equations: :func:`greybox.trace.channels.equation_subset`), its formula in their
+    ``labels`` and ``units``; the rows of its coefficients, intervals, linear parts and
+    residual variances, the same numbers.
+
+    Parameters
+    ----------
+    law : StaticLaw
+        A law of md components, not a sensor's (``law.output`` None), without a "one
+        direction" line (it relates the rows); a continuous-time law's hold keeps its
+        components' columns (:meth:`greybox.hold.LawHold.columns`).
+    keep : sequence of int
+        Components kept, in order.
+    labels, units : sequence of str
+        The kept components' names and units (those of the narrowed channel).
+    """
+    if law.output is not None or "one direction" in law.formula:
+        raise ValueError("law_rows: a sensor's or a one-direction law keeps all its rows")
+    keep = list(keep)
+    hold = as_hold(law.hold)
+    coef = law.coef[keep]
+    ci = None if law.ci is None else law.ci[keep]
+    lines = []
+    for c, row in enumerate(coef):
+        idx = list(np.flatnonzero(row))
+        lines.append(law_line(labels[c], row[idx], [law.spec[j][0] for j in idx],
+                              units[c] if c < len(units) else "",
+                              None if ci is None else ci[c, idx]))
+    return replace(law, coef=coef, ci=ci, Ddx=law.Ddx[keep], Ddu=law.Ddu[keep],
+                   hold=None if hold is None else hold.columns(keep),
+                   residual_var=np.asarray(law.residual_var)[keep], formula="; ".join(lines),
+                   npar=int(law.npar) - int(np.count_nonzero(law.coef) - np.count_nonzero(coef)))
 
 
 def law_line(label: str, coefs, names, unit: str, half=None) -> str:
