@@ -171,8 +171,11 @@ def _params(effects, nf: int, m: int) -> list[_Param]:
                     Ddx, Ddu = linear_part(law.spec, unit, n, m)
                     dA, dB = np.zeros((nf, nf)), np.zeros((nf, m))
                     dA[:n, :n], dB[:n] = G @ Ddx, G @ Ddu
+                    # group None: a static effect whose every term's interval holds 0
+                    # once the others are refitted is no effect (its step is dropped)
                     out.append(_Param(i, ("s", c, int(j)), dA, dB, float(law.coef[c, j]),
-                                      f"{ef.channel.name}: {law.spec[j][0]}", True))
+                                      f"{ef.channel.name}: {law.spec[j][0]}", True,
+                                      group=None))
         elif isinstance(law, SharedLaw):
             out += _shared_params(i, ef, nf, m)
         elif isinstance(law, SharedLaw2):
