@@ -78,8 +78,9 @@ from .trace.joint import has_joint_parameters, joint_effect, refine_jointly, \
 from .trace.channels import (equation_subset, force_channel, input_channel, linked_forces,
                               output_channel,
                              relative_coordinates)
-from .trace.laws import StaticLaw, direction, law_rows, sensor_states
+from .trace.laws import StaticLaw, direction, law_rows, one_term_law, sensor_states
 from .trace.screen import screen_equations, screen_sensor_laws, screen_sensors
+from .hold import LawHold
 from .plant_adapter import LawPlant, LinearPlant, validation
 from .update import Subsystem, UpdatedModel, delta_update
 from .workflow_nonlinear import close_the_loop_nonlinear, nonlinear_update_of_linear
@@ -839,12 +840,15 @@ def _lone_forces(sys: ct.StateSpace, top) -> list[Channel]:
     return out
 
 
-def _joint(P: Problem, passes, final, Qf):
+def _joint(P: Problem, passes, final, Qf, always: bool = False):
     """Refit all effects at once (greybox.trace.joint); None if some cannot be, or if no
     effect has a coefficient in A or B (sensors' gains and offsets: each refitted on its
     own by :func:`_refit_sensors`).
 
-    ``passes``: (base model, channel, effect) per effect; ``Qf`` the final Q.
+    ``passes``: (base model, channel, effect) per effect; ``Qf`` the final Q. The
+    validation row is None where the refit does not improve on ``final`` (a lower
+    estimation SE, or fewer coefficients within 1 %), unless ``always`` (an alternative
+    set compared with another refit by the criterion, not with its own start).
     """
     effs = [joint_effect(base, ch, eff.dynamic_law or eff.law) for base, ch, eff in passes]
     if any(e is None for e in effs) or ct.isdtime(final, strict=True) or \
@@ -853,8 +857,9 @@ def _joint(P: Problem, passes, final, Qf):
     x0 = estimate_initial_state(discretize(final, P.dt), P.y, P.u)
     jr = refine_jointly(effs, final, P.y, P.u, Q=Qf, R=P.R, dt=P.dt, x0=x0, k0=20)
     jr = without_dead_states(_held_sensors_refitted(P, jr, passes), effs)
-    if not (jr.se_after < jr.se_before or
-            (jr.npar_after < jr.npar_before and jr.se_after <= 1.01 * jr.se_before)):
+    if not always and not (jr.se_after < jr.se_before or
+                           (jr.npar_after < jr.npar_before and
+                            jr.se_after <= 1.01 * jr.se_before)):
         return jr, None
     S = P.settings
     row = validate_model(jr.model.sys, P.y_val, P.u_val, Q=jr.model.Q, R=jr.model.R,
@@ -869,8 +874,8 @@ class _JointRefit:
 
     P: Problem
 
-    def __call__(self, passes, final, Qf):
-        return _joint(self.P, passes, final, Qf)
+    def __call__(self, passes, final, Qf, always: bool = False):
+        return _joint(self.P, passes, final, Qf, always)
 
     def prefers(self, new, old) -> tuple[bool, str]:
         """Whether the refit ``new`` (JointRefinement) beats ``old`` by the one criterion
@@ -2401,7 +2406,8 @@ def _loop_passes(once, sys, nominal, Q, spec, chans, delta, max_effects, dt,
                                 _channels_for(jr.partials[-1], spec, sys, sys.nstates), dt,
                                 notes)
             if alt is not None:
-                jr, row, steps = alt
+                jr, row, steps, passes = alt
+            jr, row, steps, passes = _input_gains(joint, passes, jr, row, steps, dt, notes)
             table["updated"], model = row, jr.model
             steps = _without_empty(steps)
             by_name = {ch.name: ch for _, ch, _ in passes}
@@ -2569,6 +2575,82 @@ def _narrowed(st, ch):
     return replace(st, effect=eff, channel=sub.name, message=msg), sub
 
 
+def _holding(eff, law):
+    """The effect ``eff`` holding the (refitted) ``law``: its static or its dynamic law."""
+    if isinstance(law, (DynamicLaw, SharedLaw, SharedLaw2)):
+        return replace(eff, dynamic_law=law)
+    return replace(eff, law=law)
+
+
+def _one_input_terms(base, ch, law) -> int | None:
+    """The input j whose gain error a refitted law of several state equations states row by
+    row: every term of ``law`` is input j's, in at least two rows, each where j enters
+    (``B[:, j]``); None otherwise."""
+    if ch.kind != "equation" or ch.md < 2 or not isinstance(law, StaticLaw) or \
+            law.nonlinear or law.output is not None or "one direction" in law.formula:
+        return None
+    used = np.flatnonzero(np.any(law.coef != 0, axis=0))
+    if len(used) != 1 or law.spec[used[0]][1] != "u":
+        return None
+    j = int(law.spec[used[0]][2])
+    rows = np.flatnonzero(np.asarray(ch.G, dtype=float) @ (law.coef[:, used[0]] != 0))
+    B = np.asarray(base.B, dtype=float)[:, j]
+    return j if len(rows) >= 2 and np.all(B[rows] != 0) else None
+
+
+def _input_gains(joint, passes, jr, row, steps, dt, notes):
+    """``(jr, row, steps, passes)`` with each refitted law of several equations that states an
+    input's gain error row by row (``d_v1 = -0.295*F; d_v7 = 0.171*F`` where F enters v1
+    and v7: :func:`_one_input_terms`) tried as that input's channel (one gain, ``G =
+    B[:, j]``) and kept where the one criterion prefers the set so refitted
+    (``joint.prefers``: an equal fit with fewer parameters wins). Zoo state_input: an
+    actuator's gain error beside a damping error was named as a law of F in two equations
+    at two coefficients, each 31.7 % of B's entry (issue 27)."""
+    for k, ((base, ch, eff), st, law) in enumerate(zip(passes, steps, jr.laws)):
+        j = _one_input_terms(base, ch, law)
+        if j is None:
+            continue
+        t = next(i for i, sp in enumerate(law.spec) if sp[1] == "u" and sp[2] == j)
+        ch_in = input_channel(base, j)
+        b = np.asarray(base.B, dtype=float)[:, j]
+        added = np.asarray(ch.G, dtype=float) @ law.Ddu[:, j]  # what the law adds to B[:, j]
+        c = float(added @ b / (b @ b))
+        hold = None if law.hold is None else LawHold.of(np.asarray(base.A, dtype=float),
+                                                         ch_in.G, dt)
+        new = one_term_law(law, t, c, ch_in.labels[0], ch_in.units[0], base.nstates,
+                           base.ninputs, hold)
+        Bf = np.asarray(jr.continuous.B, dtype=float).copy()
+        Bf[:base.nstates, j] += c * b - added
+        jc = jr.continuous
+        final = named_ss(jc.A, Bf, jc.C, jc.D, 0, states=jc.state_labels,
+                         inputs=jc.input_labels, outputs=jc.output_labels, name=jc.name)
+        alt = [(b_, c_, _holding(e_, l_)) for (b_, c_, e_), l_ in zip(passes, jr.laws)]
+        alt[k] = (base, ch_in, replace(eff, law=new, dynamic_law=None, formula=new.formula))
+        what = f"{ch.name}'s law of {ch_in.input} tried as {ch_in.name} (one gain)"
+        try:
+            out = joint(alt, final, jr.model.Q, always=True)
+        except (GreyboxError, np.linalg.LinAlgError, ValueError) as e:
+            out = e
+        if not isinstance(out, tuple):
+            notes.append(Decision("refit", "", f"{what}: no refit ({out})"))
+            continue
+        better, how = joint.prefers(out[0], jr)
+        notes.append(Decision("refit", "", f"{what}, by the criterion: {how}: " +
+                              (f"{ch_in.name} kept" if better else f"{ch.name} kept")))
+        if not better:
+            continue
+        where = ", ".join(f"eq({e})" for e in ch.equations)
+        enters = ", ".join(f"eq({e})" for e in ch_in.equations)
+        st2 = replace(st, channel=ch_in.name,
+                      message=st.message.replace(where, f"input {ch_in.input} (it enters "
+                                                        f"{enters})", 1),
+                      effect=replace(st.effect, channel=ch_in.name, equations=ch_in.equations))
+        jr, row = out
+        passes = alt
+        steps = _refitted_steps(steps[:k] + [st2] + steps[k + 1:], passes, jr, row)
+    return jr, row, steps, passes
+
+
 def _refit_jointly(joint, passes, final, Qf, notes):
     """Refit every effect at once by output error; ``(JointRefinement, validation row)``.
 
@@ -2625,7 +2707,8 @@ def _retrace_last(once, joint, jr, passes, Q, steps, chans, dt, notes):
     what was left and may have picked the wrong drivers. Once the joint
     refit has dropped the borrowed terms, the last effect is traced again on
     that model and the whole set refitted; the better set by the one criterion
-    (``joint.prefers``: an equal fit with fewer terms wins) is kept. Returns ``(jr, row, steps)`` or None. Not traced again where
+    (``joint.prefers``: an equal fit with fewer terms wins) is kept. Returns ``(jr, row, steps,
+    passes)`` or None. Not traced again where
     the joint refit moved no coefficient by its 95 % half-width and dropped no term
     (``jr.moved`` False): the last pass then saw what it would see now.
     """
@@ -2665,4 +2748,4 @@ def _retrace_last(once, joint, jr, passes, Q, steps, chans, dt, notes):
                       model=rep.model)
     notes.append(Decision("refit", "", "re-trace of the last effect on the refitted model: "
                           + rep.message))
-    return jr2, row2, _refitted_steps(steps[:-1] + [last], alt, jr2, row2)
+    return jr2, row2, _refitted_steps(steps[:-1] + [last], alt, jr2, row2), alt

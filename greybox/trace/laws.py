@@ -523,6 +523,34 @@ def law_rows(law: StaticLaw, keep, labels, units) -> StaticLaw:
                    npar=int(law.npar) - int(np.count_nonzero(law.coef) - np.count_nonzero(coef)))
 
 
+def one_term_law(law: StaticLaw, t: int, c: float, label: str, unit: str, n: int, m: int,
+                 hold=None) -> StaticLaw:
+    """The law ``d = c * term t`` of a one-component channel on the library of ``law`` (its
+    terms and smoothing widths): a starting point for a refit (no interval yet).
+
+    Parameters
+    ----------
+    law : StaticLaw
+        The law whose library (``spec``, ``eps``, ``time_base``) the new one shares.
+    t : int
+        Index of the term in ``law.spec``.
+    c : float
+        Its coefficient.
+    label, unit : str
+        The channel's component name and unit (for the formula).
+    n, m : int
+        States and inputs of the model the library is of.
+    hold : LawHold, optional
+        A continuous-time law's hold for the new channel (:meth:`greybox.hold.LawHold.of`).
+    """
+    coef = np.zeros((1, law.coef.shape[1]))
+    coef[0, t] = c
+    Ddx, Ddu = linear_part(law.spec, coef, n, m)
+    return replace(law, coef=coef, ci=None, Ddx=Ddx, Ddu=Ddu, nonlinear=False,
+                   residual_var=np.full(1, np.nan), npar=1, hold=hold, output=None,
+                   formula=law_line(label, [c], [law.spec[t][0]], unit))
+
+
 def law_line(label: str, coefs, names, unit: str, half=None) -> str:
     """``"d_v2 = -(15 ± 0.3)*p2 [v2]/s"``: one component of a law, with its unit and intervals."""
     u = "" if not unit else f" {unit}" if unit.startswith("[") else f" [{unit}]"
