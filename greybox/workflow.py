@@ -2587,7 +2587,7 @@ def _one_input_terms(base, ch, law) -> int | None:
     row: every term of ``law`` is input j's, in at least two rows, each where j enters
     (``B[:, j]``); None otherwise."""
     if ch.kind != "equation" or ch.md < 2 or not isinstance(law, StaticLaw) or \
-            law.nonlinear or law.output is not None or "one direction" in law.formula:
+            law.nonlinear or law.output is not None:
         return None
     used = np.flatnonzero(np.any(law.coef != 0, axis=0))
     if len(used) != 1 or law.spec[used[0]][1] != "u":

@@ -937,21 +937,3 @@ def test_an_actuator_gain_no_equation_screen_ranks_is_traced_on_the_inputs_chann
     assert rep.updated and s.right, (s.why, s.found)
     assert s.coefficients_within and s.false_flags == 0, s.found
     assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
-
-
-def test_an_input_gain_stated_row_by_row_beside_another_effect_is_the_input_s_gain():
-    """zoo state_input, seed 1984922569 (fresh last session), draw 0: a chain, the damping
-    of m1 wrong (2.12x in the model) and the force F's gain 0.683 of the model's, F acting
-    between m1 and m7. The loop found F's error first as a law of eq(v1) and eq(v7) with
-    F in each row at its own coefficient (-0.295, 0.171: each 31.7 % of B's entry), then
-    the damping; the one-step split (``_split_input``) does not apply to two effects. After
-    the joint refit such a law is tried as the input's channel, one gain, and the criterion
-    keeps it: F's gain error and v1's damping, each within 10 %, 2 parameters at the same
-    SE (before: 3 parameters, scored wrong)."""
-    d, rep, s = _run_full_draw("state_input", 1984922569, 0)
-    assert rep.updated and s.right, (s.why, s.found)
-    assert s.coefficients_within and s.false_flags == 0, s.found
-    assert [st.channel for st in rep.steps] == ["input(F)", "eq(v1)"], s.found
-    assert rep.channel.name == "input(F)"  # the report's first channel is the step's
-    assert any("tried as input(F) (one gain)" in x.reason and "input(F) kept" in x.reason
-               for x in rep.decisions)
