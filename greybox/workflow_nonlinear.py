@@ -1984,8 +1984,12 @@ class _NonlinearPass:
         se = fit.se
         if dh.r > 1 and law.npar <= OE_MAX_TERMS:
             # a delayed d^ is noisy (d shows in y only through C A G~): its law's
-            # coefficients are refined by output error before the channels are compared
-            ref = _refine_law_oe(law, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D, noise_ch)
+            # coefficients are refined by output error before the channels are compared,
+            # its weak terms pruned as the output-error choice's are (zoo nonlinear_model
+            # 270939893 #1 kept +0.000427*th and +0.000421*T, intervals holding 0, beside
+            # the right sign(om))
+            ref = _refine_pruned(law, self.base, ch, P.disc, P.y, P.u, x0c, P.C, P.D,
+                                 noise_ch)
             if ref is not None:
                 fit_d = _fit_from(P.disc(ref.model), P.u, x0c, P.y, P.C, P.D)
                 if fit_d.se < se:
