@@ -1850,10 +1850,8 @@ class _Pass:
     def report(self, r: Residual, tr, v: Verdict, table: dict) -> LoopReport:
         """5. The pass's report: where, what, before/after."""
         ch, effect = tr.channel, v.effect
-        where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
-        if ch.kind == "input":
-            where = f"input {ch.input} (it enters {where})"
-        elif ch.kind == "force":
+        where = _where(ch)
+        if ch.kind == "force":
             g = np.asarray(ch.G)[[list(self.nominal.state_labels).index(e)
                                   for e in ch.equations], 0]
             where = (f"one force between {' and '.join(ch.equations)} (it enters {where} as "
@@ -2551,6 +2549,14 @@ def _without_empty(steps: list) -> list:
     return kept
 
 
+def _where(ch: Channel) -> str:
+    """Where a step's message says the error is: ``"eq(v1), eq(v7)"``, ``"input F (it
+    enters eq(v1), eq(v7))"``, or the channel's name (a force's direction is the report's
+    to add)."""
+    where = ", ".join(f"eq({s})" for s in ch.equations) or ch.name
+    return f"input {ch.input} (it enters {where})" if ch.kind == "input" else where
+
+
 def _narrowed(st, ch):
     """``(step, channel)``: a static law of several state equations that kept a term in
     some of them only after the joint refit, stated as the law of those equations (its
@@ -2568,10 +2574,9 @@ def _narrowed(st, ch):
         return st, ch
     sub = equation_subset(ch, keep)
     new = law_rows(law, keep, sub.labels, sub.units)
-    where = ", ".join(f"eq({s})" for s in ch.equations)
     eff = replace(st.effect, law=new, formula=new.formula, channel=sub.name,
                   equations=sub.equations)
-    msg = st.message.replace(where, ", ".join(f"eq({s})" for s in sub.equations), 1)
+    msg = st.message.replace(_where(ch), _where(sub), 1)
     return replace(st, effect=eff, channel=sub.name, message=msg), sub
 
 
@@ -2582,20 +2587,21 @@ def _holding(eff, law):
     return replace(eff, law=law)
 
 
-def _one_input_terms(base, ch, law) -> int | None:
-    """The input j whose gain error a refitted law of several state equations states row by
-    row: every term of ``law`` is input j's, in at least two rows, each where j enters
-    (``B[:, j]``); None otherwise."""
+def _one_input_terms(base, ch, law) -> tuple[int, int] | None:
+    """``(j, t)``: the input j whose gain error a refitted law of several state equations
+    states row by row, and its term's index t in ``law.spec``: every term of ``law`` is
+    input j's, in at least two rows, each where j enters (``B[:, j]``); None otherwise."""
     if ch.kind != "equation" or ch.md < 2 or not isinstance(law, StaticLaw) or \
             law.nonlinear or law.output is not None:
         return None
     used = np.flatnonzero(np.any(law.coef != 0, axis=0))
     if len(used) != 1 or law.spec[used[0]][1] != "u":
         return None
-    j = int(law.spec[used[0]][2])
-    rows = np.flatnonzero(np.asarray(ch.G, dtype=float) @ (law.coef[:, used[0]] != 0))
+    t = int(used[0])
+    j = int(law.spec[t][2])
+    rows = np.flatnonzero(np.asarray(ch.G, dtype=float) @ (law.coef[:, t] != 0))
     B = np.asarray(base.B, dtype=float)[:, j]
-    return j if len(rows) >= 2 and np.all(B[rows] != 0) else None
+    return (j, t) if len(rows) >= 2 and np.all(B[rows] != 0) else None
 
 
 def _input_gains(joint, passes, jr, row, steps, dt, notes):
@@ -2607,10 +2613,10 @@ def _input_gains(joint, passes, jr, row, steps, dt, notes):
     actuator's gain error beside a damping error was named as a law of F in two equations
     at two coefficients, each 31.7 % of B's entry (issue 27)."""
     for k, ((base, ch, eff), st, law) in enumerate(zip(passes, steps, jr.laws)):
-        j = _one_input_terms(base, ch, law)
-        if j is None:
+        found = _one_input_terms(base, ch, law)
+        if found is None:
             continue
-        t = next(i for i, sp in enumerate(law.spec) if sp[1] == "u" and sp[2] == j)
+        j, t = found
         ch_in = input_channel(base, j)
         b = np.asarray(base.B, dtype=float)[:, j]
         added = np.asarray(ch.G, dtype=float) @ law.Ddu[:, j]  # what the law adds to B[:, j]
@@ -2619,9 +2625,9 @@ def _input_gains(joint, passes, jr, row, steps, dt, notes):
                                                          ch_in.G, dt)
         new = one_term_law(law, t, c, ch_in.labels[0], ch_in.units[0], base.nstates,
                            base.ninputs, hold)
-        Bf = np.asarray(jr.continuous.B, dtype=float).copy()
-        Bf[:base.nstates, j] += c * b - added
         jc = jr.continuous
+        Bf = np.asarray(jc.B, dtype=float).copy()
+        Bf[:base.nstates, j] += c * b - added
         final = named_ss(jc.A, Bf, jc.C, jc.D, 0, states=jc.state_labels,
                          inputs=jc.input_labels, outputs=jc.output_labels, name=jc.name)
         alt = [(b_, c_, _holding(e_, l_)) for (b_, c_, e_), l_ in zip(passes, jr.laws)]
@@ -2639,11 +2645,8 @@ def _input_gains(joint, passes, jr, row, steps, dt, notes):
                               (f"{ch_in.name} kept" if better else f"{ch.name} kept")))
         if not better:
             continue
-        where = ", ".join(f"eq({e})" for e in ch.equations)
-        enters = ", ".join(f"eq({e})" for e in ch_in.equations)
         st2 = replace(st, channel=ch_in.name,
-                      message=st.message.replace(where, f"input {ch_in.input} (it enters "
-                                                        f"{enters})", 1),
+                      message=st.message.replace(_where(ch), _where(ch_in), 1),
                       effect=replace(st.effect, channel=ch_in.name, equations=ch_in.equations))
         jr, row = out
         passes = alt
