@@ -74,7 +74,7 @@ from .trace.dynamic import (DynamicLaw, SharedLaw, fit_input_lag, fit_shared_dyn
 from .trace.shared_order2 import SharedLaw2, fit_hidden_part2, fit_input_lag2, \
     fit_shared_order2
 from .trace.joint import has_joint_parameters, joint_effect, refine_jointly, \
-    without_dead_states
+    integrators_as_positions, without_dead_states
 from .trace.channels import (equation_subset, force_channel, input_channel, linked_forces,
                               output_channel,
                              relative_coordinates)
@@ -856,7 +856,12 @@ def _joint(P: Problem, passes, final, Qf, always: bool = False):
         return None
     x0 = estimate_initial_state(discretize(final, P.dt), P.y, P.u)
     jr = refine_jointly(effs, final, P.y, P.u, Q=Qf, R=P.R, dt=P.dt, x0=x0, k0=20)
-    jr = without_dead_states(_held_sensors_refitted(P, jr, passes), effs)
+    jr0 = _held_sensors_refitted(P, jr, passes)
+    jr = without_dead_states(jr0, effs)
+    alt = integrators_as_positions(jr0, effs, P.dt)
+    if alt is not jr0:  # the pole at 0 against its fitted value, by the one criterion
+        alt = without_dead_states(alt, effs)
+        jr = alt if _JointRefit(P).prefers(alt, jr)[0] else jr
     if not always and not (jr.se_after < jr.se_before or
                            (jr.npar_after < jr.npar_before and
                             jr.se_after <= 1.01 * jr.se_before)):
