@@ -139,10 +139,6 @@ DELTA_MAX_ORDER = 16
 # matrix then costs about DELTA_WORK flops; a 10-state model with one input keeps
 # 1.6e5 samples, more than the search window) ...
 DELTA_WORK = 5e9
-#: Partners a one-equation law with evidence of dynamics is tried with as one shared state
-#: where no pair of equations was traced (:meth:`_Pass._shared_with_linked`): a body in a
-#: chain or a row has two neighbours
-_LINKED_SHARED = 2
 # ... and it starts no new candidate once it has taken as long as the trace before it,
 # but never stops before this many seconds: below it the baseline runs whole whatever
 # the machine's speed, so the reports of small models do not depend on it.
@@ -1364,7 +1360,6 @@ class _Pass:
         # and the pair whose static law fits best, where no pair's unstructured fit showed
         # dynamics there (a dense fit of 2 x (n + m) drivers can miss one hidden state)
         self._shared_best_pair(r, tried)
-        self._shared_with_linked(r)
         # above SCREEN_ABOVE states there is no unstructured fit to show dynamics (the
         # best static law left the innovations coloured, see _static_is_enough): the
         # screen's group of equations (a hidden body touching 2-4 bodies) and the best
@@ -1503,40 +1498,6 @@ class _Pass:
         best = min(pairs, key=lambda c: c.se).trace
         if best.channel != tried and not self.static_is_enough(r):
             self._shared(best, r)
-
-    def _shared_with_linked(self, r: Residual) -> None:
-        """2c where no pair of equations was traced (the equation screen unavailable:
-        single equations and the forces between linked bodies only): the best one-equation
-        law with evidence of dynamics (its first-order law fits better than its static one)
-        tried as one state shared with each body a force links its equation to, the pair
-        traced first (at most ``_LINKED_SHARED`` partners, the best-fitting forces first).
-        Zoo thermal_mass 270939893 #1 (a row of 9, 4 measured, a hidden mass on T3 and T4):
-        eq(T4)'s first-order law fitted 9.25 % against its static law's 42 %, and no shared
-        state was tried; the model kept 38 % against the true model's 0.39 %."""
-        if self.static_is_enough(r) or any(
-                c.trace.channel.kind == "equation" and c.trace.channel.md == 2
-                for c in self.scored):
-            return
-        dyn = [c for c in self.scored if c.kind == "sparse" and np.isfinite(c.se) and
-               c.trace.channel.kind == "equation" and c.trace.channel.md == 1]
-        if not dyn:
-            return
-        best = min(dyn, key=lambda c: c.se)
-        ch = best.trace.channel
-        se_static = min((c.se for c in self.scored
-                         if c.trace.channel == ch and c.kind == "static"), default=np.inf)
-        if not best.se < se_static:
-            return
-        x = ch.equations[0]
-        forces = sorted((c for c in self.scored if c.trace.channel.kind == "force" and
-                         x in c.trace.channel.equations and np.isfinite(c.se)),
-                        key=lambda c: c.se)
-        partners = list(dict.fromkeys(e for c in forces for e in c.trace.channel.equations
-                                      if e != x))[:_LINKED_SHARED]
-        for y in partners:
-            tr = self.static_trace(resolve_channel_spec(self.sys, [(x, y)])[0])
-            if tr is not None:
-                self._shared(tr, r)
 
     def static_is_enough(self, r: Residual) -> bool:
         """:func:`_static_is_enough` on the pass's candidates: its Kalman filter over the
