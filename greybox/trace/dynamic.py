@@ -754,7 +754,7 @@ class _SharedProblem(_DynProblem):
 def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDArray,
                        y: NDArray, u: NDArray, *, Q: NDArray, R: NDArray, dt: float,
                        x0: NDArray, k0: int, pole: float | None = None,
-                       max_drivers: int = 3) -> SharedLaw | None:
+                       max_drivers: int = 3, own_only: bool = False) -> SharedLaw | None:
     """Fit one first-order state shared by the components of an md >= 2 channel.
 
     Parameters
@@ -784,6 +784,9 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     max_drivers : int
         Largest number of drivers of the state (and of feedthrough terms per
         component).
+    own_only : bool
+        Start only from the states of the channel's equations as drivers (the touching
+        bodies' template below), not from a selection on d^.
 
     Returns
     -------
@@ -812,7 +815,8 @@ def fit_shared_dynamic(sys: ct.StateSpace, channel: Channel, x: NDArray, d: NDAr
     if pole is not None and 0 < pole < 1:
         grid.append(float(pole))
     starts = []
-    for p0, own in ((p0, own) for p0 in grid for own in (False, True)):
+    kinds = (True,) if own_only else (False, True)
+    for p0, own in ((p0, own) for p0 in grid for own in kinds):
         st = _shared_start(sys, channel, w, d, dt, p0, max_drivers, own)
         if st is None or any(s[1:4] == st[:3] and np.allclose(s[4], st[3]) for s in starts):
             continue
