@@ -1333,10 +1333,8 @@ class _Pass:
                     not np.isfinite(se_) or ch.kind == "output":
                 continue
             done.add(ch)
-            se_static = min((c.se for c in self.scored
-                             if c.trace.channel == ch and c.kind == "static"), default=np.inf)
-            se_dyn = min((c.se for c in self.scored
-                          if c.trace.channel == ch and c.kind == "dynamic"), default=np.inf)
+            se_static = self._best_se(ch, "static")
+            se_dyn = self._best_se(ch, "dynamic")
             if not self.big and np.isfinite(se_dyn) and not se_dyn < SPARSE_IF * se_static:
                 continue  # no evidence of dynamics in this channel: the static law stands
             self._sparse(tr_)
@@ -1350,8 +1348,7 @@ class _Pass:
             if self.big or ch.md != 2 or ch.kind != "equation" or not np.isfinite(se_) or \
                     kind_ != "dynamic":
                 continue
-            se_static = min((c.se for c in self.scored
-                             if c.trace.channel == ch and c.kind == "static"), default=np.inf)
+            se_static = self._best_se(ch, "static")
             if not se_ < se_static:
                 continue
             # the evidence rule of the screened groups below: a static law that already
@@ -1525,8 +1522,7 @@ class _Pass:
             return
         best = min(dyn, key=lambda c: c.se)
         ch = best.trace.channel
-        se_static = min((c.se for c in self.scored
-                         if c.trace.channel == ch and c.kind == "static"), default=np.inf)
+        se_static = self._best_se(ch, "static")
         if not best.se < se_static:
             return
         x = ch.equations[0]
@@ -1544,6 +1540,12 @@ class _Pass:
                 continue
             if tr.status == "ok":  # its static law is not a candidate: the state is
                 self._shared(_light(tr), r, own=True)
+
+    def _best_se(self, ch, kind: str) -> float:
+        """The lowest estimation SE [%] of the scored candidates of ``kind`` on ``ch``
+        (inf without one)."""
+        return min((c.se for c in self.scored if c.trace.channel == ch and c.kind == kind),
+                   default=np.inf)
 
     def static_is_enough(self, r: Residual) -> bool:
         """:func:`_static_is_enough` on the pass's candidates: its Kalman filter over the

@@ -607,7 +607,7 @@ def integrators_as_positions(jr: JointRefinement, effects, dt: float) -> JointRe
             if sys.nstates <= zi:
                 continue
             A = np.array(sys.A, dtype=float)
-            A[:zi, :zi] += np.outer(A[:zi, zi], np.r_[pos, np.zeros(zi - pos.size)])
+            A[:zi, :zi] += np.outer(A[:zi, zi], pos)  # pos: the base's zi states
             A[:zi, zi] = 0.0
             models[q] = named_ss(A, sys.B, sys.C, sys.D, 0, states=sys.state_labels,
                                  inputs=sys.input_labels, outputs=sys.output_labels,
