@@ -81,7 +81,8 @@ def test_another_machine_compares_the_verdict_not_the_numbers():
 def test_the_machine_signature_names_the_blas_kernels_and_versions():
     sig = g.machine()
     assert sig["blas"]
-    assert {"cpu", "numpy", "scipy", "control", "slycot"} <= set(sig)
+    assert {"cpu", "numpy", "scipy", "control", "slycot", "probe"} <= set(sig)
+    assert sig["probe"] == g._probe()  # the same bits on a second run
 
 
 def test_a_key_survives_the_last_bits_of_another_machine():
@@ -95,3 +96,20 @@ def test_a_key_survives_the_last_bits_of_another_machine():
     assert g.fingerprint((y * (1 + 1e-13),), {"Q": [[1.0]]}) == a
     assert g.fingerprint((y * (1 + 1e-3),), {"Q": [[1.0]]}) != a
     assert g.fingerprint((y,), {"Q": [[2.0]]}) != a
+
+
+def test_the_probe_is_compared_once_a_recording_carries_it(tmp_path, monkeypatch):
+    """A recording made before the probe existed still matches its machine; one that
+    carries a probe matches only an equal probe; ``GREYBOX_GOLDEN=verdict`` compares the
+    verdict alone even on the recording machine."""
+    import json
+
+    monkeypatch.setattr(g, "GOLDEN", tmp_path)
+    sig = g.machine()
+    cases = [({k: v for k, v in sig.items() if k != "probe"}, "", True),
+             (sig, "", True), ({**sig, "probe": "0" * 16}, "", False), (sig, "verdict", False)]
+    for rec, mode, same in cases:
+        (tmp_path / "MACHINE.json").write_text(json.dumps(rec))
+        monkeypatch.setenv("GREYBOX_GOLDEN", mode)
+        monkeypatch.setattr(g, "_SAME", [])
+        assert g.same_machine() is same, (rec, mode)
