@@ -99,15 +99,16 @@ def test_a_key_survives_the_last_bits_of_another_machine():
 
 
 def test_the_probe_is_compared_once_a_recording_carries_it(tmp_path, monkeypatch):
-    """A recording made before the probe existed still matches its machine; one that
-    carries a probe matches only an equal probe; ``GREYBOX_GOLDEN=verdict`` compares the
-    verdict alone even on the recording machine."""
+    """Every number is compared only with ``GREYBOX_GOLDEN=strict``, and then only where
+    the signature is the recording's: a recording made before the probe existed still
+    matches its machine; one that carries a probe matches only an equal probe."""
     import json
 
     monkeypatch.setattr(g, "GOLDEN", tmp_path)
     sig = g.machine()
-    cases = [({k: v for k, v in sig.items() if k != "probe"}, "", True),
-             (sig, "", True), ({**sig, "probe": "0" * 16}, "", False), (sig, "verdict", False)]
+    cases = [({k: v for k, v in sig.items() if k != "probe"}, "strict", True),
+             (sig, "strict", True), ({**sig, "probe": "0" * 16}, "strict", False),
+             (sig, "", False), ({**sig, "cpu": "other"}, "strict", False)]
     for rec, mode, same in cases:
         (tmp_path / "MACHINE.json").write_text(json.dumps(rec))
         monkeypatch.setenv("GREYBOX_GOLDEN", mode)
