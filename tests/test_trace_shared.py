@@ -121,3 +121,23 @@ def test_a_force_law_refits_its_direction(ratio):
     # within 1.5x its 95 % half-width (~1.6e-4 here; 1.5x: one draw, 3 seeds tried gave
     # 0.6-0.7x)
     assert abs(g[1] / g[0] - (-0.5)) <= 1.5 * half, note
+
+
+def test_among_shared_fits_of_one_size_the_lower_error_wins_unless_it_is_the_same_law():
+    """The choice among a shared state's refined starts (``trace.dynamic._fewest_then_lowest``):
+    the fewest parameters within 1 % of the lowest output error; at one size the lower
+    error, the extra template start (flag 1) losing only to the same law (SEs within
+    ``_SAME_LAW_RTOL``). The SEs are those of zoo thermal_mass 244465831 #0, where the
+    flag alone had picked the local optimum (0.30216 %) over the true realization."""
+    from types import SimpleNamespace as law
+
+    from greybox.trace.dynamic import _SAME_LAW_RTOL, _fewest_then_lowest
+
+    local, true = law(se_estimation=0.30216, npar=6), law(se_estimation=0.30198, npar=6)
+    assert _fewest_then_lowest([(local, 0), (true, 1)]) is true
+    scaled = law(se_estimation=0.30216 * (1 + 0.1 * _SAME_LAW_RTOL), npar=6)
+    assert _fewest_then_lowest([(local, 0), (scaled, 1)]) is local  # one law: the ranked start
+    dense = law(se_estimation=0.3000, npar=8)  # lower, but within 1 %: the sparser wins
+    assert _fewest_then_lowest([(dense, 0), (local, 0), (true, 1)]) is true
+    far = law(se_estimation=0.2900, npar=8)  # more than 1 % lower: the only one in reach
+    assert _fewest_then_lowest([(far, 0), (true, 1)]) is far
