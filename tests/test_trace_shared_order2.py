@@ -68,11 +68,13 @@ def test_true_law_read_from_the_plant():
 
 
 @pytest.mark.slow
-def test_one_second_order_subsystem_in_the_pair_over_three_seeds():
-    """One test for the three seeds (each ~10-20 s at N_EST): a module fixture would run on
-    every xdist worker that takes one of its tests."""
+@pytest.mark.parametrize("n_seeds", [1, 3])
+def test_one_second_order_subsystem_in_the_pair(n_seeds):
+    """The first seed, or all three in one test (each ~10-20 s at N_EST; the coverage counts
+    need them all; [3] is in the extended tier, tests/conftest.py): a module fixture would
+    run on every xdist worker that takes one of its tests."""
     inside_p, inside_c = np.zeros(2), 0
-    for seed in SEEDS:
+    for seed in SEEDS[:n_seeds]:
         nom, true, rep, floor = _run(seed)
         _one_seed(seed, nom, rep, floor)
         dl = rep.effect.dynamic_law
@@ -101,8 +103,7 @@ def test_one_second_order_subsystem_in_the_pair_over_three_seeds():
         assert all(v < 0.02 * abs(tl["e22"]) for v in extra), dl.formula
     # 95 % intervals: each pole inside in >= 2 of 3 seeds with probability ~0.993
     # ("inside their 95 % intervals in most seeds", issue 8 item 7)
-    assert np.all(inside_p >= 2), inside_p
-    assert inside_c >= 2, inside_c
+    assert n_seeds < 3 or (np.all(inside_p >= 2) and inside_c >= 2), (inside_p, inside_c)
 
 
 def _one_seed(seed, nom, rep, floor):

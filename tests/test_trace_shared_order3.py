@@ -82,11 +82,13 @@ def test_pole_coordinates_round_trip():
 
 
 @pytest.mark.slow
-def test_one_third_order_subsystem_in_the_pair_over_three_seeds():
-    """One test for the three seeds (each ~25 s): a module fixture would run on every
-    xdist worker that takes one of its tests."""
+@pytest.mark.parametrize("n_seeds", [1, 3])
+def test_one_third_order_subsystem_in_the_pair(n_seeds):
+    """The first seed, or all three in one test (each ~30 s; the coverage count needs them
+    all; [3] is in the extended tier, tests/conftest.py): a module fixture would run on
+    every xdist worker that takes one of its tests."""
     inside = np.zeros(3)
-    for seed in SEEDS:
+    for seed in SEEDS[:n_seeds]:
         nom, d, true = thermal_chain3_pair(seed)
         rep = gb.close_the_loop(nom, d.y, d.u, d.y_val, d.u_val, Q=d.Q, R=d.R, dt=d.dt,
                                 delta=False)
@@ -120,7 +122,7 @@ def test_one_third_order_subsystem_in_the_pair_over_three_seeds():
         np.testing.assert_allclose(dl.k[1], tl["k2"], rtol=0.02)
         assert "third-order" in dl.formula and "time constants" in dl.formula
     # each pole inside its 95 % interval in >= 2 of 3 seeds (probability ~0.993 each)
-    assert np.all(inside >= 2), inside
+    assert n_seeds < 3 or np.all(inside >= 2), inside
 
 
 def test_third_order_law_evaluates_as_its_subsystem():
