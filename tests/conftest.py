@@ -67,10 +67,13 @@ EXTENDED = {
     "test_trace_shared_joint.py::test_both_effects_found_and_held_by_the_final_model": 37,  # ..._found_with_half_the_data (the three seeds' runs)
     "test_trace_shared_joint.py::test_coefficients_inside_their_intervals_in_most_seeds": 0,
     "test_trace_shared_joint.py::test_a_shared_law_is_affine_in_its_coefficients": 0,
-    "test_tanks_overflow.py::test_overflow_is_traced_to_the_upper_tank_as_a_saturation[seed7]": 25,
-    "test_tanks_overflow.py::test_overflow_update_reaches_the_true_models_validation_error[seed7]": 0,
-    "test_tanks_overflow.py::test_overflow_is_traced_to_the_upper_tank_as_a_saturation[seed9]": 45,
-    "test_tanks_overflow.py::test_overflow_update_reaches_the_true_models_validation_error[seed9]": 0,
+    "test_zoo.py::test_a_hidden_mass_the_screen_cannot_rank_is_tried_as_a_state_shared_with_a_neighbour": 16,  # ..._no_dense_fit_reveals_is_one_shared_state
+    "test_trace_shared_group.py::test_one_state_shared_by_the_right_three_equations": 25,  # test_trace_shared_state.py (a state shared by two)
+    "test_trace_shared_group.py::test_coefficients_and_time_constant_against_the_truth": 0,
+    "test_trace_laws.py::test_law_named_over_seeds[spring]": 28,  # [damping], the same ten-seed count
+    "test_nonlinear_intervals.py::test_cubic_drag_intervals_are_calibrated_over_seeds": 45,  # test_trace_delayed.py::test_cubic_coefficient_monte_carlo_spread_and_interval_width
+    "test_tanks_overflow.py::test_overflow_is_traced_to_the_upper_tank_as_a_saturation": 94,  # ..._a_short_record_chooses_the_terms_by_output_error_on_all_of_it
+    "test_tanks_overflow.py::test_overflow_update_reaches_the_true_models_validation_error": 0,
     "test_trace_scale.py::test_static_and_dynamic_effects_refitted_jointly": 85,  # test_trace_shared_order2.py::test_second_order_law_beside_a_static_effect_end_to_end
     "test_trace_scale.py::test_chain_positions_only_right_pair": 23,
     "test_trace_shared_order3.py::test_one_third_order_subsystem_in_the_pair": 129,  # its unit tests; the second order's end to end
