@@ -37,14 +37,15 @@ def _cache_group(module) -> str | None:
 
 # The extended tier (``-m extended``; the default run, CI's, deselects it: ``addopts`` in
 # pyproject.toml). CI has 10 minutes on 2 cores; on the machine CI ran on 2026-12-08 the
-# whole suite took 868 s (951 s here, 1866 s of test time). Every behaviour keeps a test in
-# the default run; the extended tier holds (1) the further draws of a behaviour whose
-# first draw stays (the cheapest), (2) the seeds after the first of a multi-seed loop (its
-# coverage count needs them all), (3) three real measured sets' case studies (tanks, EMPS,
-# Silverbox; the exchanger, the drives and the flow-dependent time constant stay), (4)
-# single runs whose behaviour keeps a sibling test in the default run (named after #). Seconds: measured on
-# 2026-12-08 (AMD EPYC, 2 workers), the call and its fixture. Run it before a stop:
-# ``python3 -m pytest -q -m extended`` (43 passed, 1 xfailed in 466 s on 2 cores, 2026-12-08).
+# whole suite took 868 s (951 s here, 1866 s of test time). The extended tier holds (1)
+# the further draws of a behaviour whose first (cheapest) draw stays, (2) the seeds after
+# the first of a multi-seed loop (its coverage count needs them all), (3) three real
+# measured sets' case studies (tanks, EMPS, Silverbox; the exchanger, the drives and the
+# flow-dependent time constant stay), (4) single runs whose behaviour keeps a sibling in
+# the default run (named after #; the third-order shared law's end-to-end run has only
+# its unit tests and the second order's run there). Seconds: measured on 2026-12-08 (AMD
+# EPYC, 2 workers), the call and its fixture. Run it before a stop:
+# ``python3 -m pytest -q -m extended`` (52 passed, 1 xfailed in 530 s on 2 cores, 2026-12-08).
 EXTENDED = {
     "test_zoo.py::test_a_sensor_lag_found_first_is_refitted_with_the_state_law_found_after_it[4]": 55,
     "test_zoo.py::test_a_state_error_found_before_a_sensor_lag_is_traced_again_after_it[1536943047-1]": 26,
