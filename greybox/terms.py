@@ -155,6 +155,10 @@ class TermKind:
     def add_linear(self, index, col: NDArray, Ddx: NDArray, Ddu: NDArray) -> None:
         """Add ``col`` (md,) times the term to the linear part ``(Ddx, Ddu)`` (linear kinds)."""
 
+    def eps_slot(self, index) -> int | None:
+        """The entry of the law's ``eps`` a smoothed term reads (None: not smoothed)."""
+        return None
+
     # ---------------------------------------------------------------- library
     def candidates(self, V: Variables, var) -> list[tuple[NDArray, tuple]]:
         """``(row (N,), spec entry)`` of the term's candidates on variable ``var``."""
@@ -242,6 +246,9 @@ class _OfState(TermKind):
     def value(self, index, x, u, eps):
         return self.form(x[index], eps[index] if self.smoothed else None)
 
+    def eps_slot(self, index):
+        return int(index) if self.smoothed else None
+
     def batch(self, indices, eps):
         rows, form = np.asarray(indices, dtype=np.intp), self.form
         e = _per_row(eps, rows) if self.smoothed else None
@@ -268,6 +275,9 @@ class _OfPair(TermKind):
     def value(self, index, x, u, eps):
         a, b, e = index
         return self.form(x[b] - x[a], eps[e] if self.smoothed else None)
+
+    def eps_slot(self, index):
+        return int(index[2]) if self.smoothed else None
 
     def batch(self, indices, eps):
         a, b, e = (np.asarray([ix[k] for ix in indices], dtype=np.intp) for k in range(3))

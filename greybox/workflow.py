@@ -1768,8 +1768,9 @@ class _Pass:
         except (GreyboxError, np.linalg.LinAlgError) as e:
             self.note("choose", ch.name, f"criterion prune failed: {e}")
             return pick
-        if tr.status != "ok" or tr.static is None or \
-                np.array_equal(tr.static.coef != 0, law.coef != 0):
+        if tr.status != "ok" or tr.static is None or (
+                np.array_equal(tr.static.coef != 0, law.coef != 0) and
+                np.array_equal(tr.static.eps, law.eps)):  # no term dropped, no width fitted
             return pick
         self.score(tr, narrowable=True)
         new = [s for s in self.scored[n_before:] if s.kind == "static" and np.isfinite(s.se)]

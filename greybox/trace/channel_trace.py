@@ -50,6 +50,7 @@ from .oe import (
     _refine_static_pe,
     _select_static_oe,
     exchange_siblings,
+    fit_smoothing,
     checked_intervals,
     offer_terms,
     simulates_better,
@@ -1076,6 +1077,12 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
                                     cont if law.time_base == "continuous" else None, noise,
                                     factor=float(prune))
             notes += more
+    # a friction's smoothing width, where the criterion pays for it, before its terms are
+    # weighed (a width off by 2x leaves a shape error a spurious linear term makes up for)
+    if prune and oe_ok and law.nonlinear and not has_marginal_pole(model):
+        law, more = fit_smoothing(law, model, channel.md, y, u, x0, k0, labels, channel.units,
+                                  law.term_scale(x, uu), noise, factor=float(prune))
+        notes += more
     # the one criterion: terms only where the data support them (by output error: not for a
     # model with an integrator, whose simulation drifts; EMPS lost its |v| term so)
     law = _pruned(law, model, channel, y, u, x0, k0, cont, noise, prune, oe_ok, at, notes)

@@ -1250,6 +1250,89 @@ def prune_by_criterion(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray
                          npar=len(ssel)), [note]
 
 
+#: The search range of a smoothed sign's width, in multiples of its default (5 % of its
+#: variable's RMS over the record, :func:`greybox.terms.law_terms`), and the search's
+#: tolerance on the factor's logarithm (:func:`fit_smoothing`)
+_EPS_FACTORS = (0.1, 10.0)
+_EPS_XATOL = 0.05
+
+
+def _smoothed_slots(law: StaticLaw, sel) -> list[int]:
+    """The entries of ``law.eps`` the selected terms' smoothed signs read."""
+    slots = {term_kind(law.spec[j][1]).eps_slot(law.spec[j][2]) for _, j in sel}
+    return sorted(s for s in slots if s is not None)
+
+
+def fit_smoothing(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
+                  x0: NDArray, k0: int, labels, units, tscale=None, noise=None,
+                  factor: float = 1.0) -> tuple[StaticLaw, list[str]]:
+    """The width of a nonlinear law's smoothed signs fitted by output error, where the
+    one criterion pays for it.
+
+    ``sign(v)`` is simulated as ``tanh(v / eps)``, eps 5 % of v's RMS by default. Real
+    friction reverses over a width of its own (a Stribeck curve, a compliant contact); a
+    width off by a factor of two leaves a shape error that other terms make up for (zoo
+    coulomb 20261208 #0: the truth's width 8.3 % of v's RMS; at 5 % the law took a
+    damping term beside the sign, ``-0.032 v``, validation SE 1.44 % against the true
+    model's 0.28 %). One factor on the widths of every smoothed term of the law is
+    searched (bounded, on its logarithm, within :data:`_EPS_FACTORS`; the coefficients
+    refitted by output error at each trial) and kept only where
+    :func:`greybox.metrics.oe_criterion` (``factor``: its price per parameter) pays for
+    it as one more parameter. Returns ``(law, notes)``: the law unchanged and no note
+    where it holds no smoothed term (or is a sensor law, or holds a lag or over
+    ``_NL_OE_MAX_TERMS`` terms) or the default width wins.
+    """
+    from scipy.optimize import minimize_scalar
+
+    sel, theta0 = _selected(law)
+    if not sel or not law.nonlinear or len(sel) > _NL_OE_MAX_TERMS or law.output is not None \
+            or any(not term_kind(law.spec[j][1]).static for _, j in sel):
+        return law, []
+    slots = _smoothed_slots(law, sel)
+    if not slots:
+        return law, []
+    W, p, everything = _nl_window(y, k0), y.shape[0], list(range(len(sel)))
+    trials: dict[float, tuple] = {}
+
+    def trial(logf: float):
+        """(problem, theta, residual (p, W)) with the widths times exp(logf)."""
+        key = round(float(logf), 12)
+        if key not in trials:
+            eps = np.array(law.eps, dtype=float, copy=True)
+            eps[slots] *= np.exp(logf)
+            prob = _OutputErrorNonlinearLaw(replace(law, eps=eps), model, md, y, u, x0, k0,
+                                            sel, theta0, noise, W)
+            theta = prob.fit(everything, theta0)[0]
+            r = prob.resid(theta / prob.theta_scale).reshape(p, -1)
+            trials[key] = (prob, theta, r)
+        return trials[key]
+
+    r0 = trial(0.0)[2]
+    if not np.all(np.abs(r0) < 1e6):
+        return law, []
+    neff = effective_samples(r0)
+
+    def crit(logf: float, npar: int) -> float:
+        r = trial(logf)[2]
+        return oe_criterion(r, npar, neff, factor) if np.all(np.abs(r) < 1e6) else np.inf
+
+    lo, hi = np.log(_EPS_FACTORS[0]), np.log(_EPS_FACTORS[1])
+    best = minimize_scalar(lambda z: crit(z, len(sel)), bounds=(lo, hi), method="bounded",
+                           options={"xatol": _EPS_XATOL})
+    c0, c1 = crit(0.0, len(sel)), crit(float(best.x), len(sel) + 1)
+    if not c1 < c0:
+        return law, []
+    prob, theta, _ = trial(float(best.x))
+    theta, half, _ = prob.fit(everything, theta)
+    out = _nl_law_with(prob.law, sel, everything, theta, half, labels, units, tscale)
+    out = replace(out, npar=out.npar + 1)
+    f = float(np.exp(best.x))
+    widths = ", ".join(f"{law.eps[s] * f:.3g}" for s in slots)
+    return out, [f"smoothing width of the law's sign terms fitted by output error: "
+                 f"{f:.3g} x the default (5 % of the variable's RMS), eps = {widths}; "
+                 f"output-error criterion {c1 - c0:+.1f} with it counted as a parameter"]
+
+
 def exchange_siblings(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArray, u: NDArray,
                       x0: NDArray, k0: int, labels, units, tscale: NDArray,
                       noise=None, family: str | None = None) -> tuple[StaticLaw, list[str]]:
