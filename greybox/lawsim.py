@@ -111,9 +111,12 @@ def simulate_columns(A: NDArray, G: NDArray, hold, Bu: NDArray, u: NDArray, x0: 
         mode, mats = 1, (h.G0, h.G1, z, z, zn, zn)
     else:
         mode, mats = 2, (h.P2, h.F1, h.F23, h.F4, h.E2, h.W)
+        if h.substeps > 1:  # the law stepped over sub-steps, the input held
+            A, Bu = h.Ah, h.Ws @ np.asarray(Bu, dtype=float)
     mats = tuple(np.ascontiguousarray(np.asarray(M, dtype=float).reshape(s))
                  for M, s in zip(mats, [(n, md)] * 4 + [(n, n)] * 2))
-    return _kernel()(np.ascontiguousarray(A, dtype=float), *mats, mode,
+    reps = h.substeps if mode == 2 else 1
+    return _kernel()(np.ascontiguousarray(A, dtype=float), *mats, mode, int(reps),
                      np.ascontiguousarray(Bu, dtype=float), np.ascontiguousarray(u, dtype=float),
                      np.ascontiguousarray(x0, dtype=float),
                      np.ascontiguousarray(np.asarray(TH, dtype=float).T), *terms,
@@ -178,13 +181,14 @@ def _mv(M, v, out):  # out = M @ v
             s += M[r, c] * v[c]
         out[r] = s
 
-def _run(A, M1, M2, M3, M4, E2, W, mode, Bu, u, x0, THt, codes, ti, tj, tw, comp,
+def _run(A, M1, M2, M3, M4, E2, W, mode, reps, Bu, u, x0, THt, codes, ti, tj, tw, comp,
         md, isolate):
     """States (N, n, K): :func:`simulate_columns`' recursion, column by column.
 
     ``mode`` 0: ``x' = A x + Bu + M1 f(x)``; 1: Heun of the first-order hold (M1 = G0,
     M2 = G1); 2: ETDRK4 (:meth:`greybox.hold.LawHold.step`: M1 = P2, M2..M4 = F1, F23,
-    F4, with E2 and W). ``THt`` (K, nterms): one row of coefficients per column."""
+    F4, with E2 and W), ``reps`` times per sample (sub-steps: A, Bu, E2, W and the M's are
+    then a sub-step's). ``THt`` (K, nterms): one row of coefficients per column."""
     n, N, K = A.shape[0], Bu.shape[1], THt.shape[0]
     xs = np.full((N, n, K), np.nan)
     dead = np.full(K, N)
@@ -207,49 +211,50 @@ def _run(A, M1, M2, M3, M4, E2, W, mode, Bu, u, x0, THt, codes, ti, tj, tw, comp
             if dead[c] < N:
                 continue
             x, th = X[c], THt[c]
-            _law(x, uk, th, codes, ti, tj, tw, comp, fx)
-            _mv(A, x, t1)
-            if mode == 0:  # x' = A x + B u + G f(x)
-                _mv(M1, fx, t2)
-                for r in range(n):
-                    x[r] = t1[r] + bu[r] + t2[r]
-            elif mode == 1:  # Heun of the first-order hold
-                for r in range(n):
-                    t1[r] += bu[r]
-                for r in range(n):
-                    s = 0.0
+            for _ in range(reps):  # sub-steps (the input held); 1 but for a stiff law
+                _law(x, uk, th, codes, ti, tj, tw, comp, fx)
+                _mv(A, x, t1)
+                if mode == 0:  # x' = A x + B u + G f(x)
+                    _mv(M1, fx, t2)
+                    for r in range(n):
+                        x[r] = t1[r] + bu[r] + t2[r]
+                elif mode == 1:  # Heun of the first-order hold
+                    for r in range(n):
+                        t1[r] += bu[r]
+                    for r in range(n):
+                        s = 0.0
+                        for q in range(md):
+                            s += (M1[r, q] + M2[r, q]) * fx[q]
+                        t3[r] = t1[r] + s
+                    _law(t3, uk, th, codes, ti, tj, tw, comp, fa)
+                    _mv(M1, fx, t2)
+                    _mv(M2, fa, t4)
+                    for r in range(n):
+                        x[r] = t1[r] + t2[r] + t4[r]
+                else:  # ETDRK4 (LawHold.step)
+                    _mv(E2, x, t2)
+                    for r in range(n):
+                        t2[r] += bh[r]  # half
+                    _mv(M1, fx, t3)
+                    for r in range(n):
+                        t3[r] += t2[r]  # a
+                    _law(t3, uk, th, codes, ti, tj, tw, comp, fa)
+                    _mv(M1, fa, t4)
+                    for r in range(n):
+                        t4[r] += t2[r]
+                    _law(t4, uk, th, codes, ti, tj, tw, comp, fb)
+                    _mv(E2, t3, t4)
                     for q in range(md):
-                        s += (M1[r, q] + M2[r, q]) * fx[q]
-                    t3[r] = t1[r] + s
-                _law(t3, uk, th, codes, ti, tj, tw, comp, fa)
-                _mv(M1, fx, t2)
-                _mv(M2, fa, t4)
-                for r in range(n):
-                    x[r] = t1[r] + t2[r] + t4[r]
-            else:  # ETDRK4 (LawHold.step)
-                _mv(E2, x, t2)
-                for r in range(n):
-                    t2[r] += bh[r]  # half
-                _mv(M1, fx, t3)
-                for r in range(n):
-                    t3[r] += t2[r]  # a
-                _law(t3, uk, th, codes, ti, tj, tw, comp, fa)
-                _mv(M1, fa, t4)
-                for r in range(n):
-                    t4[r] += t2[r]
-                _law(t4, uk, th, codes, ti, tj, tw, comp, fb)
-                _mv(E2, t3, t4)
-                for q in range(md):
-                    dd[q] = 2.0 * fb[q] - fx[q]
-                _mv(M1, dd, t2)
-                for r in range(n):
-                    t4[r] += bh[r] + t2[r]
-                _law(t4, uk, th, codes, ti, tj, tw, comp, fc)
-                for r in range(n):
-                    s = t1[r] + bu[r]
-                    for q in range(md):
-                        s += M2[r, q] * fx[q] + M3[r, q] * (fa[q] + fb[q]) + M4[r, q] * fc[q]
-                    x[r] = s  # x's old values are read above only (t1 = A x, t2 = E2 x)
+                        dd[q] = 2.0 * fb[q] - fx[q]
+                    _mv(M1, dd, t2)
+                    for r in range(n):
+                        t4[r] += bh[r] + t2[r]
+                    _law(t4, uk, th, codes, ti, tj, tw, comp, fc)
+                    for r in range(n):
+                        s = t1[r] + bu[r]
+                        for q in range(md):
+                            s += M2[r, q] * fx[q] + M3[r, q] * (fa[q] + fb[q]) + M4[r, q] * fc[q]
+                        x[r] = s  # x's old values are read above only (t1 = A x, t2 = E2 x)
             ok = True
             for r in range(n):
                 if not abs(x[r]) <= 1e100:

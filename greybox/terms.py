@@ -159,6 +159,13 @@ class TermKind:
         """The entry of the law's ``eps`` a smoothed term reads (None: not smoothed)."""
         return None
 
+    def steepest(self, index, eps: NDArray) -> float:
+        """The largest slope of a smoothed term in the states it reads (the sum over them of
+        ``|d term / d x|`` at its steepest: ``1 / eps`` for ``tanh(v / eps)``, twice that
+        for a relative coordinate); 0 for any other term (its slope is bounded by the
+        record's scale, not by a width the fit may narrow)."""
+        return 0.0
+
     # ---------------------------------------------------------------- library
     def candidates(self, V: Variables, var) -> list[tuple[NDArray, tuple]]:
         """``(row (N,), spec entry)`` of the term's candidates on variable ``var``."""
@@ -249,6 +256,9 @@ class _OfState(TermKind):
     def eps_slot(self, index):
         return int(index) if self.smoothed else None
 
+    def steepest(self, index, eps):
+        return 1.0 / float(eps[int(index)]) if self.smoothed else 0.0
+
     def batch(self, indices, eps):
         rows, form = np.asarray(indices, dtype=np.intp), self.form
         e = _per_row(eps, rows) if self.smoothed else None
@@ -278,6 +288,9 @@ class _OfPair(TermKind):
 
     def eps_slot(self, index):
         return int(index[2]) if self.smoothed else None
+
+    def steepest(self, index, eps):
+        return 2.0 / float(eps[int(index[2])]) if self.smoothed else 0.0
 
     def batch(self, indices, eps):
         a, b, e = (np.asarray([ix[k] for ix in indices], dtype=np.intp) for k in range(3))

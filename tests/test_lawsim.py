@@ -47,7 +47,8 @@ def _problem(hold_kind, spec=SPEC, N=400, seed=3):
     Ac -= 3 * np.eye(n) * np.abs(np.linalg.eigvals(Ac)).max()
     A, Gc = sl.expm(Ac * dt), rng.standard_normal((n, 2))
     hold = {"none": None, "heun": (LawHold.of(Ac, Gc, dt).G0, LawHold.of(Ac, Gc, dt).G1),
-            "etdrk4": LawHold.of(Ac, Gc, dt)}[hold_kind]
+            "etdrk4": LawHold.of(Ac, Gc, dt),
+            "etdrk4x3": LawHold.of(Ac, Gc, dt, substeps=3)}[hold_kind]
     model = ct.ss(A, np.c_[0.1 * rng.standard_normal((n, m)), Gc * dt],
                   rng.standard_normal((1, n)), np.zeros((1, m + 2)), dt)
     u, y = rng.standard_normal((m, N)), rng.standard_normal((1, N))
@@ -68,7 +69,7 @@ def _both(p, TH, isolate):
     return fast, slow
 
 
-@pytest.mark.parametrize("hold", ["none", "heun", "etdrk4"])
+@pytest.mark.parametrize("hold", ["none", "heun", "etdrk4", "etdrk4x3"])
 @pytest.mark.parametrize("isolate", [False, True])
 def test_every_compiled_kind_simulates_as_the_numpy_recursion(hold, isolate):
     p, th0 = _problem(hold)

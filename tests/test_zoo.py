@@ -27,6 +27,7 @@ import pytest
 import greybox as gb
 from greybox import zoo
 from greybox.nonlinear import discretize_nonlinear, simulate_nonlinear
+from greybox.terms import term_kind
 
 N_EST = 400         # short records: the checks of part 1 are per sample, not statistical
 SEED = 7
@@ -599,6 +600,29 @@ def test_coulomb_friction_on_an_unmeasured_speed_is_named_as_friction(seed, i):
     assert "sign(" in rep.effect.formula, rep.effect.formula
     assert any("term form chosen by output error" in n for n in rep.notes), rep.notes
     assert s.error_updated < 0.2 * s.error_nominal  # and the model is far better than before
+
+
+@pytest.mark.parametrize("seed,i", [(20261208, 0), (777, 3)])
+def test_a_friction_s_own_width_is_fitted_and_its_law_is_the_sign_alone(seed, i):
+    """Coulomb friction on one mass, speed measured (the two draws of two fresh seeds with
+    a smooth input, where the friction reverses slowly enough for its width to show). The
+    truth's sign is tanh(v / eps) with eps 8.3 % and 3.2 % of the record's RMS of v; the
+    law's was 5 %: a spurious linear term beside the sign made up for the shape
+    (-0.032*v, SE 1.44 % against the true model's 0.28 %; +0.022*p1, 0.86 % against
+    0.16 %). The width is now fitted by output error where the one criterion pays for it
+    (trace.oe.fit_smoothing) and the law stepped as finely as its slope needs
+    (hold.LawHold.substeps): the sign alone, its coefficient within 10 % and inside its
+    interval, the width within 10 % of the truth's (the search's tolerance is 5 % on its
+    factor), the error within 1.5x the true model's."""
+    d, rep, s = _run_full_draw("coulomb", seed, i)
+    assert rep.updated and s.right and s.coefficients_within, (s.why, s.found)
+    assert s.covered == s.n_coefficients == 1, s.found
+    assert s.error_updated <= 1.5 * s.error_true, (s.error_updated, s.error_true)
+    law, term = rep.effect.law, d.truth.effects[0].terms[0]
+    j = int(np.flatnonzero(law.coef[0])[0])
+    eps = law.eps[term_kind(law.spec[j][1]).eps_slot(law.spec[j][2])]
+    assert abs(eps / term.smoothing - 1) < 0.1, (eps, term.smoothing)
+    assert any("smoothing width" in n for n in rep.notes), rep.notes
 
 
 # The two-mass draws of cubic_force among the first 30 of two fresh seeds (20261204 #0;

@@ -127,6 +127,29 @@ class StaticLaw:
     hold: LawHold | tuple | None = None
     output: int | None = None
 
+    def __post_init__(self):
+        # a law integrated over each sample steps as finely as its own rate needs (a
+        # friction's sign smoothed over a narrow width): set wherever a law is built
+        h = self.hold
+        if isinstance(h, LawHold) and h.Gc is not None:
+            object.__setattr__(self, "hold", h.with_substeps(h.substeps_for(self.rate())))
+
+    def rate(self) -> float:
+        """A bound [1/s] on how fast the law's smoothed terms change the states they read:
+        ``sum |coef| * steepest slope * max |Gc column|`` over them (``hold.Gc``: how the
+        law enters the continuous state equations); 0 without a continuous hold."""
+        h = self.hold
+        if not isinstance(h, LawHold) or h.Gc is None:
+            return 0.0
+        g = np.max(np.abs(h.Gc), axis=0) if h.Gc.size else np.zeros(0)
+        out = 0.0
+        for c, j in zip(*np.nonzero(self.coef)):
+            _, kind, ix = self.spec[j]
+            slope = term_kind(kind).steepest(ix, self.eps)
+            if slope and c < g.size:
+                out += abs(float(self.coef[c, j])) * slope * float(g[c])
+        return out
+
     def evaluate(self, x: NDArray, u: NDArray) -> NDArray[np.float64]:
         """d = law(x, u) for x (nstates, ...) and u (ninputs, ...)."""
         coef, terms = self._selected_terms
