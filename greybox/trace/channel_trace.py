@@ -1003,6 +1003,15 @@ def _own_offers(law, model, channel: Channel, fit_data) -> tuple[list, list]:
     return [(0, j) for j in own], list(guesses)
 
 
+def _refined_note(what: str, se_d: float, se_y: float) -> str:
+    """The decision note of a law refined by output error (SE [%] before and after; a
+    diverging simulation's SE is 1e8 %, :func:`greybox.trace.oe.scaled_output_error`)."""
+    if se_d < 1e6:
+        return f"{what} law refined by output error on y: estimation SE {se_d:.3g}% -> {se_y:.3g}%"
+    return (f"{what} law refined by output error on y from the d^ law shrunk until it "
+            f"simulates (the d^ law diverges): estimation SE {se_y:.3g}%")
+
+
 def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whitened: bool,
                  averaged: bool, excess: float, oe_ok: bool, fit_data, at, notes,
                  prune: float = 0.0, own: bool = False):
@@ -1053,8 +1062,7 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
         law, se_d, se_y = _refine_static_oe(law, model, channel.md, y, u, x0,
                                             k0, labels, channel.units, tscale, cont, noise)
         if se_y < se_d:
-            notes.append(f"static law refined by output error on y: estimation SE "
-                         f"{se_d:.3g}% -> {se_y:.3g}%")
+            notes.append(_refined_note("static", se_d, se_y))
     elif not oe_ok and not law.nonlinear and law.npar and noise is not None:  # unstable
         law, pe_d, pe_y = _refine_static_pe(law, model, channel.md, y, u, x0, k0, labels,
                                             channel.units, law.term_scale(x, uu), cont, noise)
@@ -1067,8 +1075,7 @@ def _refined_law(law, model, channel: Channel, y, u, x0, k0, cont, noise, whiten
                                                k0, labels, channel.units, law.term_scale(x, uu),
                                                noise=noise)
         if se_y < se_d:
-            notes.append(f"nonlinear static law refined by output error on y: estimation SE "
-                         f"{se_d:.3g}% -> {se_y:.3g}%")
+            notes.append(_refined_note("nonlinear static", se_d, se_y))
     if own and prune and oe_ok and law.npar and not has_marginal_pole(model):
         offers, guesses = _own_offers(law, model, channel, fit_data)
         if offers:

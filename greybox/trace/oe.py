@@ -756,14 +756,22 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
     held = _OutputErrorNonlinearLaw(law, model, md, y, u, x0, k0, sel, theta0, None, 2 * W)
 
     def se_held(thetas):  # SE [%] on samples k0 + W .. k0 + 2W of each column of thetas
-        r = held._resid(held.simulate(thetas))
+        r = held._resid(held.simulate(thetas, isolate=True))
         r = r.reshape(r.shape[0], held.y.shape[0], -1)[:, :, W:]
         return 100 * np.mean(np.sqrt(np.mean(r**2, axis=2)), axis=1)
 
     se0 = prob.se(theta0)
+    start = theta0
+    for _ in range(30):  # a d^ law that diverges: shrunk towards the nominal model until
+        if np.isfinite(se0) and se0 < 1e6:  # it simulates (the linear refine's start)
+            break
+        start = 0.5 * start
+        se0 = prob.se(start)
     if not np.isfinite(se0) or se0 >= 1e6:
         return law, se0, se0
-    if noise is not None:  # the d^ law already simulates as well as the noise model allows
+    if start is not theta0:
+        se0 = np.inf  # the d^ law itself does not simulate: any fit that does is better
+    elif noise is not None:  # the d^ law already simulates as well as the noise model allows
         floor = noise_floor(prob.A_lin, prob.C, noise[0], noise[1], k0, W)
         if _process_noise_dominates(floor, noise[1]):  # else the simulation is not needed
             r0 = prob.resid(theta0 / prob.theta_scale).reshape(prob.y.shape[0], -1)
@@ -771,8 +779,8 @@ def _refine_nonlinear_oe(law: StaticLaw, model: ct.StateSpace, md: int, y: NDArr
             if np.all(ms <= _FLOOR_FACTOR * floor):
                 return law, se0, se0
     keep = list(range(len(sel)))
-    theta, half, cov = prob.fit(keep, theta0)
-    if _wald(theta0 - theta, cov) <= chi2.ppf(0.99, len(sel)):
+    theta, half, cov = prob.fit(keep, start)
+    if start is theta0 and _wald(theta0 - theta, cov) <= chi2.ppf(0.99, len(sel)):
         return law, se0, se0  # the d^ fit agrees with the simulation's
     for _ in range(_MAX_PRUNE):
         t = np.abs(theta) / np.where(np.isfinite(half) & (half > 0), half, np.inf)
