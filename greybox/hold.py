@@ -137,9 +137,9 @@ class LawHold:
         s = max(1, int(substeps))
         h = dt / s
         E2, P2, _, _ = _phi_blocks(Ac, Gc, h / 2)
-        Ah, p1, p2, p3 = _phi_blocks(Ac, Gc, dt)  # the whole sample's first-order hold
+        _, p1, p2, p3 = _phi_blocks(Ac, Gc, dt)  # the whole sample's first-order hold
         g0, g1, built = p1 - p2, p2, {"Ac": Ac, "Gc": Gc, "dt": float(dt)}
-        if s > 1:
+        if s > 1:  # ETDRK4's weights over one sub-step, and its state step
             Ah, p1, p2, p3 = _phi_blocks(Ac, Gc, h)
         I = np.eye(Ac.shape[0])
         if np.linalg.cond(E2 + I) > 1e12:  # a mode at an odd multiple of pi/h: aliased

@@ -164,7 +164,8 @@ class TermKind:
         ``|d term / d x|`` at its steepest: ``1 / eps`` for ``tanh(v / eps)``, twice that
         for a relative coordinate); 0 for any other term (its slope is bounded by the
         record's scale, not by a width the fit may narrow)."""
-        return 0.0
+        slot = self.eps_slot(index)
+        return 0.0 if slot is None else 1.0 / float(eps[slot])
 
     # ---------------------------------------------------------------- library
     def candidates(self, V: Variables, var) -> list[tuple[NDArray, tuple]]:
@@ -256,9 +257,6 @@ class _OfState(TermKind):
     def eps_slot(self, index):
         return int(index) if self.smoothed else None
 
-    def steepest(self, index, eps):
-        return 1.0 / float(eps[int(index)]) if self.smoothed else 0.0
-
     def batch(self, indices, eps):
         rows, form = np.asarray(indices, dtype=np.intp), self.form
         e = _per_row(eps, rows) if self.smoothed else None
@@ -290,7 +288,7 @@ class _OfPair(TermKind):
         return int(index[2]) if self.smoothed else None
 
     def steepest(self, index, eps):
-        return 2.0 / float(eps[int(index[2])]) if self.smoothed else 0.0
+        return 2.0 * super().steepest(index, eps)  # x_j - x_i reads two states
 
     def batch(self, indices, eps):
         a, b, e = (np.asarray([ix[k] for ix in indices], dtype=np.intp) for k in range(3))

@@ -273,9 +273,11 @@ def estimate_initial_state(sys: ct.StateSpace, y: NDArray, u: NDArray, *,
         return np.zeros(0)
     if nsamples is not None:
         nsamples = check_positive(nsamples, "nsamples", integer=True)
-    mags = np.abs(np.linalg.eigvals(A))
+    lam = np.linalg.eigvals(A)
+    mags = np.abs(lam)
     Nw = min(y.shape[1], nsamples or (_x0_window(mags, n) if slow_modes else max(10 * n, 50)))
-    if nsamples is None and slow_modes and has_free_ramp(A, np.asarray(sys.B, dtype=float)):
+    if nsamples is None and slow_modes and \
+            has_free_ramp(A, np.asarray(sys.B, dtype=float), eigenvalues=lam):
         Nw = min(y.shape[1], max(Nw, X0_WINDOW_MAX))
     if np.max(mags) > 1.0 + 1e-6 and Nw > 0:
         # an unstable model: keep the window short enough not to overflow
@@ -304,7 +306,7 @@ X0_WINDOW_TAUS = 3.0
 X0_WINDOW_MAX = 2000
 
 
-def has_free_ramp(A: NDArray, B: NDArray, tol: float = 1e-9) -> bool:
+def has_free_ramp(A: NDArray, B: NDArray, tol: float = 1e-9, eigenvalues=None) -> bool:
     """Whether the free response of ``x[k+1] = A x + B u`` holds a ramp no input drives.
 
     A Jordan block at eigenvalue 1 whose chain the inputs do not reach: a drifting sensor's
@@ -321,9 +323,12 @@ def has_free_ramp(A: NDArray, B: NDArray, tol: float = 1e-9) -> bool:
     B : ndarray, shape (n, m)
     tol : float
         Relative rank tolerance.
+    eigenvalues : ndarray, optional
+        A's eigenvalues where the caller has them (not computed again).
     """
     n = A.shape[0]
-    if n < 2 or not np.any(np.abs(np.linalg.eigvals(A) - 1.0) < 1e-6):
+    lam = np.linalg.eigvals(A) if eigenvalues is None and n >= 2 else eigenvalues
+    if n < 2 or not np.any(np.abs(lam - 1.0) < 1e-6):
         return False
 
     def basis(X):  # orthonormal basis of the range of X
